@@ -1,0 +1,256 @@
+//! Kinematic constraints on nodes: fixed or imposed positions, sliding on a plane, a line,
+//! or an implicit surface. Each constraint removes the constrained directions of a node's
+//! motion and of its force; the removed force is the reaction (thesis eq. 4.1).
+
+use nalgebra::Vector3;
+
+use super::sdf::SignedDistanceField;
+use crate::{Error, Result};
+
+/// What a constrained node may do.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NodeConstraint {
+    /// Held at a position in metres (fixed, or an imposed displacement from rest).
+    Fixed {
+        /// Where the node is held, metres.
+        target_m: Vector3<f64>,
+    },
+    /// Slides freely on a plane.
+    Plane {
+        /// A point of the plane, metres.
+        point_m: Vector3<f64>,
+        /// Unit normal of the plane.
+        normal: Vector3<f64>,
+    },
+    /// Slides freely along a line.
+    Line {
+        /// A point of the line, metres.
+        point_m: Vector3<f64>,
+        /// Unit direction of the line.
+        direction: Vector3<f64>,
+    },
+    /// Slides on the zero level set of a signed distance field (index into the set's fields).
+    Surface {
+        /// Index of the field in [`ConstraintSet::fields`].
+        field: u32,
+    },
+}
+
+/// All constraints of a model: at most one per node, stored sparsely.
+#[derive(Debug, Clone, Default)]
+pub struct ConstraintSet {
+    /// Constrained node and its constraint, in insertion order.
+    pub entries: Vec<(u32, NodeConstraint)>,
+    /// Implicit surfaces referenced by [`NodeConstraint::Surface`].
+    pub fields: Vec<SignedDistanceField>,
+    slot: Vec<u32>,
+}
+
+const FREE: u32 = u32::MAX;
+
+impl ConstraintSet {
+    /// An empty set for a mesh of `node_count` nodes.
+    pub fn new(node_count: usize) -> Self {
+        ConstraintSet {
+            entries: Vec::new(),
+            fields: Vec::new(),
+            slot: vec![FREE; node_count],
+        }
+    }
+
+    /// Adds or replaces the constraint of `node`; checks the node and the geometry.
+    pub fn set(&mut self, node: u32, constraint: NodeConstraint) -> Result<()> {
+        let n = node as usize;
+        if n >= self.slot.len() {
+            return Err(Error::InvalidModel(format!(
+                "constraint on node {node}, but the mesh has {} nodes",
+                self.slot.len()
+            )));
+        }
+        let constraint = match constraint {
+            NodeConstraint::Fixed { target_m } => {
+                finite(&target_m, node, "target")?;
+                constraint
+            }
+            NodeConstraint::Plane { point_m, normal } => {
+                finite(&point_m, node, "plane point")?;
+                NodeConstraint::Plane {
+                    point_m,
+                    normal: unit(normal, node, "plane normal")?,
+                }
+            }
+            NodeConstraint::Line { point_m, direction } => {
+                finite(&point_m, node, "line point")?;
+                NodeConstraint::Line {
+                    point_m,
+                    direction: unit(direction, node, "line direction")?,
+                }
+            }
+            NodeConstraint::Surface { field } => {
+                if field as usize >= self.fields.len() {
+                    return Err(Error::InvalidModel(format!(
+                        "node {node} slides on surface {field}, but only {} surfaces exist",
+                        self.fields.len()
+                    )));
+                }
+                constraint
+            }
+        };
+        match self.slot[n] {
+            FREE => {
+                self.slot[n] = self.entries.len() as u32;
+                self.entries.push((node, constraint));
+            }
+            s => self.entries[s as usize].1 = constraint,
+        }
+        Ok(())
+    }
+
+    /// Fixes `node` at `target_m`.
+    pub fn fix(&mut self, node: u32, target_m: Vector3<f64>) -> Result<()> {
+        self.set(node, NodeConstraint::Fixed { target_m })
+    }
+
+    /// Adds an implicit surface and returns its index for [`NodeConstraint::Surface`].
+    pub fn add_surface(&mut self, field: SignedDistanceField) -> u32 {
+        self.fields.push(field);
+        (self.fields.len() - 1) as u32
+    }
+
+    /// The constraint of `node`, if any.
+    pub fn get(&self, node: u32) -> Option<&NodeConstraint> {
+        match self.slot.get(node as usize) {
+            Some(&s) if s != FREE => Some(&self.entries[s as usize].1),
+            _ => None,
+        }
+    }
+
+    /// Number of nodes the set was built for.
+    pub fn node_count(&self) -> usize {
+        self.slot.len()
+    }
+
+    /// Moves a position onto the constraint's manifold.
+    pub fn project_position(&self, c: &NodeConstraint, x: Vector3<f64>) -> Vector3<f64> {
+        match *c {
+            NodeConstraint::Fixed { target_m } => target_m,
+            NodeConstraint::Plane { point_m, normal } => x - normal * (x - point_m).dot(&normal),
+            NodeConstraint::Line { point_m, direction } => {
+                point_m + direction * (x - point_m).dot(&direction)
+            }
+            NodeConstraint::Surface { field } => self.fields[field as usize].project_m(x),
+        }
+    }
+
+    /// Removes from `v` the directions the constraint forbids at position `x`
+    /// (the tangent projection of a velocity, force or displacement increment).
+    pub fn project_free(&self, c: &NodeConstraint, x: Vector3<f64>, v: Vector3<f64>) -> Vector3<f64> {
+        match *c {
+            NodeConstraint::Fixed { .. } => Vector3::zeros(),
+            NodeConstraint::Plane { normal, .. } => v - normal * v.dot(&normal),
+            NodeConstraint::Line { direction, .. } => direction * v.dot(&direction),
+            NodeConstraint::Surface { field } => {
+                let n = self.fields[field as usize].normal(x);
+                v - n * v.dot(&n)
+            }
+        }
+    }
+
+    /// Puts every constrained node of `positions` onto its manifold.
+    pub fn project_positions(&self, positions: &mut [Vector3<f64>]) {
+        for (node, c) in &self.entries {
+            let x = &mut positions[*node as usize];
+            *x = self.project_position(c, *x);
+        }
+    }
+
+    /// Removes the forbidden directions of a per-node vector field (velocities, forces).
+    pub fn project_field(&self, positions: &[Vector3<f64>], field: &mut [Vector3<f64>]) {
+        for (node, c) in &self.entries {
+            let n = *node as usize;
+            field[n] = self.project_free(c, positions[n], field[n]);
+        }
+    }
+
+    /// Reaction forces (eq. 4.1): for each constrained node, minus the part of its total force
+    /// the constraint forbids, so that the constraint is visible as a force.
+    pub fn reactions(
+        &self,
+        positions: &[Vector3<f64>],
+        total_force_n: &[Vector3<f64>],
+    ) -> Vec<(u32, Vector3<f64>)> {
+        self.entries
+            .iter()
+            .map(|(node, c)| {
+                let n = *node as usize;
+                let f = total_force_n[n];
+                (*node, self.project_free(c, positions[n], f) - f)
+            })
+            .collect()
+    }
+
+    /// Checks that every surface field covers its constrained nodes' rest positions.
+    pub fn validate(&self, rest_positions_m: &[Vector3<f64>]) -> Result<()> {
+        if rest_positions_m.len() != self.slot.len() {
+            return Err(Error::InvalidModel(format!(
+                "constraint set built for {} nodes, mesh has {}",
+                self.slot.len(),
+                rest_positions_m.len()
+            )));
+        }
+        Ok(())
+    }
+}
+
+fn finite(v: &Vector3<f64>, node: u32, what: &str) -> Result<()> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::InvalidModel(format!("node {node}: {what} is not finite")))
+    }
+}
+
+fn unit(v: Vector3<f64>, node: u32, what: &str) -> Result<Vector3<f64>> {
+    finite(&v, node, what)?;
+    let n = v.norm();
+    if n < 1e-12 {
+        return Err(Error::InvalidModel(format!("node {node}: {what} has zero length")));
+    }
+    Ok(v / n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plane_keeps_tangent_motion_and_reports_normal_reaction() {
+        let mut cs = ConstraintSet::new(2);
+        cs.set(
+            1,
+            NodeConstraint::Plane {
+                point_m: Vector3::zeros(),
+                normal: Vector3::new(0.0, 0.0, 2.0),
+            },
+        )
+        .unwrap();
+        let x = vec![Vector3::zeros(), Vector3::new(1.0, 2.0, 3.0)];
+        let mut p = x.clone();
+        cs.project_positions(&mut p);
+        assert_eq!(p[1], Vector3::new(1.0, 2.0, 0.0));
+        let f = vec![Vector3::zeros(), Vector3::new(1.0, 1.0, 5.0)];
+        let r = cs.reactions(&p, &f);
+        assert_eq!(r, vec![(1, Vector3::new(0.0, 0.0, -5.0))]);
+    }
+
+    #[test]
+    fn refuses_bad_constraints() {
+        let mut cs = ConstraintSet::new(1);
+        assert!(cs.fix(3, Vector3::zeros()).is_err());
+        assert!(cs.fix(0, Vector3::new(f64::NAN, 0.0, 0.0)).is_err());
+        assert!(cs
+            .set(0, NodeConstraint::Plane { point_m: Vector3::zeros(), normal: Vector3::zeros() })
+            .is_err());
+        assert!(cs.set(0, NodeConstraint::Surface { field: 0 }).is_err());
+    }
+}

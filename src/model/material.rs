@@ -1,0 +1,110 @@
+//! Linear elastic material parameters of a tissue.
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Error, Result};
+
+/// Isotropic material: Young's modulus, Poisson's ratio and density, in SI units.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    /// Young's modulus E in pascals.
+    pub youngs_modulus_pa: f64,
+    /// Poisson's ratio ν (dimensionless, 0 ≤ ν < 0.5 for this element).
+    pub poisson_ratio: f64,
+    /// Mass density ρ in kg/m³.
+    pub density_kg_per_m3: f64,
+}
+
+impl Material {
+    /// Lung parenchyma at rest as used by Baudet: E = 390 Pa (Gefen), ν = 0.3, ρ ≈ 700 kg/m³
+    /// (inflated lung tissue is mostly air; 1250 g over ≈ 1.8 L of tissue-filled volume).
+    pub const LUNG: Material = Material {
+        youngs_modulus_pa: 390.0,
+        poisson_ratio: 0.3,
+        density_kg_per_m3: 700.0,
+    };
+
+    /// Builds a material after checking every parameter.
+    pub fn new(youngs_modulus_pa: f64, poisson_ratio: f64, density_kg_per_m3: f64) -> Result<Self> {
+        let m = Material {
+            youngs_modulus_pa,
+            poisson_ratio,
+            density_kg_per_m3,
+        };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// Refuses non-finite values, E ≤ 0, ν outside [0, 0.5) and ρ ≤ 0.
+    pub fn validate(&self) -> Result<()> {
+        let Material {
+            youngs_modulus_pa: e,
+            poisson_ratio: nu,
+            density_kg_per_m3: rho,
+        } = *self;
+        if !e.is_finite() || e <= 0.0 {
+            return Err(Error::InvalidMaterial(format!(
+                "Young's modulus must be a positive finite number of pascals, got {e}"
+            )));
+        }
+        if !nu.is_finite() || !(0.0..0.5).contains(&nu) {
+            return Err(Error::InvalidMaterial(format!(
+                "Poisson's ratio must be in [0, 0.5) (0.5 is incompressible, which a mass–spring \
+                 element cannot represent), got {nu}"
+            )));
+        }
+        if !rho.is_finite() || rho <= 0.0 {
+            return Err(Error::InvalidMaterial(format!(
+                "density must be a positive finite number of kg/m³, got {rho}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Shear modulus G = E / (2(1+ν)) in pascals.
+    pub fn shear_modulus_pa(&self) -> f64 {
+        self.youngs_modulus_pa / (2.0 * (1.0 + self.poisson_ratio))
+    }
+
+    /// Bulk modulus K = E / (3(1−2ν)) in pascals.
+    pub fn bulk_modulus_pa(&self) -> f64 {
+        self.youngs_modulus_pa / (3.0 * (1.0 - 2.0 * self.poisson_ratio))
+    }
+
+    /// Longitudinal (P-wave) modulus λ + 2μ in pascals; sets the fastest wave speed.
+    pub fn p_wave_modulus_pa(&self) -> f64 {
+        let (e, nu) = (self.youngs_modulus_pa, self.poisson_ratio);
+        e * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn refuses_unphysical_parameters() {
+        assert!(Material::new(0.0, 0.3, 1.0).is_err());
+        assert!(Material::new(-5.0, 0.3, 1.0).is_err());
+        assert!(Material::new(f64::NAN, 0.3, 1.0).is_err());
+        assert!(Material::new(1.0, 0.5, 1.0).is_err());
+        assert!(Material::new(1.0, -0.1, 1.0).is_err());
+        assert!(Material::new(1.0, 0.3, 0.0).is_err());
+        assert!(Material::new(1.0, 0.3, f64::INFINITY).is_err());
+        let msg = Material::new(1.0, 0.5, 1.0).unwrap_err().to_string();
+        assert!(msg.contains("Poisson"), "{msg}");
+        assert!(Material::new(390.0, 0.3, 700.0).is_ok());
+    }
+
+    #[test]
+    fn moduli_relations_hold() {
+        let m = Material::new(1000.0, 0.3, 1.0).unwrap();
+        let (e, g, k) = (
+            m.youngs_modulus_pa,
+            m.shear_modulus_pa(),
+            m.bulk_modulus_pa(),
+        );
+        // E = 9KG / (3K + G)
+        assert!((9.0 * k * g / (3.0 * k + g) - e).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,17 @@
+//! The mechanical model: material, element, mesh, constraints and loads.
+
+pub mod constraints;
+pub mod element;
+pub mod grid;
+pub mod loads;
+pub mod material;
+pub mod mesh;
+pub mod sdf;
+
+pub use constraints::{ConstraintSet, NodeConstraint};
+pub use element::{BrickCoefficients, BrickShape};
+pub use grid::VoxelGrid;
+pub use loads::{Loads, SurfacePressure};
+pub use material::Material;
+pub use mesh::HexMesh;
+pub use sdf::SignedDistanceField;

@@ -1,0 +1,11 @@
+//! Simulation: force evaluation, explicit dynamics, quasi-static equilibrium, blow-up checks.
+
+pub mod explicit;
+pub mod forces;
+pub mod quasistatic;
+pub mod scene;
+
+pub use explicit::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
+pub use forces::ForceEvaluator;
+pub use quasistatic::{QuasiStaticSettings, QuasiStaticSolver, SolveReport};
+pub use scene::Scene;

@@ -1,0 +1,116 @@
+//! A scene: a mesh with its constraints and loads, and the total force on it.
+
+use nalgebra::Vector3;
+
+use super::forces::ForceEvaluator;
+use crate::model::{ConstraintSet, HexMesh, Loads};
+use crate::{Error, Result};
+
+type V3 = Vector3<f64>;
+
+/// Everything the solvers need: mesh, constraints, loads, and the packed force kernels.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The mesh.
+    pub mesh: HexMesh,
+    /// Kinematic constraints.
+    pub constraints: ConstraintSet,
+    /// External loads.
+    pub loads: Loads,
+    forces: ForceEvaluator,
+}
+
+impl Scene {
+    /// Checks that constraints and loads fit the mesh.
+    pub fn new(mesh: HexMesh, constraints: ConstraintSet, loads: Loads) -> Result<Self> {
+        constraints.validate(&mesh.rest_positions_m)?;
+        loads.validate(&mesh)?;
+        let forces = ForceEvaluator::new(&mesh);
+        Ok(Scene {
+            mesh,
+            constraints,
+            loads,
+            forces,
+        })
+    }
+
+    /// Number of nodes.
+    pub fn node_count(&self) -> usize {
+        self.mesh.node_count()
+    }
+
+    /// Rest positions with every constrained node moved onto its constraint.
+    pub fn initial_positions(&self) -> Vec<V3> {
+        let mut x = self.mesh.rest_positions_m.clone();
+        self.constraints.project_positions(&mut x);
+        x
+    }
+
+    /// Internal forces only, into `out`.
+    pub fn internal_forces(&self, x: &[V3], v: Option<&[V3]>, out: &mut [V3]) {
+        self.forces.internal_forces(&self.mesh, x, v, out);
+    }
+
+    /// Internal plus external force on every node (constraints not applied), into `out`.
+    pub fn total_forces(&self, x: &[V3], v: Option<&[V3]>, out: &mut [V3]) {
+        self.forces.internal_forces(&self.mesh, x, v, out);
+        self.loads.accumulate(&self.mesh, x, out);
+    }
+
+    /// External forces only, into `out`.
+    pub fn external_forces(&self, x: &[V3], out: &mut [V3]) {
+        out.iter_mut().for_each(|f| *f = V3::zeros());
+        self.loads.accumulate(&self.mesh, x, out);
+    }
+
+    /// Relative force residual ‖free part of total force‖ / max(‖external‖, ‖internal‖).
+    ///
+    /// `scratch` must hold two node-sized buffers; returns the residual and fills
+    /// `scratch.0` with the free part of the total force.
+    pub fn relative_residual(&self, x: &[V3], scratch: (&mut [V3], &mut [V3])) -> f64 {
+        let (total, ext) = scratch;
+        self.forces.internal_forces(&self.mesh, x, None, total);
+        let internal_norm = norm(total);
+        self.external_forces(x, ext);
+        let external_norm = norm(ext);
+        total.iter_mut().zip(ext.iter()).for_each(|(t, e)| *t += e);
+        self.constraints.project_field(x, total);
+        let scale = internal_norm.max(external_norm);
+        if scale == 0.0 {
+            0.0
+        } else {
+            norm(total) / scale
+        }
+    }
+
+    /// Refuses positions with a non-finite coordinate, naming the node.
+    pub fn check_finite(&self, x: &[V3], step: usize) -> Result<()> {
+        if let Some(n) = x.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+            return Err(Error::Diverged {
+                step,
+                cause: format!("node {n} has a non-finite position"),
+            });
+        }
+        Ok(())
+    }
+
+    /// Displacements (positions − rest) in metres.
+    pub fn displacements(&self, x: &[V3]) -> Vec<V3> {
+        x.iter()
+            .zip(&self.mesh.rest_positions_m)
+            .map(|(p, r)| p - r)
+            .collect()
+    }
+
+    /// Reaction force on every constrained node at positions `x` (thesis eq. 4.1).
+    pub fn reactions(&self, x: &[V3]) -> Vec<(u32, V3)> {
+        let mut f = vec![V3::zeros(); self.node_count()];
+        self.total_forces(x, None, &mut f);
+        self.constraints.reactions(x, &f)
+    }
+}
+
+/// Euclidean norm of a node field.
+pub fn norm(v: &[V3]) -> f64 {
+    v.iter().map(|x| x.norm_squared()).sum::<f64>().sqrt()
+}
