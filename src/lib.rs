@@ -12,6 +12,7 @@
 //! Units: the mechanical core works in SI (metres, newtons, pascals, kilograms, seconds);
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
+pub mod bench;
 pub mod error;
 pub mod model;
 pub mod simulation;

@@ -1,1 +1,8 @@
-//! Validation.
+//! Measured accuracy against references nobody here wrote: closed forms (patch tests), the
+//! thesis's published results (strain sweeps, composite cases) and CalculiX.
+
+pub mod calculix;
+pub mod composite;
+pub mod patch;
+pub mod stability;
+pub mod sweep;
