@@ -199,7 +199,7 @@ fn external_faces(elements: &[[u32; 8]]) -> Vec<[u32; 4]> {
 
 /// Greedy colouring: elements of one colour share no node, so their forces can be
 /// scattered in parallel without atomics. A structured grid gets 8 colours.
-fn color_elements(elements: &[[u32; 8]], n_nodes: usize) -> Vec<Vec<u32>> {
+pub(crate) fn color_elements(elements: &[[u32; 8]], n_nodes: usize) -> Vec<Vec<u32>> {
     // Bit mask per node of the colours already used by elements touching it.
     let mut used = vec![0u64; n_nodes];
     let mut colors: Vec<Vec<u32>> = Vec::new();

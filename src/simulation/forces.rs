@@ -1,8 +1,22 @@
 //! Internal forces of Baudet elements: springs, Voigt dampers and Lagrange corrections.
 //!
-//! Cost: one pass over the elements, 16 spring evaluations (one square root each) and a
-//! 3 × 3 correction per element; no allocation. Elements are processed colour by colour so
-//! that parallel threads never add into the same node.
+//! Cost: one pass over the elements, 16 spring evaluations (one square root and one division
+//! each) and a 3 × 3 correction per element; no allocation proportional to the mesh.
+//!
+//! Layout. Elements are evaluated [`LANES`] at a time in structure-of-arrays form (one SIMD
+//! lane per element), so square roots, divisions and the correction run on full vectors; on
+//! x86-64 the batch loop is compiled a second time for AVX2 and chosen at run time, since
+//! the default target only guarantees SSE2.
+//!
+//! Parallelism. The element list is cut into contiguous chunks; chunks whose node-index
+//! ranges are disjoint get the same colour and run in parallel, each writing through its own
+//! sub-slice of the output (no `unsafe`, no atomics). Meshes numbered in lattice order need 2
+//! or 3 colours, so an evaluation has 2–3 barriers instead of one per element colour, and each
+//! thread walks the mesh in memory order. Meshes without that locality fall back to the
+//! mesh's element colouring. The schedule depends only on the mesh, and chunks run in the same
+//! order on any number of threads, so results are bit-for-bit independent of the thread count.
+
+use std::ops::{Add, Div, Mul, Neg, Sub};
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -74,73 +88,590 @@ impl ElementKernel {
     }
 }
 
-/// Evaluates internal forces over a whole mesh.
-#[derive(Debug, Clone)]
-pub struct ForceEvaluator {
-    kernels: Vec<ElementKernel>,
+/// Elements evaluated together, one per SIMD lane (4 × f64 fills an AVX2 register).
+pub const LANES: usize = 4;
+
+/// One f64 per lane; plain arrays so that LLVM vectorises every operation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(align(32))]
+struct Lanes([f64; LANES]);
+
+impl Lanes {
+    const ZERO: Lanes = Lanes([0.0; LANES]);
+
+    #[inline(always)]
+    fn splat(v: f64) -> Self {
+        Lanes([v; LANES])
+    }
+
+    #[inline(always)]
+    fn sqrt(self) -> Self {
+        let mut r = self;
+        for v in &mut r.0 {
+            *v = v.sqrt();
+        }
+        r
+    }
 }
 
-/// Below this many elements a colour is processed on one thread (spawn cost dominates).
-const PARALLEL_MIN_ELEMENTS: usize = 4096;
-const CHUNK: usize = 256;
+macro_rules! lane_op {
+    ($trait:ident, $method:ident, $op:tt) => {
+        impl $trait for Lanes {
+            type Output = Lanes;
+            #[inline(always)]
+            fn $method(self, rhs: Lanes) -> Lanes {
+                let mut r = self;
+                for i in 0..LANES {
+                    r.0[i] = self.0[i] $op rhs.0[i];
+                }
+                r
+            }
+        }
+    };
+}
+lane_op!(Add, add, +);
+lane_op!(Sub, sub, -);
+lane_op!(Mul, mul, *);
+lane_op!(Div, div, /);
+
+impl Neg for Lanes {
+    type Output = Lanes;
+    #[inline(always)]
+    fn neg(self) -> Lanes {
+        let mut r = self;
+        for v in &mut r.0 {
+            *v = -*v;
+        }
+        r
+    }
+}
+
+/// A 3-vector per lane.
+type LaneV3 = [Lanes; 3];
+
+#[inline(always)]
+fn sub3(a: &LaneV3, b: &LaneV3) -> LaneV3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+#[inline(always)]
+fn add3(a: &LaneV3, b: &LaneV3) -> LaneV3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+#[inline(always)]
+fn scale3(a: &LaneV3, s: Lanes) -> LaneV3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+#[inline(always)]
+fn dot3(a: &LaneV3, b: &LaneV3) -> Lanes {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `a / |a|` as nalgebra's `normalize` computes it (norm, then one division per component).
+#[inline(always)]
+fn normalize3(a: &LaneV3) -> LaneV3 {
+    let n = dot3(a, a).sqrt();
+    [a[0] / n, a[1] / n, a[2] / n]
+}
+
+/// An [`ElementKernel`] replicated across lanes (or gathered, for batches mixing classes).
+#[derive(Debug, Clone)]
+struct LaneKernel {
+    stiffness: [Lanes; 16],
+    rest_length: [Lanes; 16],
+    damping: [Lanes; 16],
+    /// Row-major correction map W.
+    correction_map: [Lanes; 9],
+}
+
+impl LaneKernel {
+    fn splat(k: &ElementKernel) -> Self {
+        LaneKernel {
+            stiffness: k.stiffness.map(Lanes::splat),
+            rest_length: k.rest_length.map(Lanes::splat),
+            damping: k.damping.map(Lanes::splat),
+            correction_map: std::array::from_fn(|r| Lanes::splat(k.correction_map[(r / 3, r % 3)])),
+        }
+    }
+
+    /// Lane `l` taken from `kernels[classes[l]]`.
+    fn gather(kernels: &[LaneKernel], classes: &[u32; LANES]) -> Self {
+        let pick = |get: &dyn Fn(&LaneKernel) -> Lanes| {
+            Lanes(std::array::from_fn(|l| get(&kernels[classes[l] as usize]).0[l]))
+        };
+        LaneKernel {
+            stiffness: std::array::from_fn(|s| pick(&|k| k.stiffness[s])),
+            rest_length: std::array::from_fn(|s| pick(&|k| k.rest_length[s])),
+            damping: std::array::from_fn(|s| pick(&|k| k.damping[s])),
+            correction_map: std::array::from_fn(|r| pick(&|k| k.correction_map[r])),
+        }
+    }
+}
+
+/// [`ElementKernel::forces`] on [`LANES`] elements at once.
+///
+/// Same operations as the scalar kernel except that the axial resultants are summed per axis
+/// before the dot product (Σ_n s_n,i f_n) · e_i, and the direction uses one reciprocal; the
+/// results agree to a few ulps of the spring forces.
+#[inline(always)]
+fn batch_forces<const DAMP: bool>(
+    k: &LaneKernel,
+    x: &[LaneV3; 8],
+    v: &[LaneV3; 8],
+) -> [LaneV3; 8] {
+    let mut f = [[Lanes::ZERO; 3]; 8];
+    for (s, &(a, b, _)) in SPRINGS.iter().enumerate() {
+        let d = sub3(&x[b], &x[a]);
+        let len = dot3(&d, &d).sqrt();
+        let n = scale3(&d, Lanes::splat(1.0) / len);
+        let mut t = k.stiffness[s] * (len - k.rest_length[s]);
+        if DAMP {
+            t = t + k.damping[s] * dot3(&sub3(&v[b], &v[a]), &n);
+        }
+        let fa = scale3(&n, t);
+        f[a] = add3(&f[a], &fa);
+        f[b] = sub3(&f[b], &fa);
+    }
+    let edge_sum = |p: [(usize, usize); 4]| -> LaneV3 {
+        let [a, b, c, d] = p.map(|(hi, lo)| sub3(&x[hi], &x[lo]));
+        add3(&add3(&add3(&a, &b), &c), &d)
+    };
+    let ex = edge_sum([(1, 0), (2, 3), (5, 4), (6, 7)]);
+    let ey = edge_sum([(3, 0), (2, 1), (7, 4), (6, 5)]);
+    let e1 = normalize3(&ex);
+    let e2 = normalize3(&sub3(&ey, &scale3(&e1, dot3(&ey, &e1))));
+    let e3 = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ];
+    let axes = [e1, e2, e3];
+    // a_i = −½ (Σ_n s_n,i f_n) · e_i.
+    let mut a = [Lanes::ZERO; 3];
+    for (i, axis) in axes.iter().enumerate() {
+        let mut g = [Lanes::ZERO; 3];
+        for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+            g = if signs[i] > 0.0 {
+                add3(&g, &f[n])
+            } else {
+                sub3(&g, &f[n])
+            };
+        }
+        a[i] = Lanes::splat(-0.5) * dot3(&g, axis);
+    }
+    let w = &k.correction_map;
+    let wv: [Lanes; 3] =
+        std::array::from_fn(|r| w[3 * r] * a[0] + w[3 * r + 1] * a[1] + w[3 * r + 2] * a[2]);
+    let wa = [
+        scale3(&axes[0], wv[0]),
+        scale3(&axes[1], wv[1]),
+        scale3(&axes[2], wv[2]),
+    ];
+    // ±wa₀ ± wa₁ ± wa₂ in the scalar kernel's order; negation is exact, so 2 sums suffice.
+    let pp = add3(&wa[0], &wa[1]);
+    let pm = sub3(&wa[0], &wa[1]);
+    for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+        let xy = match (signs[0] > 0.0, signs[1] > 0.0) {
+            (true, true) => pp,
+            (true, false) => pm,
+            (false, true) => pm.map(|c| -c),
+            (false, false) => pp.map(|c| -c),
+        };
+        let corr = if signs[2] > 0.0 {
+            add3(&xy, &wa[2])
+        } else {
+            sub3(&xy, &wa[2])
+        };
+        f[n] = add3(&f[n], &corr);
+    }
+    f
+}
+
+/// Where element forces are added: a node-index window of the output owned by one chunk, or
+/// (fallback) the whole output shared by elements of one colour.
+trait Sink {
+    fn add(&mut self, node: u32, f: V3);
+}
+
+/// A chunk's own window `out[lo..]` of the output.
+struct Window<'a> {
+    lo: u32,
+    out: &'a mut [V3],
+}
+
+impl Sink for Window<'_> {
+    #[inline(always)]
+    fn add(&mut self, node: u32, f: V3) {
+        // A node outside the window (a mesh other than the one the schedule was built for)
+        // wraps or overruns and panics on the bounds check instead of racing.
+        self.out[node.wrapping_sub(self.lo) as usize] += f;
+    }
+}
 
 #[derive(Clone, Copy)]
-struct SharedOut(*mut V3);
+struct SharedOut(*mut V3, usize);
 // SAFETY: elements of one colour share no node, so concurrent writers touch disjoint nodes.
 unsafe impl Send for SharedOut {}
 unsafe impl Sync for SharedOut {}
 
-impl SharedOut {
-    /// Adds `f` to node `c`.
-    ///
-    /// # Safety
-    /// `c` must be in bounds and no other thread may access node `c` concurrently.
-    #[inline]
-    unsafe fn add(&self, c: usize, f: V3) {
-        *self.0.add(c) += f;
+impl Sink for SharedOut {
+    #[inline(always)]
+    fn add(&mut self, node: u32, f: V3) {
+        let c = node as usize;
+        assert!(c < self.1, "node {c} beyond the output's {} nodes", self.1);
+        // SAFETY: `c` is in bounds and no other thread writes node `c` while this colour is
+        // processed (the mesh colouring guarantees it).
+        unsafe { *self.0.add(c) += f };
     }
 }
 
+/// What one evaluation reads.
+struct Inputs<'a> {
+    mesh: &'a HexMesh,
+    x: &'a [V3],
+    v: Option<&'a [V3]>,
+    lane_kernels: &'a [LaneKernel],
+}
+
+/// Evaluates the elements yielded by `elements` (indices into the mesh) into `sink`.
+#[inline(always)]
+fn run_elements<const DAMP: bool, E: ElementSource, S: Sink>(
+    inp: &Inputs<'_>,
+    elements: &mut E,
+    sink: &mut S,
+) {
+    let mesh = inp.mesh;
+    let x = inp.x;
+    let v = inp.v.unwrap_or(x);
+    let mut xs = [[Lanes::ZERO; 3]; 8];
+    let mut vs = [[Lanes::ZERO; 3]; 8];
+    let mut mixed: Option<LaneKernel> = None;
+    let mut ids = [0u32; LANES];
+    while let Some(count) = elements.next_batch(&mut ids) {
+        let corners: [&[u32; 8]; LANES] = ids.map(|e| &mesh.elements[e as usize]);
+        let classes = ids.map(|e| mesh.element_class[e as usize]);
+        for (l, cs) in corners.iter().enumerate() {
+            for (n, &c) in cs.iter().enumerate() {
+                let p = &x[c as usize];
+                for i in 0..3 {
+                    xs[n][i].0[l] = p[i];
+                }
+                if DAMP {
+                    let q = &v[c as usize];
+                    for i in 0..3 {
+                        vs[n][i].0[l] = q[i];
+                    }
+                }
+            }
+        }
+        let kernel = if classes.iter().all(|&c| c == classes[0]) {
+            &inp.lane_kernels[classes[0] as usize]
+        } else {
+            &*mixed.insert(LaneKernel::gather(inp.lane_kernels, &classes))
+        };
+        let f = batch_forces::<DAMP>(kernel, &xs, &vs);
+        for (l, cs) in corners.iter().enumerate().take(count) {
+            for (n, &c) in cs.iter().enumerate() {
+                sink.add(c, V3::new(f[n][0].0[l], f[n][1].0[l], f[n][2].0[l]));
+            }
+        }
+    }
+}
+
+/// A source of element indices handed out [`LANES`] at a time.
+trait ElementSource {
+    /// Fills `ids` with the next batch (the last one padded by repeating its last element)
+    /// and returns how many are real, or `None` when exhausted.
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize>;
+}
+
+impl ElementSource for std::ops::Range<u32> {
+    #[inline(always)]
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
+        if self.start >= self.end {
+            return None;
+        }
+        let count = ((self.end - self.start) as usize).min(LANES);
+        for (l, id) in ids.iter_mut().enumerate() {
+            *id = self.start + l.min(count - 1) as u32;
+        }
+        self.start += count as u32;
+        Some(count)
+    }
+}
+
+impl ElementSource for std::slice::Iter<'_, u32> {
+    #[inline(always)]
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
+        let rest = self.as_slice();
+        if rest.is_empty() {
+            return None;
+        }
+        let count = rest.len().min(LANES);
+        for (l, id) in ids.iter_mut().enumerate() {
+            *id = rest[l.min(count - 1)];
+        }
+        *self = rest[count..].iter();
+        Some(count)
+    }
+}
+
+/// Runs [`run_elements`] with the widest vector instructions the CPU offers.
+fn dispatch<E: ElementSource, S: Sink>(inp: &Inputs<'_>, elements: &mut E, sink: &mut S) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn avx2<const DAMP: bool, E: ElementSource, S: Sink>(
+            inp: &Inputs<'_>,
+            elements: &mut E,
+            sink: &mut S,
+        ) {
+            run_elements::<DAMP, E, S>(inp, elements, sink)
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe {
+                match inp.v {
+                    Some(_) => avx2::<true, E, S>(inp, elements, sink),
+                    None => avx2::<false, E, S>(inp, elements, sink),
+                }
+            }
+            return;
+        }
+    }
+    match inp.v {
+        Some(_) => run_elements::<true, E, S>(inp, elements, sink),
+        None => run_elements::<false, E, S>(inp, elements, sink),
+    }
+}
+
+/// A run of consecutive elements and the node-index window `[node_lo, node_hi)` they touch.
+#[derive(Debug, Clone)]
+struct Chunk {
+    first_element: u32,
+    end_element: u32,
+    node_lo: u32,
+    node_hi: u32,
+}
+
+/// How the elements are split for parallel evaluation; built once from the mesh.
+#[derive(Debug, Clone)]
+enum Schedule {
+    /// Colours of chunks with pairwise disjoint node windows, each colour sorted by window.
+    Chunks(Vec<Vec<Chunk>>),
+    /// The mesh's own element colouring (used when chunks would serialise the work).
+    ElementColours,
+}
+
+/// Chunk lengths tried, largest first (multiples of [`LANES`] so only a chunk's tail pads).
+const CHUNK_LENGTHS: [u32; 7] = [16384, 8192, 4096, 2048, 1024, 512, 256];
+/// More colours than this and the mesh's own element colouring is no worse.
+const MAX_CHUNK_COLOURS: usize = 8;
+/// Chunks wanted in every colour, so that up to this many threads stay busy.
+const CHUNKS_PER_COLOUR: usize = 8;
+/// Below this many elements an evaluation runs on one thread (spawn cost dominates).
+const PARALLEL_MIN_ELEMENTS: usize = 4096;
+/// Elements per parallel task in the element-colour fallback.
+const FALLBACK_TASK: usize = 256;
+/// Nodes per parallel task when zeroing the output.
+const ZERO_TASK: usize = 16384;
+
+impl Schedule {
+    fn build(mesh: &HexMesh) -> Schedule {
+        let n = mesh.element_count() as u32;
+        if (n as usize) < PARALLEL_MIN_ELEMENTS {
+            return Schedule::Chunks(colour_chunks(mesh, n.max(1)));
+        }
+        // Largest chunks that still give every colour enough chunks: fewest barriers and the
+        // longest runs in memory order.
+        let mut best: Option<(usize, Vec<Vec<Chunk>>)> = None;
+        for len in CHUNK_LENGTHS {
+            let colours = colour_chunks(mesh, len);
+            let fewest = colours.iter().map(Vec::len).min().unwrap_or(0);
+            if colours.len() > MAX_CHUNK_COLOURS {
+                continue;
+            }
+            if fewest >= CHUNKS_PER_COLOUR {
+                return Schedule::Chunks(colours);
+            }
+            if best.as_ref().is_none_or(|(f, _)| fewest > *f) {
+                best = Some((fewest, colours));
+            }
+        }
+        match best {
+            Some((fewest, colours)) if fewest >= 2 => Schedule::Chunks(colours),
+            _ => Schedule::ElementColours,
+        }
+    }
+}
+
+/// Cuts the elements into chunks of `len` and colours them greedily so that chunks of one
+/// colour have disjoint node windows.
+fn colour_chunks(mesh: &HexMesh, len: u32) -> Vec<Vec<Chunk>> {
+    let n = mesh.element_count() as u32;
+    let mut colours: Vec<Vec<Chunk>> = Vec::new();
+    let mut start = 0;
+    while start < n {
+        let end = n.min(start.saturating_add(len));
+        let (lo, hi) = mesh.elements[start as usize..end as usize]
+            .iter()
+            .flatten()
+            .fold((u32::MAX, 0), |(lo, hi), &c| (lo.min(c), hi.max(c + 1)));
+        let chunk = Chunk {
+            first_element: start,
+            end_element: end,
+            node_lo: lo,
+            node_hi: hi,
+        };
+        let free = colours.iter().position(|col| {
+            col.iter()
+                .all(|o| o.node_hi <= chunk.node_lo || chunk.node_hi <= o.node_lo)
+        });
+        match free {
+            Some(c) => colours[c].push(chunk),
+            None => colours.push(vec![chunk]),
+        }
+        start = end;
+    }
+    for col in &mut colours {
+        col.sort_by_key(|c| c.node_lo);
+    }
+    colours
+}
+
+/// Evaluates internal forces over a whole mesh.
+#[derive(Debug, Clone)]
+pub struct ForceEvaluator {
+    kernels: Vec<ElementKernel>,
+    lane_kernels: Vec<LaneKernel>,
+    schedule: Schedule,
+    element_count: usize,
+    node_count: usize,
+}
+
 impl ForceEvaluator {
-    /// Packs the kernels of every class of `mesh`.
+    /// Packs the kernels of every class of `mesh` and plans the parallel schedule.
     pub fn new(mesh: &HexMesh) -> Self {
+        let kernels: Vec<ElementKernel> = mesh.classes.iter().map(ElementKernel::new).collect();
         ForceEvaluator {
-            kernels: mesh.classes.iter().map(ElementKernel::new).collect(),
+            lane_kernels: kernels.iter().map(LaneKernel::splat).collect(),
+            kernels,
+            schedule: Schedule::build(mesh),
+            element_count: mesh.element_count(),
+            node_count: mesh.node_count(),
         }
     }
 
+    /// The scalar kernel of each element class.
+    pub fn kernels(&self) -> &[ElementKernel] {
+        &self.kernels
+    }
+
+    /// Number of barriers (colour passes) per evaluation on more than one thread.
+    pub fn colour_passes(&self, mesh: &HexMesh) -> usize {
+        match &self.schedule {
+            Schedule::Chunks(c) => c.len(),
+            Schedule::ElementColours => mesh.colors.len(),
+        }
+    }
+
+    /// Bytes held by the evaluator (kernels and schedule), excluding the mesh.
+    pub fn heap_bytes(&self) -> usize {
+        let sched = match &self.schedule {
+            Schedule::Chunks(c) => {
+                c.iter().map(|v| v.capacity() * std::mem::size_of::<Chunk>()).sum::<usize>()
+                    + c.capacity() * std::mem::size_of::<Vec<Chunk>>()
+            }
+            Schedule::ElementColours => 0,
+        };
+        self.kernels.capacity() * std::mem::size_of::<ElementKernel>()
+            + self.lane_kernels.capacity() * std::mem::size_of::<LaneKernel>()
+            + sched
+    }
+
     /// Overwrites `out` with the internal (spring + damper + correction) force on every node.
+    ///
+    /// `mesh` must be the mesh the evaluator was built for. Runs on the current rayon pool;
+    /// the result does not depend on the number of threads.
     pub fn internal_forces(&self, mesh: &HexMesh, x: &[V3], v: Option<&[V3]>, out: &mut [V3]) {
         assert_eq!(x.len(), mesh.node_count());
         assert_eq!(out.len(), mesh.node_count());
         if let Some(v) = v {
             assert_eq!(v.len(), mesh.node_count());
         }
-        out.iter_mut().for_each(|f| *f = V3::zeros());
-        let shared = SharedOut(out.as_mut_ptr());
-        let run = |e: u32| {
-            let e = e as usize;
-            let corners = &mesh.elements[e];
-            let kernel = &self.kernels[mesh.element_class[e] as usize];
-            let xe = corners.map(|c| x[c as usize]);
-            let fe = match v {
-                Some(v) => kernel.forces(&xe, Some(&corners.map(|c| v[c as usize]))),
-                None => kernel.forces(&xe, None),
-            };
-            for (k, &c) in corners.iter().enumerate() {
-                // SAFETY: `c` < node_count (checked when the mesh was built) and no other
-                // thread writes node `c` while this colour is processed.
-                unsafe { shared.add(c as usize, fe[k]) };
-            }
+        assert!(
+            mesh.element_count() == self.element_count && mesh.node_count() == self.node_count,
+            "ForceEvaluator built for {} elements and {} nodes, called with {} and {}",
+            self.element_count,
+            self.node_count,
+            mesh.element_count(),
+            mesh.node_count()
+        );
+        let inp = Inputs {
+            mesh,
+            x,
+            v,
+            lane_kernels: &self.lane_kernels,
         };
-        for color in &mesh.colors {
-            if color.len() < PARALLEL_MIN_ELEMENTS {
-                color.iter().for_each(|&e| run(e));
-            } else {
-                color
-                    .par_chunks(CHUNK)
-                    .for_each(|chunk| chunk.iter().for_each(|&e| run(e)));
+        let parallel =
+            rayon::current_num_threads() > 1 && mesh.element_count() >= PARALLEL_MIN_ELEMENTS;
+        if parallel {
+            out.par_chunks_mut(ZERO_TASK)
+                .for_each(|c| c.fill(V3::zeros()));
+        } else {
+            out.fill(V3::zeros());
+        }
+        match &self.schedule {
+            Schedule::Chunks(colours) => {
+                for colour in colours {
+                    let windows = split_windows(colour, out);
+                    let run = |(chunk, window): (&Chunk, &mut [V3])| {
+                        let mut sink = Window {
+                            lo: chunk.node_lo,
+                            out: window,
+                        };
+                        dispatch(&inp, &mut (chunk.first_element..chunk.end_element), &mut sink);
+                    };
+                    if parallel {
+                        windows.into_par_iter().for_each(run);
+                    } else {
+                        windows.into_iter().for_each(run);
+                    }
+                }
+            }
+            Schedule::ElementColours => {
+                let shared = SharedOut(out.as_mut_ptr(), out.len());
+                for colour in &mesh.colors {
+                    let run = |task: &[u32]| {
+                        let mut sink = shared;
+                        dispatch(&inp, &mut task.iter(), &mut sink);
+                    };
+                    if parallel && colour.len() >= PARALLEL_MIN_ELEMENTS {
+                        colour.par_chunks(FALLBACK_TASK).for_each(run);
+                    } else {
+                        run(colour);
+                    }
+                }
             }
         }
     }
+}
+
+/// Splits `out` into the disjoint node windows of one colour's chunks (sorted by window).
+fn split_windows<'c, 'o>(colour: &'c [Chunk], out: &'o mut [V3]) -> Vec<(&'c Chunk, &'o mut [V3])> {
+    let mut windows = Vec::with_capacity(colour.len());
+    let mut rest = out;
+    let mut offset = 0usize;
+    for chunk in colour {
+        let (lo, hi) = (chunk.node_lo as usize, chunk.node_hi as usize);
+        let tail = std::mem::take(&mut rest);
+        let (_, tail) = tail.split_at_mut(lo - offset);
+        let (window, tail) = tail.split_at_mut(hi - lo);
+        windows.push((chunk, window));
+        rest = tail;
+        offset = hi;
+    }
+    windows
 }

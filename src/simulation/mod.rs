@@ -2,6 +2,8 @@
 
 pub mod explicit;
 pub mod forces;
+pub mod linalg;
+pub mod multigrid;
 pub mod quasistatic;
 pub mod scene;
 

@@ -1,15 +1,23 @@
-//! Quasi-static equilibrium: finds positions where internal and external forces balance on
-//! every free direction, without simulating inertia.
+//! Quasi-static equilibrium: positions where internal and external forces balance on every
+//! free direction, found without simulating inertia.
 //!
-//! (First version: Newton–Krylov with finite-difference Jacobian products; the fast
-//! preconditioner lands next.)
+//! Newton–Krylov: each Newton step solves J·δ = r by restarted GMRES, with J·v taken as a
+//! finite difference of the exact nonlinear forces (springs, corrections, follower pressure)
+//! and a geometric-multigrid V-cycle on the small-strain stiffness as preconditioner
+//! (block Jacobi when the mesh is not a voxel lattice). The preconditioner is built once per
+//! scene and reused across solves, so a breathing sequence pays the set-up once.
+//! Large loads can be applied in increments; each Newton step is backtracked until the
+//! residual decreases.
 
 use std::time::Instant;
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
+use super::linalg::{self, flat, nodes, nodes_mut};
+use super::multigrid::{project_flat, Lattice, Multigrid};
 use super::scene::Scene;
+use crate::model::{ConstraintSet, NodeConstraint};
 use crate::{Error, Result};
 
 type V3 = Vector3<f64>;
@@ -33,8 +41,8 @@ impl Default for QuasiStaticSettings {
         QuasiStaticSettings {
             tolerance: 1e-6,
             load_steps: 1,
-            max_newton_iterations: 50,
-            max_linear_iterations: 500,
+            max_newton_iterations: 40,
+            max_linear_iterations: 300,
         }
     }
 }
@@ -50,26 +58,328 @@ pub struct SolveReport {
     pub residual: f64,
     /// Load increments used.
     pub load_steps: usize,
-    /// Wall time of the solve in seconds (set-up included).
+    /// Multigrid levels (1 = block Jacobi or a single dense level).
+    pub multigrid_levels: usize,
+    /// Preconditioner set-up time in seconds (paid once per solver).
+    pub setup_time_s: f64,
+    /// Wall time of this solve in seconds (set-up excluded).
     pub wall_time_s: f64,
+}
+
+enum Preconditioner {
+    Multigrid(Box<Multigrid>),
+    BlockJacobi(Vec<Matrix3<f64>>),
 }
 
 /// Quasi-static solver bound to one scene; reusable across solves (e.g. breathing frames).
 pub struct QuasiStaticSolver<'s> {
     scene: &'s Scene,
     settings: QuasiStaticSettings,
+    projector: Vec<Option<Matrix3<f64>>>,
+    preconditioner: Preconditioner,
+    setup_time_s: f64,
 }
 
 impl<'s> QuasiStaticSolver<'s> {
-    /// Prepares the solver (and its preconditioner) for `scene`.
+    /// Prepares the solver and its preconditioner for `scene`.
     pub fn new(scene: &'s Scene, settings: QuasiStaticSettings) -> Result<Self> {
-        Ok(QuasiStaticSolver { scene, settings })
+        if !(settings.tolerance > 0.0 && settings.tolerance.is_finite()) {
+            return Err(Error::InvalidModel(format!(
+                "solver tolerance must be positive, got {}",
+                settings.tolerance
+            )));
+        }
+        let start = Instant::now();
+        let rest = &scene.mesh.rest_positions_m;
+        let projector = projectors(&scene.constraints, rest);
+        let preconditioner = match Lattice::infer(&scene.mesh) {
+            Some(lattice) => Preconditioner::Multigrid(Box::new(Multigrid::new(
+                &scene.mesh,
+                &lattice,
+                projector.clone(),
+            ))),
+            None => Preconditioner::BlockJacobi(block_jacobi(scene, &projector)),
+        };
+        Ok(QuasiStaticSolver {
+            scene,
+            settings,
+            projector,
+            preconditioner,
+            setup_time_s: start.elapsed().as_secs_f64(),
+        })
     }
 
     /// Solves for equilibrium starting from `initial` (or the rest configuration) and returns
-    /// the node positions in metres.
+    /// node positions in metres.
     pub fn solve(&mut self, initial: Option<&[V3]>) -> Result<(Vec<V3>, SolveReport)> {
-        let _ = (initial, Instant::now(), &self.scene, &self.settings);
-        Err(Error::External("quasi-static solver not implemented yet".into()))
+        let start = Instant::now();
+        let scene = self.scene;
+        let n = scene.node_count();
+        let mut x: Vec<V3> = match initial {
+            Some(x0) if x0.len() == n => x0.to_vec(),
+            Some(x0) => {
+                return Err(Error::InvalidModel(format!(
+                    "initial state has {} nodes, the mesh {n}",
+                    x0.len()
+                )))
+            }
+            None => scene.mesh.rest_positions_m.clone(),
+        };
+        scene.check_finite(&x, 0)?;
+        let steps = self.settings.load_steps.max(1);
+        let mut report = SolveReport {
+            load_steps: steps,
+            multigrid_levels: match &self.preconditioner {
+                Preconditioner::Multigrid(mg) => mg.level_count(),
+                Preconditioner::BlockJacobi(_) => 1,
+            },
+            setup_time_s: self.setup_time_s,
+            ..SolveReport::default()
+        };
+        let mut work = Work::new(n);
+        for step in 1..=steps {
+            let lambda = step as f64 / steps as f64;
+            let constraints = scaled_constraints(&scene.constraints, &scene.mesh.rest_positions_m, lambda);
+            constraints.project_positions(&mut x);
+            let tol = if step == steps {
+                self.settings.tolerance
+            } else {
+                self.settings.tolerance.max(1e-4)
+            };
+            self.newton(&constraints, lambda, tol, &mut x, &mut work, &mut report)?;
+        }
+        report.wall_time_s = start.elapsed().as_secs_f64();
+        Ok((x, report))
     }
+
+    fn newton(
+        &mut self,
+        constraints: &ConstraintSet,
+        lambda: f64,
+        tol: f64,
+        x: &mut Vec<V3>,
+        w: &mut Work,
+        report: &mut SolveReport,
+    ) -> Result<()> {
+        let scene = self.scene;
+        let h_scale = scene
+            .mesh
+            .classes
+            .iter()
+            .map(|c| c.shape.edges_m.iter().cloned().fold(f64::INFINITY, f64::min))
+            .fold(f64::INFINITY, f64::min);
+        let mut res = residual(scene, constraints, lambda, x, w);
+        for it in 0..self.settings.max_newton_iterations {
+            if !res.is_finite() {
+                return Err(Error::Diverged {
+                    step: report.newton_iterations,
+                    cause: "force residual is not finite".into(),
+                });
+            }
+            if res <= tol {
+                report.residual = res;
+                return Ok(());
+            }
+            // Eisenstat–Walker-style forcing: loose early, tight near convergence.
+            let eta = (0.5 * res / tol.max(1e-300)).sqrt().clamp(1.0, 1e3).recip().clamp(1e-3, 0.1);
+            let eta = if res < 100.0 * tol { eta.min(1e-2) } else { eta };
+            let b = flat(&w.r).to_vec();
+            let mut delta = vec![0.0; b.len()];
+            let x_base = x.clone();
+            let f_base = w.f.clone();
+            let projector = &self.projector;
+            let eps = 1e-7 * h_scale;
+            let preconditioner = &mut self.preconditioner;
+            let mut xp = vec![V3::zeros(); x.len()];
+            let mut fp = vec![V3::zeros(); x.len()];
+            let mut ext = vec![V3::zeros(); x.len()];
+            let mut apply = |v: &[f64], out: &mut [f64]| {
+                // −d(total force)/dx · v, projected; identity on constrained directions.
+                let vmax = v.iter().fold(0.0f64, |m, a| m.max(a.abs()));
+                if vmax == 0.0 {
+                    out.iter_mut().for_each(|o| *o = 0.0);
+                    return;
+                }
+                let hstep = eps / vmax;
+                let vn = nodes(v);
+                // Perturb along Π·v only: the operator is Π·J·Π + (I − Π).
+                for (nd, ((p, b), d)) in xp.iter_mut().zip(&x_base).zip(vn).enumerate() {
+                    let d = match projector[nd] {
+                        Some(pm) => pm * d,
+                        None => *d,
+                    };
+                    *p = b + d * hstep;
+                }
+                total_force(scene, lambda, &xp, &mut fp, &mut ext);
+                let on = nodes_mut(out);
+                for ((o, a), b) in on.iter_mut().zip(&fp).zip(&f_base) {
+                    *o = (b - a) / hstep;
+                }
+                project_flat(projector, out);
+                let on = nodes_mut(out);
+                for (nd, p) in projector.iter().enumerate() {
+                    if let Some(p) = p {
+                        on[nd] += vn[nd] - p * vn[nd];
+                    }
+                }
+            };
+            let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
+                Preconditioner::Multigrid(mg) => mg.apply(r, z),
+                Preconditioner::BlockJacobi(d) => {
+                    let (rn, zn) = (nodes(r), nodes_mut(z));
+                    for ((z, r), d) in zn.iter_mut().zip(rn).zip(d.iter()) {
+                        *z = d * r;
+                    }
+                }
+            };
+            let (lin, _) = linalg::gmres(
+                &mut apply,
+                &mut precondition,
+                &b,
+                &mut delta,
+                40,
+                eta,
+                self.settings.max_linear_iterations,
+            );
+            report.linear_iterations += lin;
+            report.newton_iterations += 1;
+            // Backtracking line search on the residual norm.
+            let dn = nodes(&delta).to_vec();
+            let mut alpha = 1.0;
+            let mut accepted = false;
+            for _ in 0..8 {
+                for ((xi, b), d) in x.iter_mut().zip(&x_base).zip(&dn) {
+                    *xi = b + d * alpha;
+                }
+                constraints.project_positions(x);
+                let new_res = residual(scene, constraints, lambda, x, w);
+                if new_res.is_finite() && new_res < res {
+                    res = new_res;
+                    accepted = true;
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            if !accepted {
+                x.copy_from_slice(&x_base);
+                w.f = f_base;
+                res = residual(scene, constraints, lambda, x, w);
+                report.residual = res;
+                return Err(Error::NotConverged {
+                    iterations: it + 1,
+                    residual: res,
+                    tolerance: tol,
+                });
+            }
+        }
+        report.residual = res;
+        if res <= tol {
+            Ok(())
+        } else {
+            Err(Error::NotConverged {
+                iterations: self.settings.max_newton_iterations,
+                residual: res,
+                tolerance: tol,
+            })
+        }
+    }
+}
+
+/// Scratch buffers of a solve.
+struct Work {
+    f: Vec<V3>,
+    ext: Vec<V3>,
+    r: Vec<V3>,
+}
+
+impl Work {
+    fn new(n: usize) -> Self {
+        Work {
+            f: vec![V3::zeros(); n],
+            ext: vec![V3::zeros(); n],
+            r: vec![V3::zeros(); n],
+        }
+    }
+}
+
+/// f = internal + λ·external at x; `ext` receives the unscaled external force.
+fn total_force(scene: &Scene, lambda: f64, x: &[V3], f: &mut [V3], ext: &mut [V3]) -> (f64, f64) {
+    scene.internal_forces(x, None, f);
+    scene.external_forces(x, ext);
+    let mut ni = 0.0;
+    let mut ne = 0.0;
+    for (f, e) in f.iter_mut().zip(ext.iter()) {
+        ni += f.norm_squared();
+        ne += e.norm_squared() * lambda * lambda;
+        *f += e * lambda;
+    }
+    (ni.sqrt(), ne.sqrt())
+}
+
+/// Relative residual at x; leaves the total force in `w.f` and its free part in `w.r`.
+fn residual(scene: &Scene, constraints: &ConstraintSet, lambda: f64, x: &[V3], w: &mut Work) -> f64 {
+    let (ni, ne) = total_force(scene, lambda, x, &mut w.f, &mut w.ext);
+    w.r.copy_from_slice(&w.f);
+    constraints.project_field(x, &mut w.r);
+    let scale = ni.max(ne);
+    if scale == 0.0 {
+        0.0
+    } else {
+        super::scene::norm(&w.r) / scale
+    }
+}
+
+/// Constraint set with imposed displacements scaled by λ (load stepping).
+fn scaled_constraints(cs: &ConstraintSet, rest: &[V3], lambda: f64) -> ConstraintSet {
+    let mut out = cs.clone();
+    if lambda != 1.0 {
+        for (node, c) in out.entries.iter_mut() {
+            if let NodeConstraint::Fixed { target_m } = c {
+                let r = rest[*node as usize];
+                *target_m = r + (*target_m - r) * lambda;
+            }
+        }
+    }
+    out
+}
+
+/// Constraint projector of each node at the rest configuration (None = free).
+fn projectors(cs: &ConstraintSet, rest: &[V3]) -> Vec<Option<Matrix3<f64>>> {
+    let mut p = vec![None; rest.len()];
+    for (node, c) in &cs.entries {
+        let n = *node as usize;
+        let m = match *c {
+            NodeConstraint::Fixed { .. } => Matrix3::zeros(),
+            NodeConstraint::Plane { normal, .. } => Matrix3::identity() - normal * normal.transpose(),
+            NodeConstraint::Line { direction, .. } => direction * direction.transpose(),
+            NodeConstraint::Surface { field } => {
+                let nrm = cs.fields[field as usize].normal(rest[n]);
+                Matrix3::identity() - nrm * nrm.transpose()
+            }
+        };
+        p[n] = Some(m);
+    }
+    p
+}
+
+fn block_jacobi(scene: &Scene, projector: &[Option<Matrix3<f64>>]) -> Vec<Matrix3<f64>> {
+    let mesh = &scene.mesh;
+    let ks: Vec<_> = mesh.classes.iter().map(|c| c.linear_stiffness()).collect();
+    let mut d = vec![Matrix3::zeros(); mesh.node_count()];
+    for (corners, &class) in mesh.elements.iter().zip(&mesh.element_class) {
+        let k = &ks[class as usize];
+        for (c, &n) in corners.iter().enumerate() {
+            d[n as usize] += k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
+        }
+    }
+    d.iter()
+        .zip(projector)
+        .map(|(d, p)| {
+            let m = match p {
+                Some(p) => p * d * p + (Matrix3::identity() - p),
+                None => *d,
+            };
+            m.try_inverse().unwrap_or_else(Matrix3::identity)
+        })
+        .collect()
 }

@@ -2,6 +2,7 @@
 //! thesis's published results (strain sweeps, composite cases) and CalculiX.
 
 pub mod calculix;
+pub mod cases;
 pub mod composite;
 pub mod patch;
 pub mod stability;

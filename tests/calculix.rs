@@ -1,0 +1,206 @@
+//! CalculiX cross-checks: the exported deck gives the same answer as the mass–spring model
+//! where both are exact, and the composite refinement study behaves.
+//!
+//! These tests need `ccx`. Without it they fail (never skip) and say how to install it.
+
+use lungmotion::model::{ConstraintSet, Loads, Material, NodeConstraint, SurfacePressure, VoxelGrid};
+use lungmotion::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene};
+use lungmotion::validation::calculix::{self, CalculixOptions, CCX_INSTALL_HINT};
+use lungmotion::validation::composite::{run_case, CompositeCase, CompositeOptions};
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+type V3 = Vector3<f64>;
+
+fn require_ccx() {
+    if calculix::ccx_path().is_none() {
+        panic!("CalculiX (`ccx`) is required by this test but was not found: {CCX_INSTALL_HINT}");
+    }
+}
+
+fn solve_ours(scene: &Scene, tolerance: f64) -> Vec<V3> {
+    let settings = QuasiStaticSettings {
+        tolerance,
+        ..Default::default()
+    };
+    let (x, _) = QuasiStaticSolver::new(scene, settings)
+        .unwrap()
+        .solve(None)
+        .unwrap();
+    scene.displacements(&x)
+}
+
+/// A 2×2×2 block of 10 mm cubes in the frame `axes` (columns), with symmetry planes on its
+/// three faces through the origin (one plane: slides on it; two: slides along their line;
+/// three: fixed) and a uniform pressure on the faces at local x = 20 mm.
+fn symmetric_block(axes: Matrix3<f64>, pressure_pa: f64) -> Scene {
+    let mut grid = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros());
+    grid.axes = axes;
+    let gm = grid
+        .to_mesh(Material::new(1000.0, 0.3, 1.0).unwrap())
+        .unwrap();
+    let mesh = gm.mesh;
+    let mut cs = ConstraintSet::new(mesh.node_count());
+    for (i, l) in gm.node_lattice.iter().enumerate() {
+        let on: Vec<usize> = (0..3).filter(|&a| l[a] == 0).collect();
+        let c = match on.len() {
+            0 => continue,
+            1 => NodeConstraint::Plane {
+                point_m: V3::zeros(),
+                normal: axes.column(on[0]).into(),
+            },
+            2 => NodeConstraint::Line {
+                point_m: V3::zeros(),
+                direction: axes.column(3 - on[0] - on[1]).into(),
+            },
+            _ => NodeConstraint::Fixed {
+                target_m: V3::zeros(),
+            },
+        };
+        cs.set(i as u32, c).unwrap();
+    }
+    let faces: Vec<[u32; 4]> = mesh
+        .external_faces
+        .iter()
+        .copied()
+        .filter(|f| f.iter().all(|&n| gm.node_lattice[n as usize][0] == 2))
+        .collect();
+    assert_eq!(faces.len(), 4);
+    let loads = Loads {
+        pressures: vec![SurfacePressure {
+            faces,
+            pressure_pa,
+            follows_deformation: false,
+        }],
+        ..Default::default()
+    };
+    Scene::new(mesh, cs, loads).unwrap()
+}
+
+fn max_norm(u: &[V3]) -> f64 {
+    u.iter().map(|v| v.norm()).fold(0.0, f64::max)
+}
+
+fn max_diff(a: &[V3], b: &[V3]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max)
+}
+
+/// Homogeneous uniaxial stress: C3D8 and Baudet's element are both exact, so the two codes
+/// must agree to CalculiX's printed precision (7 significant digits) and match the closed form.
+#[test]
+fn uniaxial_block_matches_calculix_linear() {
+    require_ccx();
+    let p = 1e-3; // Strain 1e-6: the mass–spring model's geometric non-linearity is O(1e-6).
+    let scene = symmetric_block(Matrix3::identity(), p);
+    let ccx = calculix::solve(&scene, &CalculixOptions::linear()).unwrap();
+    // Forces come from length differences of 1e-6 relative size: round-off floors the
+    // relative residual near 1e-10.
+    let ours = solve_ours(&scene, 1e-9);
+    let scale = max_norm(&ccx.displacements_m);
+    let diff = max_diff(&ours, &ccx.displacements_m);
+    eprintln!("uniaxial: max |Δu| / max |u| = {:.2e}", diff / scale);
+    assert!(
+        diff <= 1e-6 * scale,
+        "mass–spring vs CalculiX: max |Δu| = {diff:.3e} m, {:.2e} of max |u| = {scale:.3e} m",
+        diff / scale
+    );
+    // Closed form: u_x = −(p/E)·x, u_y = ν(p/E)·y, u_z = ν(p/E)·z.
+    let (e, nu) = (1000.0, 0.3);
+    for (r, u) in scene.mesh.rest_positions_m.iter().zip(&ccx.displacements_m) {
+        let want = V3::new(-p / e * r.x, nu * p / e * r.y, nu * p / e * r.z);
+        assert!((u - want).norm() <= 1e-6 * scale, "node at {r:?}: {u:?} vs {want:?}");
+    }
+}
+
+/// General plane and line constraints go through `*TRANSFORM`: the rotated block must give
+/// the rotated displacements of the axis-aligned one.
+#[test]
+fn rotated_block_uses_transforms_correctly() {
+    require_ccx();
+    let rot = Rotation3::from_euler_angles(0.3, -0.5, 0.9);
+    let aligned = symmetric_block(Matrix3::identity(), 1e-3);
+    let rotated = symmetric_block(*rot.matrix(), 1e-3);
+    let deck = calculix::write_deck(&rotated, &CalculixOptions::linear()).unwrap();
+    assert!(deck.contains("*TRANSFORM"));
+    let a = calculix::solve(&aligned, &CalculixOptions::linear()).unwrap();
+    let b = calculix::solve(&rotated, &CalculixOptions::linear()).unwrap();
+    let back: Vec<V3> = b.displacements_m.iter().map(|u| rot.inverse() * u).collect();
+    let scale = max_norm(&a.displacements_m);
+    let diff = max_diff(&back, &a.displacements_m);
+    assert!(diff <= 2e-6 * scale, "rotated vs aligned: {diff:.3e} m of {scale:.3e} m");
+}
+
+/// Follower pressure on all six faces (every C3D8 face number) of a block held only against
+/// rigid motion: both codes must compress it by the same volume, within the mass–spring
+/// model's bulk-modulus error (< 5 % up to ±15 % volume change, thesis Fig. 3.50).
+#[test]
+fn all_face_pressure_gives_same_volume_change_nlgeom() {
+    require_ccx();
+    let gm = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros())
+        .to_mesh(Material::new(1000.0, 0.3, 1.0).unwrap())
+        .unwrap();
+    let mesh = gm.mesh;
+    let node_at = |l: [u32; 3]| gm.node_lattice.iter().position(|&x| x == l).unwrap() as u32;
+    let mut cs = ConstraintSet::new(mesh.node_count());
+    cs.fix(node_at([0, 0, 0]), V3::zeros()).unwrap();
+    cs.set(
+        node_at([2, 0, 0]),
+        NodeConstraint::Line {
+            point_m: V3::zeros(),
+            direction: V3::x(),
+        },
+    )
+    .unwrap();
+    cs.set(
+        node_at([0, 2, 0]),
+        NodeConstraint::Plane {
+            point_m: V3::zeros(),
+            normal: V3::z(),
+        },
+    )
+    .unwrap();
+    // K = E / (3(1 − 2ν)) ≈ 833 Pa: 60 Pa compresses by about 7 %.
+    let p = 60.0;
+    let loads = Loads {
+        pressures: vec![SurfacePressure {
+            faces: mesh.external_faces.clone(),
+            pressure_pa: p,
+            follows_deformation: true,
+        }],
+        ..Default::default()
+    };
+    let scene = Scene::new(mesh, cs, loads).unwrap();
+    let ccx = calculix::solve(&scene, &CalculixOptions::default()).unwrap();
+    let ours = solve_ours(&scene, 1e-9);
+    let m = &scene.mesh;
+    let v0 = m.enclosed_volume_m3(&m.rest_positions_m);
+    let moved = |u: &[V3]| -> Vec<V3> { m.rest_positions_m.iter().zip(u).map(|(r, d)| r + d).collect() };
+    let dv_ccx = m.enclosed_volume_m3(&moved(&ccx.displacements_m)) / v0 - 1.0;
+    let dv_ours = m.enclosed_volume_m3(&moved(&ours)) / v0 - 1.0;
+    eprintln!("volume change: CalculiX {dv_ccx:.5}, mass–spring {dv_ours:.5}");
+    assert!(dv_ccx < -0.05 && dv_ccx > -0.10, "CalculiX volume change {dv_ccx}");
+    let rel = (dv_ours - dv_ccx).abs() / dv_ccx.abs();
+    assert!(rel < 0.05, "volume change differs by {:.2} %", 100.0 * rel);
+}
+
+/// Quick refinement study: the mass–spring error against CalculiX on the finest mesh falls as
+/// elements shrink, in both composite cases.
+#[test]
+fn composite_error_falls_with_refinement() {
+    require_ccx();
+    let options = CompositeOptions {
+        check_reference_with_c3d8i: false,
+        ..CompositeOptions::quick()
+    };
+    for (case, res) in [
+        (CompositeCase::L, vec![2, 4]),
+        (CompositeCase::Cantilever, vec![1, 2]),
+    ] {
+        let report = run_case(case, &res, &options).unwrap();
+        for r in &report.rows {
+            assert!(r.mass_spring_failure.is_none(), "{case:?} {}: {:?}", r.label, r.mass_spring_failure);
+        }
+        let e: Vec<f64> = report.rows.iter().map(|r| r.mass_spring_error.unwrap().mean_m).collect();
+        eprintln!("{case:?}: mean errors {e:?} m");
+        assert!(e[1] < e[0], "{case:?}: error did not fall: {e:?}");
+    }
+}

@@ -1,0 +1,203 @@
+//! The quasi-static solver against closed forms and against the explicit integrator.
+
+use lungmotion::model::{
+    BrickCoefficients, BrickShape, ConstraintSet, HexMesh, Loads, Material, NodeConstraint,
+    SignedDistanceField, VoxelGrid,
+};
+use lungmotion::simulation::{
+    ExplicitIntegrator, ExplicitSettings, QuasiStaticSettings, QuasiStaticSolver, Scene,
+};
+use lungmotion::validation::cases::symmetric_block_under_pressure;
+use lungmotion::Error;
+use nalgebra::Vector3;
+
+fn volume_strain(scene: &Scene, x: &[Vector3<f64>]) -> f64 {
+    let v0 = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m);
+    (scene.mesh.enclosed_volume_m3(x) - v0) / v0
+}
+
+#[test]
+fn small_pressure_gives_the_bulk_modulus_on_a_composed_block() {
+    // A composed block must keep the element's exact bulk modulus: ΔV/V = −p/K at small strain.
+    for nu in [0.1, 0.3, 0.45] {
+        let mat = Material::new(1000.0, nu, 700.0).unwrap();
+        let p = 1e-3;
+        let scene = symmetric_block_under_pressure([6, 5, 4], 0.004, mat, p).unwrap();
+        let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
+        let (x, report) = solver.solve(None).unwrap();
+        assert!(report.residual <= 1e-6, "{report:?}");
+        let measured = -p / volume_strain(&scene, &x);
+        let k = mat.bulk_modulus_pa();
+        assert!((measured - k).abs() / k < 1e-4, "ν = {nu}: K = {measured}, want {k}");
+    }
+}
+
+#[test]
+fn multigrid_and_block_jacobi_agree_and_converge() {
+    // 16³ builds a 3-level hierarchy; the residual must reach the tolerance either way.
+    let scene =
+        symmetric_block_under_pressure([16, 16, 16], 0.005, Material::LUNG, -20.0).unwrap();
+    let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
+    let (x, report) = solver.solve(None).unwrap();
+    assert!(report.multigrid_levels >= 3, "{report:?}");
+    assert!(report.residual <= 1e-6);
+    // Inflation by −20 Pa on lung tissue: about 6 % volume, follower load, non-linear.
+    let strain = volume_strain(&scene, &x);
+    let linear = 20.0 / Material::LUNG.bulk_modulus_pa();
+    assert!(strain > 0.9 * linear && strain < 1.2 * linear, "{strain} vs {linear}");
+    // Warm start from the solution: converged already, no Newton step needed.
+    let (_, again) = solver.solve(Some(&x)).unwrap();
+    assert_eq!(again.newton_iterations, 0);
+}
+
+#[test]
+fn agrees_with_explicit_dynamics_at_equilibrium() {
+    // Cantilever of 2×2×6 cubes under gravity, clamped at x = 0.
+    let mat = Material::new(50_000.0, 0.3, 1000.0).unwrap();
+    let grid = VoxelGrid::filled_box([6, 2, 2], [0.01; 3], Vector3::zeros());
+    let mut gm = grid.to_mesh(mat).unwrap();
+    gm.mesh.classes[0] = gm.mesh.classes[0].clone().with_damping_ratio(1.0);
+    let mut cs = ConstraintSet::new(gm.mesh.node_count());
+    for (i, l) in gm.node_lattice.iter().enumerate() {
+        if l[0] == 0 {
+            cs.fix(i as u32, gm.mesh.rest_positions_m[i]).unwrap();
+        }
+    }
+    let loads = Loads {
+        gravity_m_per_s2: Vector3::new(0.0, 0.0, -9.81),
+        ..Loads::default()
+    };
+    let scene = Scene::new(gm.mesh, cs, loads).unwrap();
+    let (xq, _) = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())
+        .unwrap()
+        .solve(None)
+        .unwrap();
+    let mut dynamic = ExplicitIntegrator::new(&scene);
+    let report = dynamic
+        .run_to_equilibrium(&ExplicitSettings {
+            residual_tolerance: 1e-7,
+            ..ExplicitSettings::default()
+        })
+        .unwrap();
+    assert!(report.converged, "{report:?}");
+    let tip_q = scene.displacements(&xq).iter().map(|u| u.norm()).fold(0.0, f64::max);
+    let diff = xq
+        .iter()
+        .zip(&dynamic.positions)
+        .map(|(a, b)| (a - b).norm())
+        .fold(0.0, f64::max);
+    assert!(tip_q > 1e-3, "the beam must sag visibly: {tip_q}");
+    // Both stop at a relative force residual of 1e-7, so their states agree to about that.
+    assert!(diff < 1e-4 * tip_q, "max difference {diff} m vs tip {tip_q} m");
+}
+
+#[test]
+fn non_lattice_mesh_uses_block_jacobi_and_converges() {
+    // Two bricks of different shapes: no common lattice, so no multigrid.
+    let mat = Material::new(1000.0, 0.3, 1.0).unwrap();
+    let a = BrickCoefficients::new(BrickShape::cube(1.0), mat).unwrap();
+    let b = BrickCoefficients::new(BrickShape { edges_m: [1.2, 1.0, 1.0] }, mat).unwrap();
+    let mut pos = Vec::new();
+    for x in [0.0, 1.0, 2.2] {
+        for (y, z) in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
+            pos.push(Vector3::new(x, y, z));
+        }
+    }
+    // Node (x index i, corner c of the yz square) = 4i + c; VTK order per element.
+    let el = |i: u32| [4 * i, 4 * i + 4, 4 * i + 5, 4 * i + 1, 4 * i + 3, 4 * i + 7, 4 * i + 6, 4 * i + 2];
+    let mesh = HexMesh::new(pos, vec![el(0), el(1)], vec![0, 1], vec![a, b]).unwrap();
+    let mut cs = ConstraintSet::new(mesh.node_count());
+    for n in 0..4 {
+        cs.fix(n, mesh.rest_positions_m[n as usize]).unwrap();
+    }
+    let loads = Loads {
+        point_forces_n: (8..12).map(|n| (n, Vector3::new(1.0, 0.0, 0.0))).collect(),
+        ..Loads::default()
+    };
+    let scene = Scene::new(mesh, cs, loads).unwrap();
+    let (x, report) = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())
+        .unwrap()
+        .solve(None)
+        .unwrap();
+    assert_eq!(report.multigrid_levels, 1);
+    assert!(report.residual <= 1e-6);
+    assert!(x[8].x > 2.2);
+}
+
+#[test]
+fn sliding_nodes_stay_on_their_surface() {
+    // A column pressed from above whose bottom nodes slide on a sphere of radius 1 m.
+    let mat = Material::new(1000.0, 0.3, 1.0).unwrap();
+    let grid = VoxelGrid::filled_box([2, 2, 2], [0.05; 3], Vector3::new(-0.05, -0.05, 1.0));
+    let gm = grid.to_mesh(mat).unwrap();
+    let mut cs = ConstraintSet::new(gm.mesh.node_count());
+    // A trilinearly sampled field has a normal that jumps across cell faces, so the tangential
+    // force can only be balanced to about the normal's accuracy (≈ spacing² / radius): sample
+    // finely and ask for the tolerance that accuracy allows.
+    let sphere = SignedDistanceField::from_fn(
+        Vector3::new(-0.08, -0.08, 0.97),
+        Vector3::new(0.08, 0.08, 1.03),
+        0.001,
+        |p| p.norm() - 1.0,
+    )
+    .unwrap();
+    let s = cs.add_surface(sphere);
+    for (i, l) in gm.node_lattice.iter().enumerate() {
+        if l[2] == 0 {
+            cs.set(i as u32, NodeConstraint::Surface { field: s }).unwrap();
+        }
+        if l[2] == 0 && l[1] == 1 && l[0] >= 1 {
+            // Two bottom nodes are pinned: with one, turning about the vertical through it
+            // would keep every sliding node on the sphere (a zero-stiffness mode).
+            let p = gm.mesh.rest_positions_m[i];
+            cs.fix(i as u32, p).unwrap();
+        }
+    }
+    let top: Vec<u32> = (0..gm.node_lattice.len() as u32)
+        .filter(|&i| gm.node_lattice[i as usize][2] == 2)
+        .collect();
+    let loads = Loads {
+        point_forces_n: top.iter().map(|&n| (n, Vector3::new(3e-3, 0.0, -1e-2))).collect(),
+        ..Loads::default()
+    };
+    let scene = Scene::new(gm.mesh, cs, loads).unwrap();
+    let settings = QuasiStaticSettings {
+        tolerance: 1e-4,
+        ..QuasiStaticSettings::default()
+    };
+    let (x, report) = QuasiStaticSolver::new(&scene, settings)
+        .unwrap()
+        .solve(None)
+        .unwrap();
+    assert!(report.residual <= 1e-4, "{report:?}");
+    for (i, l) in gm.node_lattice.iter().enumerate() {
+        if l[2] == 0 {
+            // Trilinear sampling of the field limits how exactly the sphere is represented.
+            assert!((x[i].norm() - 1.0).abs() < 1e-4, "node {i}: |x| = {}", x[i].norm());
+        }
+    }
+    // The reaction forces balance the applied load (eq. 4.1: constraints visible as forces).
+    let reactions = scene.reactions(&x);
+    let total: Vector3<f64> = reactions.iter().map(|(_, f)| f).sum();
+    let applied = Vector3::new(3e-3, 0.0, -1e-2) * top.len() as f64;
+    assert!((total + applied).norm() < 1e-3 * applied.norm(), "{total:?}");
+}
+
+#[test]
+fn refuses_bad_settings_and_states() {
+    let scene = symmetric_block_under_pressure([2, 2, 2], 0.01, Material::LUNG, -1.0).unwrap();
+    let bad = QuasiStaticSettings {
+        tolerance: f64::NAN,
+        ..QuasiStaticSettings::default()
+    };
+    assert!(QuasiStaticSolver::new(&scene, bad).is_err());
+    let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
+    let mut x = scene.mesh.rest_positions_m.clone();
+    x[5].y = f64::NAN;
+    match solver.solve(Some(&x)) {
+        Err(Error::Diverged { cause, .. }) => assert!(cause.contains("node 5"), "{cause}"),
+        other => panic!("expected a blow-up error, got {other:?}"),
+    }
+    assert!(solver.solve(Some(&x[..3])).is_err());
+}
+
