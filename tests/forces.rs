@@ -63,7 +63,10 @@ fn evaluate(mesh: &HexMesh, x: &[V3], v: Option<&[V3]>, threads: usize) -> Vec<V
 }
 
 fn max_diff(a: &[V3], b: &[V3]) -> f64 {
-    a.iter().zip(b).map(|(p, q)| (p - q).norm()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| (p - q).norm())
+        .fold(0.0, f64::max)
 }
 
 fn perturbed(mesh: &HexMesh, rng: &mut Rng, amplitude_m: f64) -> Vec<V3> {
@@ -115,16 +118,19 @@ fn mixed_classes_and_unordered_meshes_agree_with_the_reference() {
     let shape = BrickShape {
         edges_m: [4e-3, 4.5e-3, 5e-3],
     };
-    let classes: Vec<BrickCoefficients> = [(390.0, 0.3, 0.0), (1500.0, 0.45, 0.5), (100.0, 0.1, 1.0)]
-        .iter()
-        .map(|&(e, nu, zeta)| {
-            BrickCoefficients::new(shape, Material::new(e, nu, 700.0).unwrap())
-                .unwrap()
-                .with_damping_ratio(zeta)
-        })
-        .collect();
+    let classes: Vec<BrickCoefficients> =
+        [(390.0, 0.3, 0.0), (1500.0, 0.45, 0.5), (100.0, 0.1, 1.0)]
+            .iter()
+            .map(|&(e, nu, zeta)| {
+                BrickCoefficients::new(shape, Material::new(e, nu, 700.0).unwrap())
+                    .unwrap()
+                    .with_damping_ratio(zeta)
+            })
+            .collect();
     let n = base.element_count();
-    let class_of: Vec<u32> = (0..n).map(|e| ((e * 7919) % 3 == 0) as u32 + (e % 5 == 0) as u32).collect();
+    let class_of: Vec<u32> = (0..n)
+        .map(|e| ((e * 7919) % 3 == 0) as u32 + (e % 5 == 0) as u32)
+        .collect();
     let mixed = HexMesh::new(
         base.rest_positions_m.clone(),
         base.elements.clone(),
@@ -179,11 +185,17 @@ fn forces_vanish_at_rest_and_under_rigid_motion() {
     let omega = V3::new(0.4, -1.3, 2.0);
     let x: Vec<V3> = rest.iter().map(|p| rotation * p + shift).collect();
     // Rigid velocity field v = ω × x + u: dampers must not see it either.
-    let v: Vec<V3> = x.iter().map(|p| omega.cross(p) + V3::new(1.0, 2.0, -3.0)).collect();
+    let v: Vec<V3> = x
+        .iter()
+        .map(|p| omega.cross(p) + V3::new(1.0, 2.0, -3.0))
+        .collect();
     for vel in [None, Some(&v[..])] {
         let f = evaluate(&mesh, &x, vel, 2);
         let worst = f.iter().map(|f| f.norm()).fold(0.0, f64::max);
-        assert!(worst <= 1e-12 * scale, "force under rigid motion {worst:.3e} N");
+        assert!(
+            worst <= 1e-12 * scale,
+            "force under rigid motion {worst:.3e} N"
+        );
     }
 }
 
@@ -229,6 +241,9 @@ fn internal_forces_sum_to_zero() {
         let f = evaluate(&mesh, &x, vel, 2);
         let sum: V3 = f.iter().sum();
         let total: f64 = f.iter().map(|f| f.norm()).sum();
-        assert!(sum.norm() <= 1e-13 * total, "Σf = {sum:?} against Σ|f| = {total:.3e}");
+        assert!(
+            sum.norm() <= 1e-13 * total,
+            "Σf = {sum:?} against Σ|f| = {total:.3e}"
+        );
     }
 }

@@ -199,7 +199,9 @@ impl LaneKernel {
     /// Lane `l` taken from `kernels[classes[l]]`.
     fn gather(kernels: &[LaneKernel], classes: &[u32; LANES]) -> Self {
         let pick = |get: &dyn Fn(&LaneKernel) -> Lanes| {
-            Lanes(std::array::from_fn(|l| get(&kernels[classes[l] as usize]).0[l]))
+            Lanes(std::array::from_fn(|l| {
+                get(&kernels[classes[l] as usize]).0[l]
+            }))
         };
         LaneKernel {
             stiffness: std::array::from_fn(|s| pick(&|k| k.stiffness[s])),
@@ -216,11 +218,7 @@ impl LaneKernel {
 /// before the dot product (Σ_n s_n,i f_n) · e_i, and the direction uses one reciprocal; the
 /// results agree to a few ulps of the spring forces.
 #[inline(always)]
-fn batch_forces<const DAMP: bool>(
-    k: &LaneKernel,
-    x: &[LaneV3; 8],
-    v: &[LaneV3; 8],
-) -> [LaneV3; 8] {
+fn batch_forces<const DAMP: bool>(k: &LaneKernel, x: &[LaneV3; 8], v: &[LaneV3; 8]) -> [LaneV3; 8] {
     let mut f = [[Lanes::ZERO; 3]; 8];
     for (s, &(a, b, _)) in SPRINGS.iter().enumerate() {
         let d = sub3(&x[b], &x[a]);
@@ -581,7 +579,9 @@ impl ForceEvaluator {
     pub fn heap_bytes(&self) -> usize {
         let sched = match &self.schedule {
             Schedule::Chunks(c) => {
-                c.iter().map(|v| v.capacity() * std::mem::size_of::<Chunk>()).sum::<usize>()
+                c.iter()
+                    .map(|v| v.capacity() * std::mem::size_of::<Chunk>())
+                    .sum::<usize>()
                     + c.capacity() * std::mem::size_of::<Vec<Chunk>>()
             }
             Schedule::ElementColours => 0,
@@ -632,7 +632,11 @@ impl ForceEvaluator {
                             lo: chunk.node_lo,
                             out: window,
                         };
-                        dispatch(&inp, &mut (chunk.first_element..chunk.end_element), &mut sink);
+                        dispatch(
+                            &inp,
+                            &mut (chunk.first_element..chunk.end_element),
+                            &mut sink,
+                        );
                     };
                     if parallel {
                         windows.into_par_iter().for_each(run);

@@ -5,5 +5,6 @@ pub mod calculix;
 pub mod cases;
 pub mod composite;
 pub mod patch;
+pub mod report;
 pub mod stability;
 pub mod sweep;

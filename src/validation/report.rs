@@ -1,0 +1,101 @@
+//! The validation suite as one run: each study's report, written as JSON and markdown.
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::composite::{run_composite, CompositeOptions, CompositeReport};
+use super::patch::{run_patch_tests, PatchConfig, PatchReport};
+use crate::Result;
+
+/// Which studies to run.
+#[derive(Debug, Clone, Serialize)]
+pub struct ValidateOptions {
+    /// Smaller composite resolutions (minutes instead of tens of minutes).
+    pub quick: bool,
+    /// Run the CalculiX comparisons (needs `ccx`).
+    pub calculix: bool,
+}
+
+/// Every study's result.
+#[derive(Debug, Clone, Serialize)]
+pub struct ValidationReport {
+    /// Software version.
+    pub version: &'static str,
+    /// Options of the run.
+    pub options: ValidateOptions,
+    /// Single-element patch tests.
+    pub patch: PatchReport,
+    /// Composite cases against CalculiX (absent when skipped).
+    pub composite: Option<CompositeReport>,
+    /// Wall time of the whole suite, seconds.
+    pub wall_time_s: f64,
+}
+
+/// Runs the suite; `progress` receives one line per study as it starts.
+pub fn run_validation(options: &ValidateOptions, progress: &mut dyn FnMut(&str)) -> Result<ValidationReport> {
+    let start = Instant::now();
+    progress("patch tests (single element, closed forms)");
+    let patch = run_patch_tests(&PatchConfig::default())?;
+    let composite = if options.calculix {
+        progress("composite cases against CalculiX (cantilever, L)");
+        let opts = if options.quick {
+            CompositeOptions::quick()
+        } else {
+            CompositeOptions::full()
+        };
+        Some(run_composite(&opts)?)
+    } else {
+        None
+    };
+    Ok(ValidationReport {
+        version: env!("CARGO_PKG_VERSION"),
+        options: options.clone(),
+        patch,
+        composite,
+        wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+impl ValidationReport {
+    /// The report as markdown, one section per study.
+    pub fn to_markdown(&self) -> String {
+        let mut s = format!(
+            "# lungmotion validation report\n\nVersion {}, {} mode, CalculiX {}. Suite wall time {:.1} s.\n\n",
+            self.version,
+            if self.options.quick { "quick" } else { "full" },
+            if self.options.calculix { "on" } else { "off" },
+            self.wall_time_s
+        );
+        s.push_str(&self.patch.to_markdown());
+        s.push('\n');
+        if let Some(c) = &self.composite {
+            s.push_str(&c.to_markdown());
+            s.push('\n');
+        }
+        s
+    }
+
+    /// Writes `validation.json` and `validation.md` into `dir` (created if needed), each via a
+    /// temporary file and a rename so a reader never sees half a report.
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir)?;
+        let json = serde_json::to_string_pretty(self)
+            .map_err(|e| crate::Error::External(format!("serialising the report: {e}")))?;
+        write_atomic(&dir.join("validation.json"), json.as_bytes())?;
+        write_atomic(&dir.join("validation.md"), self.to_markdown().as_bytes())?;
+        Ok(())
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary sibling and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension(format!(
+        "{}.tmp",
+        path.extension().and_then(|e| e.to_str()).unwrap_or("")
+    ));
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
