@@ -53,7 +53,9 @@ fn main() -> ExitCode {
 
 fn validate(out: PathBuf, quick: bool, calculix: bool) -> anyhow::Result<()> {
     let options = ValidateOptions { quick, calculix };
-    let report = run_validation(&options, &mut |step| eprintln!("lungmotion: running {step}"))?;
+    let report = run_validation(&options, &mut |step| {
+        eprintln!("lungmotion: running {step}")
+    })?;
     report.write(&out)?;
     println!("{}", report.to_markdown());
     eprintln!(

@@ -3,7 +3,9 @@
 //!
 //! These tests need `ccx`. Without it they fail (never skip) and say how to install it.
 
-use lungmotion::model::{ConstraintSet, Loads, Material, NodeConstraint, SurfacePressure, VoxelGrid};
+use lungmotion::model::{
+    ConstraintSet, Loads, Material, NodeConstraint, SurfacePressure, VoxelGrid,
+};
 use lungmotion::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene};
 use lungmotion::validation::calculix::{self, CalculixOptions, CCX_INSTALL_HINT};
 use lungmotion::validation::composite::{run_case, CompositeCase, CompositeOptions};
@@ -81,7 +83,10 @@ fn max_norm(u: &[V3]) -> f64 {
 }
 
 fn max_diff(a: &[V3], b: &[V3]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).norm()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).norm())
+        .fold(0.0, f64::max)
 }
 
 /// Homogeneous uniaxial stress: C3D8 and Baudet's element are both exact, so the two codes
@@ -107,7 +112,10 @@ fn uniaxial_block_matches_calculix_linear() {
     let (e, nu) = (1000.0, 0.3);
     for (r, u) in scene.mesh.rest_positions_m.iter().zip(&ccx.displacements_m) {
         let want = V3::new(-p / e * r.x, nu * p / e * r.y, nu * p / e * r.z);
-        assert!((u - want).norm() <= 1e-6 * scale, "node at {r:?}: {u:?} vs {want:?}");
+        assert!(
+            (u - want).norm() <= 1e-6 * scale,
+            "node at {r:?}: {u:?} vs {want:?}"
+        );
     }
 }
 
@@ -123,10 +131,17 @@ fn rotated_block_uses_transforms_correctly() {
     assert!(deck.contains("*TRANSFORM"));
     let a = calculix::solve(&aligned, &CalculixOptions::linear()).unwrap();
     let b = calculix::solve(&rotated, &CalculixOptions::linear()).unwrap();
-    let back: Vec<V3> = b.displacements_m.iter().map(|u| rot.inverse() * u).collect();
+    let back: Vec<V3> = b
+        .displacements_m
+        .iter()
+        .map(|u| rot.inverse() * u)
+        .collect();
     let scale = max_norm(&a.displacements_m);
     let diff = max_diff(&back, &a.displacements_m);
-    assert!(diff <= 2e-6 * scale, "rotated vs aligned: {diff:.3e} m of {scale:.3e} m");
+    assert!(
+        diff <= 2e-6 * scale,
+        "rotated vs aligned: {diff:.3e} m of {scale:.3e} m"
+    );
 }
 
 /// Follower pressure on all six faces (every C3D8 face number) of a block held only against
@@ -173,11 +188,20 @@ fn all_face_pressure_gives_same_volume_change_nlgeom() {
     let ours = solve_ours(&scene, 1e-9);
     let m = &scene.mesh;
     let v0 = m.enclosed_volume_m3(&m.rest_positions_m);
-    let moved = |u: &[V3]| -> Vec<V3> { m.rest_positions_m.iter().zip(u).map(|(r, d)| r + d).collect() };
+    let moved = |u: &[V3]| -> Vec<V3> {
+        m.rest_positions_m
+            .iter()
+            .zip(u)
+            .map(|(r, d)| r + d)
+            .collect()
+    };
     let dv_ccx = m.enclosed_volume_m3(&moved(&ccx.displacements_m)) / v0 - 1.0;
     let dv_ours = m.enclosed_volume_m3(&moved(&ours)) / v0 - 1.0;
     eprintln!("volume change: CalculiX {dv_ccx:.5}, mass–spring {dv_ours:.5}");
-    assert!(dv_ccx < -0.05 && dv_ccx > -0.10, "CalculiX volume change {dv_ccx}");
+    assert!(
+        dv_ccx < -0.05 && dv_ccx > -0.10,
+        "CalculiX volume change {dv_ccx}"
+    );
     let rel = (dv_ours - dv_ccx).abs() / dv_ccx.abs();
     assert!(rel < 0.05, "volume change differs by {:.2} %", 100.0 * rel);
 }
@@ -197,9 +221,18 @@ fn composite_error_falls_with_refinement() {
     ] {
         let report = run_case(case, &res, &options).unwrap();
         for r in &report.rows {
-            assert!(r.mass_spring_failure.is_none(), "{case:?} {}: {:?}", r.label, r.mass_spring_failure);
+            assert!(
+                r.mass_spring_failure.is_none(),
+                "{case:?} {}: {:?}",
+                r.label,
+                r.mass_spring_failure
+            );
         }
-        let e: Vec<f64> = report.rows.iter().map(|r| r.mass_spring_error.unwrap().mean_m).collect();
+        let e: Vec<f64> = report
+            .rows
+            .iter()
+            .map(|r| r.mass_spring_error.unwrap().mean_m)
+            .collect();
         eprintln!("{case:?}: mean errors {e:?} m");
         assert!(e[1] < e[0], "{case:?}: error did not fall: {e:?}");
     }

@@ -28,15 +28,17 @@ fn small_pressure_gives_the_bulk_modulus_on_a_composed_block() {
         assert!(report.residual <= 1e-6, "{report:?}");
         let measured = -p / volume_strain(&scene, &x);
         let k = mat.bulk_modulus_pa();
-        assert!((measured - k).abs() / k < 1e-4, "ν = {nu}: K = {measured}, want {k}");
+        assert!(
+            (measured - k).abs() / k < 1e-4,
+            "ν = {nu}: K = {measured}, want {k}"
+        );
     }
 }
 
 #[test]
 fn multigrid_and_block_jacobi_agree_and_converge() {
     // 16³ builds a 3-level hierarchy; the residual must reach the tolerance either way.
-    let scene =
-        symmetric_block_under_pressure([16, 16, 16], 0.005, Material::LUNG, -20.0).unwrap();
+    let scene = symmetric_block_under_pressure([16, 16, 16], 0.005, Material::LUNG, -20.0).unwrap();
     let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
     let (x, report) = solver.solve(None).unwrap();
     assert!(report.multigrid_levels >= 3, "{report:?}");
@@ -44,7 +46,10 @@ fn multigrid_and_block_jacobi_agree_and_converge() {
     // Inflation by −20 Pa on lung tissue: about 6 % volume, follower load, non-linear.
     let strain = volume_strain(&scene, &x);
     let linear = 20.0 / Material::LUNG.bulk_modulus_pa();
-    assert!(strain > 0.9 * linear && strain < 1.2 * linear, "{strain} vs {linear}");
+    assert!(
+        strain > 0.9 * linear && strain < 1.2 * linear,
+        "{strain} vs {linear}"
+    );
     // Warm start from the solution: converged already, no Newton step needed.
     let (_, again) = solver.solve(Some(&x)).unwrap();
     assert_eq!(again.newton_iterations, 0);
@@ -80,7 +85,11 @@ fn agrees_with_explicit_dynamics_at_equilibrium() {
         })
         .unwrap();
     assert!(report.converged, "{report:?}");
-    let tip_q = scene.displacements(&xq).iter().map(|u| u.norm()).fold(0.0, f64::max);
+    let tip_q = scene
+        .displacements(&xq)
+        .iter()
+        .map(|u| u.norm())
+        .fold(0.0, f64::max);
     let diff = xq
         .iter()
         .zip(&dynamic.positions)
@@ -88,7 +97,10 @@ fn agrees_with_explicit_dynamics_at_equilibrium() {
         .fold(0.0, f64::max);
     assert!(tip_q > 1e-3, "the beam must sag visibly: {tip_q}");
     // Both stop at a relative force residual of 1e-7, so their states agree to about that.
-    assert!(diff < 1e-4 * tip_q, "max difference {diff} m vs tip {tip_q} m");
+    assert!(
+        diff < 1e-4 * tip_q,
+        "max difference {diff} m vs tip {tip_q} m"
+    );
 }
 
 #[test]
@@ -96,7 +108,13 @@ fn non_lattice_mesh_uses_block_jacobi_and_converges() {
     // Two bricks of different shapes: no common lattice, so no multigrid.
     let mat = Material::new(1000.0, 0.3, 1.0).unwrap();
     let a = BrickCoefficients::new(BrickShape::cube(1.0), mat).unwrap();
-    let b = BrickCoefficients::new(BrickShape { edges_m: [1.2, 1.0, 1.0] }, mat).unwrap();
+    let b = BrickCoefficients::new(
+        BrickShape {
+            edges_m: [1.2, 1.0, 1.0],
+        },
+        mat,
+    )
+    .unwrap();
     let mut pos = Vec::new();
     for x in [0.0, 1.0, 2.2] {
         for (y, z) in [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
@@ -104,7 +122,18 @@ fn non_lattice_mesh_uses_block_jacobi_and_converges() {
         }
     }
     // Node (x index i, corner c of the yz square) = 4i + c; VTK order per element.
-    let el = |i: u32| [4 * i, 4 * i + 4, 4 * i + 5, 4 * i + 1, 4 * i + 3, 4 * i + 7, 4 * i + 6, 4 * i + 2];
+    let el = |i: u32| {
+        [
+            4 * i,
+            4 * i + 4,
+            4 * i + 5,
+            4 * i + 1,
+            4 * i + 3,
+            4 * i + 7,
+            4 * i + 6,
+            4 * i + 2,
+        ]
+    };
     let mesh = HexMesh::new(pos, vec![el(0), el(1)], vec![0, 1], vec![a, b]).unwrap();
     let mut cs = ConstraintSet::new(mesh.node_count());
     for n in 0..4 {
@@ -144,7 +173,8 @@ fn sliding_nodes_stay_on_their_surface() {
     let s = cs.add_surface(sphere);
     for (i, l) in gm.node_lattice.iter().enumerate() {
         if l[2] == 0 {
-            cs.set(i as u32, NodeConstraint::Surface { field: s }).unwrap();
+            cs.set(i as u32, NodeConstraint::Surface { field: s })
+                .unwrap();
         }
         if l[2] == 0 && l[1] == 1 && l[0] >= 1 {
             // Two bottom nodes are pinned: with one, turning about the vertical through it
@@ -157,7 +187,10 @@ fn sliding_nodes_stay_on_their_surface() {
         .filter(|&i| gm.node_lattice[i as usize][2] == 2)
         .collect();
     let loads = Loads {
-        point_forces_n: top.iter().map(|&n| (n, Vector3::new(3e-3, 0.0, -1e-2))).collect(),
+        point_forces_n: top
+            .iter()
+            .map(|&n| (n, Vector3::new(3e-3, 0.0, -1e-2)))
+            .collect(),
         ..Loads::default()
     };
     let scene = Scene::new(gm.mesh, cs, loads).unwrap();
@@ -171,16 +204,26 @@ fn sliding_nodes_stay_on_their_surface() {
         .unwrap();
     assert!(report.residual <= 1e-4, "{report:?}");
     for i in 0..gm.node_lattice.len() {
-        if matches!(scene.constraints.get(i as u32), Some(NodeConstraint::Surface { .. })) {
+        if matches!(
+            scene.constraints.get(i as u32),
+            Some(NodeConstraint::Surface { .. })
+        ) {
             // Trilinear sampling of the field limits how exactly the sphere is represented.
-            assert!((x[i].norm() - 1.0).abs() < 1e-4, "node {i}: |x| = {}", x[i].norm());
+            assert!(
+                (x[i].norm() - 1.0).abs() < 1e-4,
+                "node {i}: |x| = {}",
+                x[i].norm()
+            );
         }
     }
     // The reaction forces balance the applied load (eq. 4.1: constraints visible as forces).
     let reactions = scene.reactions(&x);
     let total: Vector3<f64> = reactions.iter().map(|(_, f)| f).sum();
     let applied = Vector3::new(3e-3, 0.0, -1e-2) * top.len() as f64;
-    assert!((total + applied).norm() < 1e-3 * applied.norm(), "{total:?}");
+    assert!(
+        (total + applied).norm() < 1e-3 * applied.norm(),
+        "{total:?}"
+    );
 }
 
 #[test]
@@ -200,4 +243,3 @@ fn refuses_bad_settings_and_states() {
     }
     assert!(solver.solve(Some(&x[..3])).is_err());
 }
-

@@ -144,7 +144,12 @@ impl ConstraintSet {
 
     /// Removes from `v` the directions the constraint forbids at position `x`
     /// (the tangent projection of a velocity, force or displacement increment).
-    pub fn project_free(&self, c: &NodeConstraint, x: Vector3<f64>, v: Vector3<f64>) -> Vector3<f64> {
+    pub fn project_free(
+        &self,
+        c: &NodeConstraint,
+        x: Vector3<f64>,
+        v: Vector3<f64>,
+    ) -> Vector3<f64> {
         match *c {
             NodeConstraint::Fixed { .. } => Vector3::zeros(),
             NodeConstraint::Plane { normal, .. } => v - normal * v.dot(&normal),
@@ -206,7 +211,9 @@ fn finite(v: &Vector3<f64>, node: u32, what: &str) -> Result<()> {
     if v.iter().all(|x| x.is_finite()) {
         Ok(())
     } else {
-        Err(Error::InvalidModel(format!("node {node}: {what} is not finite")))
+        Err(Error::InvalidModel(format!(
+            "node {node}: {what} is not finite"
+        )))
     }
 }
 
@@ -214,7 +221,9 @@ fn unit(v: Vector3<f64>, node: u32, what: &str) -> Result<Vector3<f64>> {
     finite(&v, node, what)?;
     let n = v.norm();
     if n < 1e-12 {
-        return Err(Error::InvalidModel(format!("node {node}: {what} has zero length")));
+        return Err(Error::InvalidModel(format!(
+            "node {node}: {what} has zero length"
+        )));
     }
     Ok(v / n)
 }
@@ -249,7 +258,13 @@ mod tests {
         assert!(cs.fix(3, Vector3::zeros()).is_err());
         assert!(cs.fix(0, Vector3::new(f64::NAN, 0.0, 0.0)).is_err());
         assert!(cs
-            .set(0, NodeConstraint::Plane { point_m: Vector3::zeros(), normal: Vector3::zeros() })
+            .set(
+                0,
+                NodeConstraint::Plane {
+                    point_m: Vector3::zeros(),
+                    normal: Vector3::zeros()
+                }
+            )
             .is_err());
         assert!(cs.set(0, NodeConstraint::Surface { field: 0 }).is_err());
     }

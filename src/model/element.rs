@@ -156,7 +156,8 @@ impl BrickCoefficients {
                 }
                 let k = 3 - i - j;
                 let (i0, j0, k0) = (dims[i], dims[j], dims[k]);
-                c[i][j] = -(d2 * (nu * (k0 * k0 + i0 * i0) - i0 * i0) + 6.0 * i0 * i0 * k0 * k0 * nu)
+                c[i][j] = -(d2 * (nu * (k0 * k0 + i0 * i0) - i0 * i0)
+                    + 6.0 * i0 * i0 * k0 * k0 * nu)
                     / (48.0 * i0 * j0 * k0 * k0);
             }
         }
@@ -292,7 +293,11 @@ mod tests {
             let shape = BrickShape {
                 edges_m: [1.0, 1.0, a],
             };
-            assert_eq!(BrickCoefficients::new(shape, mat(1.0, 0.3)).is_ok(), ok, "a = {a}");
+            assert_eq!(
+                BrickCoefficients::new(shape, mat(1.0, 0.3)).is_ok(),
+                ok,
+                "a = {a}"
+            );
         }
     }
 

@@ -135,7 +135,9 @@ mod tests {
     #[test]
     fn box_counts_masses_and_faces() {
         let grid = VoxelGrid::filled_box([2, 3, 4], [0.01; 3], Vector3::zeros());
-        let gm = grid.to_mesh(Material::new(1000.0, 0.3, 1000.0).unwrap()).unwrap();
+        let gm = grid
+            .to_mesh(Material::new(1000.0, 0.3, 1000.0).unwrap())
+            .unwrap();
         let m = &gm.mesh;
         assert_eq!(m.element_count(), 24);
         assert_eq!(m.node_count(), 3 * 4 * 5);

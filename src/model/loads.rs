@@ -46,12 +46,17 @@ impl Loads {
                 )));
             }
             if !f.iter().all(|x| x.is_finite()) {
-                return Err(Error::InvalidModel(format!("point force on node {node} is not finite")));
+                return Err(Error::InvalidModel(format!(
+                    "point force on node {node} is not finite"
+                )));
             }
         }
         for p in &self.pressures {
             if !p.pressure_pa.is_finite() {
-                return Err(Error::InvalidModel(format!("pressure {} Pa is not finite", p.pressure_pa)));
+                return Err(Error::InvalidModel(format!(
+                    "pressure {} Pa is not finite",
+                    p.pressure_pa
+                )));
             }
             if let Some(f) = p.faces.iter().find(|f| f.iter().any(|&c| c as usize >= n)) {
                 return Err(Error::InvalidModel(format!(
@@ -63,7 +68,12 @@ impl Loads {
     }
 
     /// Adds the external forces at `positions_m` to `out` (newtons).
-    pub fn accumulate(&self, mesh: &HexMesh, positions_m: &[Vector3<f64>], out: &mut [Vector3<f64>]) {
+    pub fn accumulate(
+        &self,
+        mesh: &HexMesh,
+        positions_m: &[Vector3<f64>],
+        out: &mut [Vector3<f64>],
+    ) {
         if self.gravity_m_per_s2 != Vector3::zeros() {
             for (f, m) in out.iter_mut().zip(&mesh.node_mass_kg) {
                 *f += self.gravity_m_per_s2 * *m;

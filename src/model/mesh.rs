@@ -63,8 +63,13 @@ impl HexMesh {
         if u32::try_from(rest_positions_m.len()).is_err() {
             return Err(Error::InvalidModel("more than 2³² nodes".into()));
         }
-        if let Some(n) = rest_positions_m.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
-            return Err(Error::InvalidModel(format!("node {n} has a non-finite position")));
+        if let Some(n) = rest_positions_m
+            .iter()
+            .position(|p| !p.iter().all(|v| v.is_finite()))
+        {
+            return Err(Error::InvalidModel(format!(
+                "node {n} has a non-finite position"
+            )));
         }
         let n_nodes = rest_positions_m.len();
         let mut node_mass_kg = vec![0.0; n_nodes];
@@ -132,7 +137,9 @@ impl HexMesh {
                 on[n as usize] = true;
             }
         }
-        (0..self.node_count() as u32).filter(|&n| on[n as usize]).collect()
+        (0..self.node_count() as u32)
+            .filter(|&n| on[n as usize])
+            .collect()
     }
 }
 

@@ -63,13 +63,16 @@ impl SignedDistanceField {
         spacing_m: f64,
         f: impl Fn(Vector3<f64>) -> f64,
     ) -> Result<Self> {
-        let samples: [usize; 3] =
-            std::array::from_fn(|a| (((max_m[a] - min_m[a]) / spacing_m).ceil() as usize + 1).max(2));
+        let samples: [usize; 3] = std::array::from_fn(|a| {
+            (((max_m[a] - min_m[a]) / spacing_m).ceil() as usize + 1).max(2)
+        });
         let mut values = Vec::with_capacity(samples.iter().product());
         for k in 0..samples[2] {
             for j in 0..samples[1] {
                 for i in 0..samples[0] {
-                    values.push(f(min_m + Vector3::new(i as f64, j as f64, k as f64) * spacing_m));
+                    values.push(f(
+                        min_m + Vector3::new(i as f64, j as f64, k as f64) * spacing_m
+                    ));
                 }
             }
         }
@@ -151,13 +154,11 @@ mod tests {
     #[test]
     fn sphere_projection_lands_on_surface() {
         let r = 0.1;
-        let sdf = SignedDistanceField::from_fn(
-            Vector3::repeat(-0.2),
-            Vector3::repeat(0.2),
-            0.005,
-            |p| p.norm() - r,
-        )
-        .unwrap();
+        let sdf =
+            SignedDistanceField::from_fn(Vector3::repeat(-0.2), Vector3::repeat(0.2), 0.005, |p| {
+                p.norm() - r
+            })
+            .unwrap();
         let p = sdf.project_m(Vector3::new(0.09, 0.03, -0.02));
         assert!((p.norm() - r).abs() < 2e-4, "{}", p.norm());
         let n = sdf.normal(Vector3::new(0.1, 0.0, 0.0));
@@ -166,8 +167,13 @@ mod tests {
 
     #[test]
     fn refuses_bad_fields() {
-        assert!(SignedDistanceField::new(Vector3::zeros(), [1.0; 3], [1, 2, 2], vec![0.0; 4]).is_err());
-        assert!(SignedDistanceField::new(Vector3::zeros(), [0.0, 1.0, 1.0], [2; 3], vec![0.0; 8]).is_err());
+        assert!(
+            SignedDistanceField::new(Vector3::zeros(), [1.0; 3], [1, 2, 2], vec![0.0; 4]).is_err()
+        );
+        assert!(
+            SignedDistanceField::new(Vector3::zeros(), [0.0, 1.0, 1.0], [2; 3], vec![0.0; 8])
+                .is_err()
+        );
         let mut v = vec![0.0; 8];
         v[3] = f64::NAN;
         assert!(SignedDistanceField::new(Vector3::zeros(), [1.0; 3], [2; 3], v).is_err());

@@ -170,9 +170,17 @@ impl<'s> ExplicitIntegrator<'s> {
 
     fn update_accelerations(&mut self, v: Option<()>) {
         let vel = v.map(|_| &self.velocities[..]);
-        self.scene.total_forces(&self.positions, vel, &mut self.force);
-        self.scene.constraints.project_field(&self.positions, &mut self.force);
-        for ((a, f), im) in self.accelerations.iter_mut().zip(&self.force).zip(&self.inv_mass) {
+        self.scene
+            .total_forces(&self.positions, vel, &mut self.force);
+        self.scene
+            .constraints
+            .project_field(&self.positions, &mut self.force);
+        for ((a, f), im) in self
+            .accelerations
+            .iter_mut()
+            .zip(&self.force)
+            .zip(&self.inv_mass)
+        {
             *a = f * *im;
         }
     }
@@ -188,13 +196,19 @@ impl<'s> ExplicitIntegrator<'s> {
             *v += a * (0.5 * h);
             *x += *v * h;
         }
-        self.scene.constraints.project_positions(&mut self.positions);
-        self.scene.constraints.project_field(&self.positions, &mut self.velocities);
+        self.scene
+            .constraints
+            .project_positions(&mut self.positions);
+        self.scene
+            .constraints
+            .project_field(&self.positions, &mut self.velocities);
         self.update_accelerations(Some(()));
         for (v, a) in self.velocities.iter_mut().zip(&self.accelerations) {
             *v += a * (0.5 * h);
         }
-        self.scene.constraints.project_field(&self.positions, &mut self.velocities);
+        self.scene
+            .constraints
+            .project_field(&self.positions, &mut self.velocities);
         self.time_s += h;
         self.steps += 1;
     }
@@ -215,7 +229,9 @@ impl<'s> ExplicitIntegrator<'s> {
             None => TimeStepBound::new(self.scene, settings.safety).step_s,
         };
         if !(h.is_finite() && h > 0.0) {
-            return Err(Error::InvalidModel(format!("time step {h} s is not positive")));
+            return Err(Error::InvalidModel(format!(
+                "time step {h} s is not positive"
+            )));
         }
         let mut guard = BlowUpGuard::new(&self.scene.mesh.rest_positions_m);
         let mut peak_ke: f64 = 0.0;

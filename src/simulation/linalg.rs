@@ -126,7 +126,11 @@ pub fn gmres(
                 h[i][k] = t;
             }
             let d = (h[k][k] * h[k][k] + h[k + 1][k] * h[k + 1][k]).sqrt();
-            let (c, s) = if d == 0.0 { (1.0, 0.0) } else { (h[k][k] / d, h[k + 1][k] / d) };
+            let (c, s) = if d == 0.0 {
+                (1.0, 0.0)
+            } else {
+                (h[k][k] / d, h[k + 1][k] / d)
+            };
             cs[k] = c;
             sn[k] = s;
             h[k][k] = d;

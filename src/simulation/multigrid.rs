@@ -145,9 +145,9 @@ impl Level {
                 });
                 let ye = op.apply(&xe);
                 for (c, &n) in corners.iter().enumerate() {
-                    for i in 0..3 {
+                    for (i, v) in ye[c].iter().enumerate() {
                         // SAFETY: colour discipline, see `Shared`.
-                        unsafe { out.add(3 * n as usize + i, ye[c][i]) };
+                        unsafe { out.add(3 * n as usize + i, *v) };
                     }
                 }
                 return;
@@ -171,7 +171,9 @@ impl Level {
             if color.len() < 512 {
                 color.iter().for_each(|&e| run(e));
             } else {
-                color.par_chunks(128).for_each(|c| c.iter().for_each(|&e| run(e)));
+                color
+                    .par_chunks(128)
+                    .for_each(|c| c.iter().for_each(|&e| run(e)));
             }
         }
         if xp.is_some() {
@@ -211,7 +213,9 @@ impl Level {
         let theta = 0.5 * (upper + lower);
         let delta = 0.5 * (upper - lower);
         let sigma = theta / delta;
-        let [r, z, d, ..] = scratch else { unreachable!() };
+        let [r, z, d, ..] = scratch else {
+            unreachable!()
+        };
         self.apply(x, r);
         r.iter_mut().zip(b).for_each(|(r, b)| *r = b - *r);
         self.jacobi(r, z);
@@ -269,7 +273,7 @@ impl Multigrid {
         let mut levels = vec![fine];
         let mut cells = lattice.cell.clone();
         let mut node_ijk = lattice.node.clone();
-        while levels.last().map_or(false, |l| l.n_nodes > COARSEST_NODES) {
+        while levels.last().is_some_and(|l| l.n_nodes > COARSEST_NODES) {
             let fine = levels.last_mut().expect("non-empty");
             let (coarse, c_cells, c_nodes) = coarsen(fine, &cells, &node_ijk);
             if coarse.n_nodes >= fine.n_nodes {
@@ -397,7 +401,9 @@ impl Level {
             .collect();
         // Power iteration for λmax(D⁻¹A).
         let n3 = 3 * self.n_nodes;
-        let mut v: Vec<f64> = (0..n3).map(|i| ((i * 7919) % 1000) as f64 / 1000.0 - 0.5).collect();
+        let mut v: Vec<f64> = (0..n3)
+            .map(|i| ((i * 7919) % 1000) as f64 / 1000.0 - 0.5)
+            .collect();
         let (mut av, mut z) = (vec![0.0; n3], vec![0.0; n3]);
         let mut lambda = 1.0;
         for _ in 0..20 {
@@ -420,7 +426,8 @@ impl Level {
                 for (cj, &nj) in corners.iter().enumerate() {
                     for r in 0..3 {
                         for c in 0..3 {
-                            a[(3 * ni as usize + r, 3 * nj as usize + c)] += k[(3 * ci + r, 3 * cj + c)];
+                            a[(3 * ni as usize + r, 3 * nj as usize + c)] +=
+                                k[(3 * ci + r, 3 * cj + c)];
                         }
                     }
                 }
@@ -474,7 +481,11 @@ impl LinearSprings {
         });
         LinearSprings {
             springs,
-            axes: [axes.column(0).into(), axes.column(1).into(), axes.column(2).into()],
+            axes: [
+                axes.column(0).into(),
+                axes.column(1).into(),
+                axes.column(2).into(),
+            ],
             correction_map: c.correction_map,
         }
     }
@@ -497,7 +508,11 @@ impl LinearSprings {
             }
         }
         let w = self.correction_map * a;
-        let wa = [self.axes[0] * w[0], self.axes[1] * w[1], self.axes[2] * w[2]];
+        let wa = [
+            self.axes[0] * w[0],
+            self.axes[1] * w[1],
+            self.axes[2] * w[2],
+        ];
         for (n, signs) in CORNER_SIGNS.iter().enumerate() {
             f[n] += wa[0] * signs[0] + wa[1] * signs[1] + wa[2] * signs[2];
             f[n] = -f[n];
@@ -511,9 +526,12 @@ impl LinearSprings {
 fn child_interpolation(offset: [u32; 3]) -> M24 {
     let mut p = M24::zeros();
     for (fc, fs) in CORNER_SIGNS.iter().enumerate() {
-        let t: [f64; 3] = std::array::from_fn(|a| (offset[a] as f64 + (fs[a] > 0.0) as u32 as f64) / 2.0);
+        let t: [f64; 3] =
+            std::array::from_fn(|a| (offset[a] as f64 + (fs[a] > 0.0) as u32 as f64) / 2.0);
         for (cc, cs) in CORNER_SIGNS.iter().enumerate() {
-            let w: f64 = (0..3).map(|a| if cs[a] > 0.0 { t[a] } else { 1.0 - t[a] }).product();
+            let w: f64 = (0..3)
+                .map(|a| if cs[a] > 0.0 { t[a] } else { 1.0 - t[a] })
+                .product();
             for i in 0..3 {
                 p[(3 * fc + i, 3 * cc + i)] = w;
             }
@@ -522,7 +540,11 @@ fn child_interpolation(offset: [u32; 3]) -> M24 {
     p
 }
 
-fn coarsen(fine: &mut Level, cells: &[[u32; 3]], node_ijk: &[[u32; 3]]) -> (Level, Vec<[u32; 3]>, Vec<[u32; 3]>) {
+fn coarsen(
+    fine: &mut Level,
+    cells: &[[u32; 3]],
+    node_ijk: &[[u32; 3]],
+) -> (Level, Vec<[u32; 3]>, Vec<[u32; 3]>) {
     let interp: Vec<M24> = (0..8)
         .map(|o| child_interpolation([o & 1, (o >> 1) & 1, (o >> 2) & 1]))
         .collect();
@@ -560,7 +582,7 @@ fn coarsen(fine: &mut Level, cells: &[[u32; 3]], node_ijk: &[[u32; 3]]) -> (Leve
             let mut row = [(0u32, 0.0f64); 8];
             let mut k = 0;
             let opts = |v: u32| -> [(u32, f64); 2] {
-                if v % 2 == 0 {
+                if v.is_multiple_of(2) {
                     [(v / 2, 1.0), (v / 2, 0.0)]
                 } else {
                     [(v / 2, 0.5), (v / 2 + 1, 0.5)]
@@ -600,7 +622,10 @@ fn coarsen(fine: &mut Level, cells: &[[u32; 3]], node_ijk: &[[u32; 3]]) -> (Leve
         let key: Option<Vec<(usize, u32)>> = if kids.iter().any(|&(e, _)| constrained(e as usize)) {
             None
         } else {
-            let mut k: Vec<(usize, u32)> = kids.iter().map(|&(e, o)| (o, fine.matrix_of[e as usize])).collect();
+            let mut k: Vec<(usize, u32)> = kids
+                .iter()
+                .map(|&(e, o)| (o, fine.matrix_of[e as usize]))
+                .collect();
             k.sort_unstable();
             Some(k)
         };

@@ -139,7 +139,8 @@ impl<'s> QuasiStaticSolver<'s> {
         let mut work = Work::new(n);
         for step in 1..=steps {
             let lambda = step as f64 / steps as f64;
-            let constraints = scaled_constraints(&scene.constraints, &scene.mesh.rest_positions_m, lambda);
+            let constraints =
+                scaled_constraints(&scene.constraints, &scene.mesh.rest_positions_m, lambda);
             constraints.project_positions(&mut x);
             let tol = if step == steps {
                 self.settings.tolerance
@@ -157,7 +158,7 @@ impl<'s> QuasiStaticSolver<'s> {
         constraints: &ConstraintSet,
         lambda: f64,
         tol: f64,
-        x: &mut Vec<V3>,
+        x: &mut [V3],
         w: &mut Work,
         report: &mut SolveReport,
     ) -> Result<()> {
@@ -166,7 +167,13 @@ impl<'s> QuasiStaticSolver<'s> {
             .mesh
             .classes
             .iter()
-            .map(|c| c.shape.edges_m.iter().cloned().fold(f64::INFINITY, f64::min))
+            .map(|c| {
+                c.shape
+                    .edges_m
+                    .iter()
+                    .cloned()
+                    .fold(f64::INFINITY, f64::min)
+            })
             .fold(f64::INFINITY, f64::min);
         let mut res = residual(scene, constraints, lambda, x, w);
         for it in 0..self.settings.max_newton_iterations {
@@ -181,11 +188,19 @@ impl<'s> QuasiStaticSolver<'s> {
                 return Ok(());
             }
             // Eisenstat–Walker-style forcing: loose early, tight near convergence.
-            let eta = (0.5 * res / tol.max(1e-300)).sqrt().clamp(1.0, 1e3).recip().clamp(1e-3, 0.1);
-            let eta = if res < 100.0 * tol { eta.min(1e-2) } else { eta };
+            let eta = (0.5 * res / tol.max(1e-300))
+                .sqrt()
+                .clamp(1.0, 1e3)
+                .recip()
+                .clamp(1e-3, 0.1);
+            let eta = if res < 100.0 * tol {
+                eta.min(1e-2)
+            } else {
+                eta
+            };
             let b = flat(&w.r).to_vec();
             let mut delta = vec![0.0; b.len()];
-            let x_base = x.clone();
+            let x_base = x.to_vec();
             let f_base = w.f.clone();
             let projector = &self.projector;
             let eps = 1e-7 * h_scale;
@@ -317,7 +332,13 @@ fn total_force(scene: &Scene, lambda: f64, x: &[V3], f: &mut [V3], ext: &mut [V3
 }
 
 /// Relative residual at x; leaves the total force in `w.f` and its free part in `w.r`.
-fn residual(scene: &Scene, constraints: &ConstraintSet, lambda: f64, x: &[V3], w: &mut Work) -> f64 {
+fn residual(
+    scene: &Scene,
+    constraints: &ConstraintSet,
+    lambda: f64,
+    x: &[V3],
+    w: &mut Work,
+) -> f64 {
     let (ni, ne) = total_force(scene, lambda, x, &mut w.f, &mut w.ext);
     w.r.copy_from_slice(&w.f);
     constraints.project_field(x, &mut w.r);
@@ -350,7 +371,9 @@ fn projectors(cs: &ConstraintSet, rest: &[V3]) -> Vec<Option<Matrix3<f64>>> {
         let n = *node as usize;
         let m = match *c {
             NodeConstraint::Fixed { .. } => Matrix3::zeros(),
-            NodeConstraint::Plane { normal, .. } => Matrix3::identity() - normal * normal.transpose(),
+            NodeConstraint::Plane { normal, .. } => {
+                Matrix3::identity() - normal * normal.transpose()
+            }
             NodeConstraint::Line { direction, .. } => direction * direction.transpose(),
             NodeConstraint::Surface { field } => {
                 let nrm = cs.fields[field as usize].normal(rest[n]);

@@ -115,7 +115,7 @@ impl Default for CalculixOptions {
             element_type: ElementType::C3D8,
             initial_increment: 0.1,
             min_increment: 1e-5,
-            max_increment: 0.1,
+            max_increment: 1.0,
             max_increments: 1000,
             threads: 2,
             keep_files: false,
@@ -158,7 +158,10 @@ impl FaceLocator {
                 let number = c3d8_face_number(local).expect("HEX_FACES are faces of a hexahedron");
                 let mut key = outward;
                 key.sort_unstable();
-                faces.entry(key).or_default().push((e as u32, number, outward));
+                faces
+                    .entry(key)
+                    .or_default()
+                    .push((e as u32, number, outward));
             }
         }
         FaceLocator { faces }
@@ -172,7 +175,9 @@ impl FaceLocator {
         let mut key = *quad;
         key.sort_unstable();
         let candidates = self.faces.get(&key).ok_or_else(|| {
-            Error::InvalidModel(format!("pressure face {quad:?} is not a face of any element"))
+            Error::InvalidModel(format!(
+                "pressure face {quad:?} is not a face of any element"
+            ))
         })?;
         candidates
             .iter()
@@ -190,12 +195,14 @@ impl FaceLocator {
 pub fn c3d8_face_number(local: [usize; 4]) -> Option<u8> {
     let mut key = local;
     key.sort_unstable();
-    C3D8_FACES.iter().position(|f| {
-        let mut k = *f;
-        k.sort_unstable();
-        k == key
-    })
-    .map(|i| i as u8 + 1)
+    C3D8_FACES
+        .iter()
+        .position(|f| {
+            let mut k = *f;
+            k.sort_unstable();
+            k == key
+        })
+        .map(|i| i as u8 + 1)
 }
 
 fn same_cycle(a: &[u32; 4], b: &[u32; 4]) -> bool {
@@ -247,7 +254,12 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
             d.push('\n');
         }
         writeln!(d, "*MATERIAL, NAME=M{}", g + 1).unwrap();
-        writeln!(d, "*ELASTIC\n{:.12e}, {:.12e}", m.youngs_modulus_pa, m.poisson_ratio).unwrap();
+        writeln!(
+            d,
+            "*ELASTIC\n{:.12e}, {:.12e}",
+            m.youngs_modulus_pa, m.poisson_ratio
+        )
+        .unwrap();
         writeln!(d, "*DENSITY\n{:.12e}", m.density_kg_per_m3).unwrap();
         writeln!(d, "*SOLID SECTION, ELSET=E{}, MATERIAL=M{}", g + 1, g + 1).unwrap();
     }
@@ -589,7 +601,11 @@ fn run_in(
     if !out.status.success() {
         return Err(fail(&format!("exited with {}", out.status)));
     }
-    if let Some(line) = stdout.lines().chain(stderr.lines()).find(|l| l.contains("*ERROR")) {
+    if let Some(line) = stdout
+        .lines()
+        .chain(stderr.lines())
+        .find(|l| l.contains("*ERROR"))
+    {
         return Err(fail(&format!("reported an error: {}", line.trim())));
     }
     let dat = std::fs::read_to_string(dir.join("job.dat"))
@@ -719,7 +735,10 @@ mod tests {
         assert!(deck.contains("3, 1, 1, -1.414213562373"), "{deck}");
         // The load on the transformed node is given along its local x (the plane normal).
         assert!(deck.contains("3, 1, 1.414213562373"), "{deck}");
-        assert!(!deck.contains("3, 2, "), "round-off components are dropped: {deck}");
+        assert!(
+            !deck.contains("3, 2, "),
+            "round-off components are dropped: {deck}"
+        );
         assert!(deck.contains("E1, GRAV, 9.81"));
         assert!(deck.contains(", P"));
         let linear = write_deck(&scene, &CalculixOptions::linear()).unwrap();
@@ -740,7 +759,9 @@ mod tests {
         let field = cs.add_surface(sdf);
         cs.set(3, NodeConstraint::Surface { field }).unwrap();
         let scene = Scene::new(scene.mesh, cs, Loads::default()).unwrap();
-        let err = write_deck(&scene, &CalculixOptions::default()).unwrap_err().to_string();
+        let err = write_deck(&scene, &CalculixOptions::default())
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("implicit surface"), "{err}");
     }
 

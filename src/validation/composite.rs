@@ -140,7 +140,9 @@ pub struct CaseModel {
 /// Builds `case` at resolution `n` with the loads of `options`.
 pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> Result<CaseModel> {
     if n == 0 {
-        return Err(Error::InvalidModel("composite resolution must be at least 1".into()));
+        return Err(Error::InvalidModel(
+            "composite resolution must be at least 1".into(),
+        ));
     }
     let cells = case.cells(n);
     let (gm, loads_of) = match case {
@@ -170,8 +172,11 @@ pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> 
                     }
                 }
             }
-            let material =
-                Material::new(YOUNGS_MODULUS_PA, POISSON_RATIO, options.l_density_kg_per_m3)?;
+            let material = Material::new(
+                YOUNGS_MODULUS_PA,
+                POISSON_RATIO,
+                options.l_density_kg_per_m3,
+            )?;
             (grid.to_mesh(material)?, Some(options.l_total_force_n))
         }
     };
@@ -194,7 +199,10 @@ pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> 
                 .filter(|&i| gm.node_lattice[i as usize][2] as usize == n)
                 .collect();
             let each = total / top.len() as f64;
-            loads.point_forces_n = top.into_iter().map(|i| (i, V3::new(each, 0.0, 0.0))).collect();
+            loads.point_forces_n = top
+                .into_iter()
+                .map(|i| (i, V3::new(each, 0.0, 0.0)))
+                .collect();
         }
     }
     Ok(CaseModel {
@@ -475,7 +483,11 @@ pub fn run_case(
     let fit = |pick: &dyn Fn(&ResolutionRow) -> Option<f64>| {
         let pts: Vec<(f64, f64)> = rows
             .iter()
-            .filter_map(|r| pick(r).filter(|e| *e > 0.0).map(|e| ((r.resolution as f64).ln(), e.ln())))
+            .filter_map(|r| {
+                pick(r)
+                    .filter(|e| *e > 0.0)
+                    .map(|e| ((r.resolution as f64).ln(), e.ln()))
+            })
             .collect();
         fitted_slope(&pts).map(|s| -s)
     };
@@ -533,7 +545,8 @@ pub fn max_green_strain(mesh: &HexMesh, displacements_m: &[V3]) -> f64 {
         .zip(&mesh.element_class)
         .map(|(corners, &class)| {
             let h = mesh.classes[class as usize].shape.edges_m;
-            let x = corners.map(|c| mesh.rest_positions_m[c as usize] + displacements_m[c as usize]);
+            let x =
+                corners.map(|c| mesh.rest_positions_m[c as usize] + displacements_m[c as usize]);
             let f = Matrix3::from_fn(|r, i| {
                 (0..8).map(|n| CORNER_SIGNS[n][i] * x[n][r]).sum::<f64>() / (4.0 * h[i])
             });
@@ -583,7 +596,8 @@ fn thesis_anchors(case: CompositeCase) -> Vec<ThesisAnchor> {
                 mean_error_mm: None,
                 sd_mm: None,
                 percent_of_size: None,
-                note: "elements crushed near the clamp, leave the validity range, stay stable".into(),
+                note: "elements crushed near the clamp, leave the validity range, stay stable"
+                    .into(),
             },
         ],
         CompositeCase::L => vec![
@@ -721,7 +735,12 @@ impl CompositeReport {
             );
             for r in &c.rows {
                 if let Some(f) = &r.mass_spring_failure {
-                    let _ = writeln!(s, "\n* {}: mass–spring solve failed: {}", r.label, first_line(f));
+                    let _ = writeln!(
+                        s,
+                        "\n* {}: mass–spring solve failed: {}",
+                        r.label,
+                        first_line(f)
+                    );
                 }
                 if let Some(f) = &r.calculix_failure {
                     let _ = writeln!(s, "\n* {}: CalculiX failed: {}", r.label, first_line(f));
@@ -776,11 +795,65 @@ mod tests {
     }
 
     #[test]
+    fn markdown_sets_thesis_anchors_beside_ours() {
+        let stats = ErrorStats {
+            mean_m: 0.28,
+            sd_m: 0.03,
+            max_m: 0.4,
+            mean_percent_of_size: 7.0,
+        };
+        let row = ResolutionRow {
+            resolution: 2,
+            label: CompositeCase::L.label(2),
+            elements: 6,
+            nodes: 27,
+            mass_spring_error: Some(stats),
+            calculix_error: None,
+            mass_spring_vs_calculix_same_mesh: None,
+            mass_spring_order: None,
+            calculix_order: None,
+            mass_spring_max_strain: Some(0.05),
+            calculix_max_strain: None,
+            mass_spring_max_displacement_m: Some(0.3),
+            mass_spring_wall_time_s: Some(0.01),
+            calculix_wall_time_s: None,
+            solve: None,
+            mass_spring_failure: None,
+            calculix_failure: Some("ccx crashed\ndetails".into()),
+        };
+        let report = CompositeReport {
+            options: CompositeOptions::quick(),
+            cases: vec![CaseReport {
+                case: CompositeCase::L,
+                description: describe(CompositeCase::L, &CompositeOptions::quick()),
+                object_size_m: 4.0,
+                reference_resolution: 8,
+                reference_max_displacement_m: 0.5,
+                reference_max_strain: 0.09,
+                reference_c3d8_vs_c3d8i: None,
+                mass_spring_fitted_order: Some(1.5),
+                calculix_fitted_order: None,
+                rows: vec![row],
+                thesis: thesis_anchors(CompositeCase::L),
+            }],
+        };
+        let md = report.to_markdown();
+        assert!(md.contains("| 2×2×2 | 6 | 280 ± 30.00 (7.00 %)"), "{md}");
+        assert!(md.contains("279.8 ± 37.8 (7 %)"), "{md}");
+        assert!(md.contains("CalculiX failed: ccx crashed\n"), "{md}");
+        assert!(!md.contains("details"), "{md}");
+        serde_json::to_string(&report).unwrap();
+    }
+
+    #[test]
     fn error_stats_and_slope() {
         let a = vec![V3::new(1.0, 0.0, 0.0), V3::new(3.0, 0.0, 0.0)];
         let b = vec![V3::zeros(); 2];
         let s = ErrorStats::between(&a, &b, 10.0);
-        assert_eq!((s.mean_m, s.sd_m, s.max_m, s.mean_percent_of_size), (2.0, 1.0, 3.0, 20.0));
+        assert_eq!(
+            (s.mean_m, s.sd_m, s.max_m, s.mean_percent_of_size),
+            (2.0, 1.0, 3.0, 20.0)
+        );
         let pts = [(0.0, 1.0), (1.0, -1.0), (2.0, -3.0)];
         assert!((fitted_slope(&pts).unwrap() + 2.0).abs() < 1e-12);
     }

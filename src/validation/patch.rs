@@ -342,7 +342,12 @@ pub fn linear_equilibrium(scene: &Scene) -> Result<Equilibrium> {
     let k = assemble_linear_stiffness(mesh)?;
     let mut f_ext = vec![V3::zeros(); n];
     scene.external_forces(rest, &mut f_ext);
-    let mut u = DVector::from_iterator(3 * n, x0.iter().zip(rest).flat_map(|(x, r)| (x - r).iter().copied().collect::<Vec<_>>()));
+    let mut u = DVector::from_iterator(
+        3 * n,
+        x0.iter()
+            .zip(rest)
+            .flat_map(|(x, r)| (x - r).iter().copied().collect::<Vec<_>>()),
+    );
     let mut is_free = vec![false; 3 * n];
     for &d in &dofs {
         is_free[d] = true;
@@ -375,7 +380,13 @@ pub(crate) fn face_corners(axis: usize, sign: f64) -> impl Iterator<Item = u32> 
 }
 
 /// Mean displacement along `axis` of the corners on side `sign` of `face_axis`.
-pub(crate) fn face_mean(eq: &Equilibrium, scene: &Scene, face_axis: usize, sign: f64, axis: usize) -> f64 {
+pub(crate) fn face_mean(
+    eq: &Equilibrium,
+    scene: &Scene,
+    face_axis: usize,
+    sign: f64,
+    axis: usize,
+) -> f64 {
     face_corners(face_axis, sign)
         .map(|n| eq.displacement(scene, n, axis))
         .sum::<f64>()
@@ -418,9 +429,7 @@ fn uniaxial(
 pub(crate) fn positive_faces(mesh: &HexMesh) -> Vec<[u32; 4]> {
     mesh.external_faces
         .iter()
-        .filter(|f| {
-            (0..3).any(|d| f.iter().all(|&c| CORNER_SIGNS[c as usize][d] > 0.0))
-        })
+        .filter(|f| (0..3).any(|d| f.iter().all(|&c| CORNER_SIGNS[c as usize][d] > 0.0)))
         .copied()
         .collect()
 }
@@ -482,7 +491,9 @@ fn shear(
     }
     let scene = Scene::new(mesh, cs, Loads::default())?;
     let eq = equilibrium(&scene, model, &scene.initial_positions())?;
-    let f: f64 = face_corners(j, 1.0).map(|n| eq.reaction(&scene, n, i)).sum();
+    let f: f64 = face_corners(j, 1.0)
+        .map(|n| eq.reaction(&scene, n, i))
+        .sum();
     let affine = f / (edges[i] * edges[k_axis]) / strain / g;
 
     // Traction-driven pure shear with free lateral DOFs.
@@ -522,8 +533,7 @@ fn shear(
     }
     let scene = Scene::new(mesh, cs, loads)?;
     let eq = equilibrium(&scene, model, &scene.initial_positions())?;
-    let gamma = (face_mean(&eq, &scene, j, 1.0, i) - face_mean(&eq, &scene, j, -1.0, i))
-        / edges[j]
+    let gamma = (face_mean(&eq, &scene, j, 1.0, i) - face_mean(&eq, &scene, j, -1.0, i)) / edges[j]
         + (face_mean(&eq, &scene, i, 1.0, j) - face_mean(&eq, &scene, i, -1.0, j)) / edges[i];
     let free = tau / gamma / g;
     let support = supports
@@ -555,8 +565,7 @@ pub fn predicted_free_shear_ratio(coeffs: &BrickCoefficients, (i, j): (usize, us
     let k = 3 - i - j;
     let d2: f64 = edges.iter().map(|e| e * e).sum();
     let kk = coeffs.edge_stiffness_n_per_m[k];
-    predicted_shear_ratio(edges, (i, j))
-        * kk
+    predicted_shear_ratio(edges, (i, j)) * kk
         / (kk + coeffs.diagonal_stiffness_n_per_m * edges[k] * edges[k] / d2)
 }
 
@@ -577,7 +586,12 @@ pub fn grid_free_shear_ratio(n: usize, edge_m: f64, material: Material) -> Resul
             forces[c as usize] += t;
         }
     }
-    let lattice = |l: [u32; 3]| gm.node_lattice.iter().position(|q| *q == l).map(|i| i as u32);
+    let lattice = |l: [u32; 3]| {
+        gm.node_lattice
+            .iter()
+            .position(|q| *q == l)
+            .map(|i| i as u32)
+    };
     let nn = n as u32;
     let mut cs = ConstraintSet::new(mesh.node_count());
     let supports = [
@@ -592,7 +606,11 @@ pub fn grid_free_shear_ratio(n: usize, edge_m: f64, material: Material) -> Resul
         }
     }
     let loads = Loads {
-        point_forces_n: forces.iter().enumerate().map(|(i, f)| (i as u32, *f)).collect(),
+        point_forces_n: forces
+            .iter()
+            .enumerate()
+            .map(|(i, f)| (i as u32, *f))
+            .collect(),
         ..Default::default()
     };
     let lattice_of = gm.node_lattice.clone();
@@ -740,7 +758,9 @@ pub fn run_patch_tests(config: &PatchConfig) -> Result<PatchReport> {
     let mut grid_shear = Vec::new();
     let mut passed = true;
     for &edges in &config.shapes_m {
-        let cube = edges.iter().all(|e| (e - edges[0]).abs() <= 1e-12 * edges[0]);
+        let cube = edges
+            .iter()
+            .all(|e| (e - edges[0]).abs() <= 1e-12 * edges[0]);
         for &nu in &config.poisson_ratios {
             let material = Material::new(config.youngs_modulus_pa, nu, config.density_kg_per_m3)?;
             kernel_linearisation.push((edges, nu, kernel_linearisation_error(edges, material)?));
@@ -911,7 +931,12 @@ impl PatchReport {
         s.push_str("\n### Force kernel vs `linear_stiffness()`\n\n");
         s.push_str("| shape | ν | max |J_kernel + K| / max |K| |\n|---|---|---|\n");
         for (edges, nu, err) in &self.kernel_linearisation {
-            s.push_str(&format!("| {} | {} | {:.1e} |\n", shape_label(*edges), nu, err));
+            s.push_str(&format!(
+                "| {} | {} | {:.1e} |\n",
+                shape_label(*edges),
+                nu,
+                err
+            ));
         }
         s.push_str(&format!(
             "\nAll E, ν, K (and cube G) within {:.0e}: **{}**\n",

@@ -34,7 +34,10 @@ pub struct ValidationReport {
 }
 
 /// Runs the suite; `progress` receives one line per study as it starts.
-pub fn run_validation(options: &ValidateOptions, progress: &mut dyn FnMut(&str)) -> Result<ValidationReport> {
+pub fn run_validation(
+    options: &ValidateOptions,
+    progress: &mut dyn FnMut(&str),
+) -> Result<ValidationReport> {
     let start = Instant::now();
     progress("patch tests (single element, closed forms)");
     let patch = run_patch_tests(&PatchConfig::default())?;
