@@ -144,11 +144,11 @@ fn rotated_block_uses_transforms_correctly() {
     );
 }
 
-/// Follower pressure on all six faces (every C3D8 face number) of a block held only against
-/// rigid motion: both codes must compress it by the same volume, within the mass–spring
-/// model's bulk-modulus error (< 5 % up to ±15 % volume change, thesis Fig. 3.50).
+/// Pressure on all six faces (every C3D8 face number S1…S6) of a block held only against rigid
+/// motion (3-2-1 supports): CalculiX must return the closed-form hydrostatic compression, which
+/// it does only if every face number points at the right face.
 #[test]
-fn all_face_pressure_gives_same_volume_change_nlgeom() {
+fn all_face_numbers_give_hydrostatic_compression_in_calculix() {
     require_ccx();
     let gm = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros())
         .to_mesh(Material::new(1000.0, 0.3, 1.0).unwrap())
@@ -173,8 +173,7 @@ fn all_face_pressure_gives_same_volume_change_nlgeom() {
         },
     )
     .unwrap();
-    // K = E / (3(1 − 2ν)) ≈ 833 Pa: 60 Pa compresses by about 7 %.
-    let p = 60.0;
+    let p = 1e-3;
     let loads = Loads {
         pressures: vec![SurfacePressure {
             faces: mesh.external_faces.clone(),
@@ -184,6 +183,32 @@ fn all_face_pressure_gives_same_volume_change_nlgeom() {
         ..Default::default()
     };
     let scene = Scene::new(mesh, cs, loads).unwrap();
+    let ccx = calculix::solve(&scene, &CalculixOptions::linear()).unwrap();
+    // u = −p/(3K)·x with K = E / (3(1 − 2ν)).
+    let k = 1000.0 / (3.0 * (1.0 - 2.0 * 0.3));
+    let scale = p / (3.0 * k) * 0.02;
+    for (r, u) in scene.mesh.rest_positions_m.iter().zip(&ccx.displacements_m) {
+        let want = -r * (p / (3.0 * k));
+        assert!(
+            (u - want).norm() <= 1e-6 * scale,
+            "node at {r:?}: {u:?} vs {want:?}"
+        );
+    }
+}
+
+/// Follower pressure on every face of a symmetric block under NLGEOM (≈ 7 % volume loss): both
+/// codes must lose the same volume within the mass–spring model's bulk-modulus error, which the
+/// thesis bounds by 5 % up to ±15 % volume change (Fig. 3.50).
+///
+/// Symmetry planes rather than 3-2-1 supports: with only 3-2-1 supports Baudet's element leaves
+/// checkerboard twist modes (u_z ∝ (−1)^(i+j), …) with zero stiffness, and compression buckles
+/// them.
+#[test]
+fn all_face_pressure_gives_same_volume_change_nlgeom() {
+    require_ccx();
+    let mut scene = symmetric_block(Matrix3::identity(), 60.0);
+    scene.loads.pressures[0].faces = scene.mesh.external_faces.clone();
+    scene.loads.pressures[0].follows_deformation = true;
     let ccx = calculix::solve(&scene, &CalculixOptions::default()).unwrap();
     let ours = solve_ours(&scene, 1e-9);
     let m = &scene.mesh;
@@ -206,8 +231,17 @@ fn all_face_pressure_gives_same_volume_change_nlgeom() {
     assert!(rel < 0.05, "volume change differs by {:.2} %", 100.0 * rel);
 }
 
-/// Quick refinement study: the mass–spring error against CalculiX on the finest mesh falls as
-/// elements shrink, in both composite cases.
+/// Quick refinement study: the mass–spring error against CalculiX on the finest mesh run falls
+/// as elements shrink, in both composite cases, and stays within bounds taken from the thesis:
+///
+/// * L: no worse than the thesis's own error at that resolution, 7 % of the object size at 2³
+///   and 0.65 % at 16³, interpolated as a power law (≈ 3.2 % at 4³). The thesis measured
+///   against a 16³ reference; ours here is 4³, so this is a sanity bound, not a reproduction.
+/// * Cantilever: within 5 % of the largest reference displacement at 4×4×16, the resolution the
+///   thesis calls "a good approximation" (5 % is its accuracy claim at strains ≤ 10 %); coarser
+///   beams are "far off" in the thesis (one or two elements through the thickness, 20 % of the
+///   mass on clamped nodes at 1×1×4), so only the fall of their error is asserted. 1×1×4 is a
+///   mechanism at rest (zero-energy twist modes), which exercises the explicit fallback.
 #[test]
 fn composite_error_falls_with_refinement() {
     require_ccx();
@@ -217,23 +251,48 @@ fn composite_error_falls_with_refinement() {
     };
     for (case, res) in [
         (CompositeCase::L, vec![2, 4]),
-        (CompositeCase::Cantilever, vec![1, 2]),
+        (CompositeCase::Cantilever, vec![1, 2, 4]),
     ] {
         let report = run_case(case, &res, &options).unwrap();
+        let u_ref = report.reference_max_displacement_m;
+        let mut errors = Vec::new();
         for r in &report.rows {
-            assert!(
-                r.mass_spring_failure.is_none(),
-                "{case:?} {}: {:?}",
+            let ours = r
+                .mass_spring_error
+                .unwrap_or_else(|| panic!("{case:?} {}: {:?}", r.label, r.mass_spring_failure));
+            eprintln!(
+                "{case:?} {}: ours {:.2} ± {:.2} mm ({:.2} % of size), CalculiX {:.2} mm, \
+                 max |u_ref| {:.1} mm, by {}",
                 r.label,
-                r.mass_spring_failure
+                ours.mean_m * 1e3,
+                ours.sd_m * 1e3,
+                ours.mean_percent_of_size,
+                r.calculix_error.unwrap().mean_m * 1e3,
+                u_ref * 1e3,
+                r.mass_spring_method.as_deref().unwrap_or("?")
             );
+            let bound_m = match case {
+                CompositeCase::L => {
+                    let slope = (7.0f64 / 0.65).ln() / 8.0f64.ln();
+                    let percent = 7.0 * (r.resolution as f64 / 2.0).powf(-slope);
+                    Some(percent / 100.0 * report.object_size_m)
+                }
+                CompositeCase::Cantilever => (r.resolution >= 4).then_some(0.05 * u_ref),
+            };
+            if let Some(b) = bound_m {
+                assert!(
+                    ours.mean_m <= b,
+                    "{case:?} {}: mean error {:.2} mm above the bound {:.2} mm",
+                    r.label,
+                    ours.mean_m * 1e3,
+                    b * 1e3
+                );
+            }
+            errors.push(ours.mean_m);
         }
-        let e: Vec<f64> = report
-            .rows
-            .iter()
-            .map(|r| r.mass_spring_error.unwrap().mean_m)
-            .collect();
-        eprintln!("{case:?}: mean errors {e:?} m");
-        assert!(e[1] < e[0], "{case:?}: error did not fall: {e:?}");
+        assert!(
+            errors.windows(2).all(|w| w[1] < w[0]),
+            "{case:?}: error did not fall with refinement: {errors:?}"
+        );
     }
 }

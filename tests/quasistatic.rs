@@ -160,13 +160,12 @@ fn sliding_nodes_stay_on_their_surface() {
     let grid = VoxelGrid::filled_box([2, 2, 2], [0.05; 3], Vector3::new(-0.05, -0.05, 1.0));
     let gm = grid.to_mesh(mat).unwrap();
     let mut cs = ConstraintSet::new(gm.mesh.node_count());
-    // A trilinearly sampled field has a normal that jumps across cell faces, so the tangential
-    // force can only be balanced to about the normal's accuracy (≈ spacing² / radius): sample
-    // finely and ask for the tolerance that accuracy allows.
+    // Sampled at 10 mm, coarse like a CT-derived chest wall: the normal comes from central
+    // differences of the interpolant, continuous across cells, so equilibrium is reachable.
     let sphere = SignedDistanceField::from_fn(
-        Vector3::new(-0.08, -0.08, 0.97),
-        Vector3::new(0.08, 0.08, 1.03),
-        0.001,
+        Vector3::new(-0.3, -0.3, 0.8),
+        Vector3::new(0.3, 0.3, 1.2),
+        0.01,
         |p| p.norm() - 1.0,
     )
     .unwrap();
@@ -194,15 +193,11 @@ fn sliding_nodes_stay_on_their_surface() {
         ..Loads::default()
     };
     let scene = Scene::new(gm.mesh, cs, loads).unwrap();
-    let settings = QuasiStaticSettings {
-        tolerance: 1e-4,
-        ..QuasiStaticSettings::default()
-    };
-    let (x, report) = QuasiStaticSolver::new(&scene, settings)
+    let (x, report) = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())
         .unwrap()
         .solve(None)
         .unwrap();
-    assert!(report.residual <= 1e-4, "{report:?}");
+    assert!(report.residual <= 1e-6, "{report:?}");
     for i in 0..gm.node_lattice.len() {
         if matches!(
             scene.constraints.get(i as u32),

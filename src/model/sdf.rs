@@ -119,10 +119,23 @@ impl SignedDistanceField {
         (value, grad)
     }
 
+    /// Gradient by central differences of the interpolant over half a cell: unlike the
+    /// trilinear gradient it is continuous across cell faces, so sliding nodes see a normal
+    /// that does not jump as they cross cells.
+    pub fn smooth_gradient(&self, p_m: Vector3<f64>) -> Vector3<f64> {
+        Vector3::from_fn(|a, _| {
+            let h = 0.5 * self.spacing_m[a];
+            let mut e = Vector3::zeros();
+            e[a] = h;
+            (self.evaluate(p_m + e).0 - self.evaluate(p_m - e).0) / (2.0 * h)
+        })
+    }
+
     /// Closest point on the zero level set reached by Newton steps along the gradient.
     pub fn project_m(&self, mut p_m: Vector3<f64>) -> Vector3<f64> {
         for _ in 0..8 {
-            let (d, g) = self.evaluate(p_m);
+            let d = self.evaluate(p_m).0;
+            let g = self.smooth_gradient(p_m);
             let g2 = g.norm_squared();
             if g2 < 1e-24 {
                 break;
@@ -137,7 +150,7 @@ impl SignedDistanceField {
 
     /// Unit normal (direction of increasing distance) at `p_m`.
     pub fn normal(&self, p_m: Vector3<f64>) -> Vector3<f64> {
-        let (_, g) = self.evaluate(p_m);
+        let g = self.smooth_gradient(p_m);
         let n = g.norm();
         if n > 0.0 {
             g / n

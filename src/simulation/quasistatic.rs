@@ -15,7 +15,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
 use super::linalg::{self, flat, nodes, nodes_mut};
-use super::multigrid::{project_flat, Lattice, Multigrid};
+use super::multigrid::{project_flat, sparse, Lattice, Multigrid};
 use super::scene::Scene;
 use crate::model::{ConstraintSet, NodeConstraint};
 use crate::{Error, Result};
@@ -75,7 +75,7 @@ enum Preconditioner {
 pub struct QuasiStaticSolver<'s> {
     scene: &'s Scene,
     settings: QuasiStaticSettings,
-    projector: Vec<Option<Matrix3<f64>>>,
+    constrained: Vec<(u32, Matrix3<f64>)>,
     preconditioner: Preconditioner,
     setup_time_s: f64,
 }
@@ -103,10 +103,18 @@ impl<'s> QuasiStaticSolver<'s> {
         Ok(QuasiStaticSolver {
             scene,
             settings,
-            projector,
+            constrained: sparse(&projector),
             preconditioner,
             setup_time_s: start.elapsed().as_secs_f64(),
         })
+    }
+
+    /// The multigrid hierarchy's per-level sizes and product costs (empty for block Jacobi).
+    pub fn preconditioner_profile(&self, repeats: usize) -> Vec<super::multigrid::LevelCost> {
+        match &self.preconditioner {
+            Preconditioner::Multigrid(mg) => mg.profile(repeats),
+            Preconditioner::BlockJacobi(_) => Vec::new(),
+        }
     }
 
     /// Solves for equilibrium starting from `initial` (or the rest configuration) and returns
@@ -202,7 +210,7 @@ impl<'s> QuasiStaticSolver<'s> {
             let mut delta = vec![0.0; b.len()];
             let x_base = x.to_vec();
             let f_base = w.f.clone();
-            let projector = &self.projector;
+            let constrained = &self.constrained;
             let eps = 1e-7 * h_scale;
             let preconditioner = &mut self.preconditioner;
             let mut xp = vec![V3::zeros(); x.len()];
@@ -218,24 +226,23 @@ impl<'s> QuasiStaticSolver<'s> {
                 let hstep = eps / vmax;
                 let vn = nodes(v);
                 // Perturb along Π·v only: the operator is Π·J·Π + (I − Π).
-                for (nd, ((p, b), d)) in xp.iter_mut().zip(&x_base).zip(vn).enumerate() {
-                    let d = match projector[nd] {
-                        Some(pm) => pm * d,
-                        None => *d,
-                    };
+                for ((p, b), d) in xp.iter_mut().zip(&x_base).zip(vn) {
                     *p = b + d * hstep;
+                }
+                for (nd, pm) in constrained {
+                    let nd = *nd as usize;
+                    xp[nd] = x_base[nd] + pm * vn[nd] * hstep;
                 }
                 total_force(scene, lambda, &xp, &mut fp, &mut ext);
                 let on = nodes_mut(out);
                 for ((o, a), b) in on.iter_mut().zip(&fp).zip(&f_base) {
                     *o = (b - a) / hstep;
                 }
-                project_flat(projector, out);
+                project_flat(constrained, out);
                 let on = nodes_mut(out);
-                for (nd, p) in projector.iter().enumerate() {
-                    if let Some(p) = p {
-                        on[nd] += vn[nd] - p * vn[nd];
-                    }
+                for (nd, p) in constrained {
+                    let nd = *nd as usize;
+                    on[nd] += vn[nd] - p * vn[nd];
                 }
             };
             let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {

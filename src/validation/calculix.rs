@@ -142,16 +142,19 @@ pub struct CalculixSolution {
     pub wall_time_s: f64,
 }
 
+/// An element face: element, C3D8 face number 1…6, corners in our outward order.
+type ElementFace = (u32, u8, [u32; 4]);
+
 /// Locates the C3D8 face of each element that a quad lies on.
 pub struct FaceLocator {
-    // Sorted corner nodes → (element, face number 1…6, corners in our outward order).
-    faces: HashMap<[u32; 4], Vec<(u32, u8, [u32; 4])>>,
+    // Keyed by the sorted corner nodes.
+    faces: HashMap<[u32; 4], Vec<ElementFace>>,
 }
 
 impl FaceLocator {
     /// Indexes every face of every element of `elements`.
     pub fn new(elements: &[[u32; 8]]) -> Self {
-        let mut faces: HashMap<[u32; 4], Vec<(u32, u8, [u32; 4])>> = HashMap::new();
+        let mut faces: HashMap<[u32; 4], Vec<ElementFace>> = HashMap::new();
         for (e, corners) in elements.iter().enumerate() {
             for local in HEX_FACES {
                 let outward = local.map(|c| corners[c]);

@@ -18,7 +18,10 @@ use serde::Serialize;
 use super::calculix::{self, CalculixOptions, ElementType};
 use crate::model::element::CORNER_SIGNS;
 use crate::model::{ConstraintSet, HexMesh, Loads, Material, VoxelGrid};
-use crate::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene, SolveReport};
+use crate::simulation::{
+    ExplicitIntegrator, ExplicitSettings, QuasiStaticSettings, QuasiStaticSolver, Scene,
+    SolveReport,
+};
 use crate::{Error, Result};
 
 type V3 = Vector3<f64>;
@@ -82,7 +85,7 @@ pub struct CompositeOptions {
     pub cantilever_density_kg_per_m3: f64,
     /// Total +x force on the L's top face, N, shared equally by its nodes.
     pub l_total_force_n: f64,
-    /// Density of the L, kg/m³ (only its mass matters to nothing here: no gravity).
+    /// Density of the L, kg/m³: the mesh needs one, the static answer ignores it (no gravity).
     pub l_density_kg_per_m3: f64,
     /// Mass–spring solver settings.
     pub solver: QuasiStaticSettings,
@@ -91,6 +94,12 @@ pub struct CompositeOptions {
     /// Also solve the finest mesh with C3D8I, to show how far C3D8's own locking moves the
     /// reference.
     pub check_reference_with_c3d8i: bool,
+    /// If the quasi-static solve fails, relax with critically damped explicit dynamics (the
+    /// thesis's own method) for at most this many steps; 0 disables the fallback.
+    ///
+    /// Needed because Baudet's element has three zero-energy twist modes (u_x ∝ s_y·s_z, …),
+    /// so a coarse mesh such as the 1×1×4 beam is a mechanism at rest and has no Newton step.
+    pub explicit_fallback_max_steps: usize,
 }
 
 impl CompositeOptions {
@@ -105,6 +114,7 @@ impl CompositeOptions {
             solver: QuasiStaticSettings::default(),
             calculix: CalculixOptions::default(),
             check_reference_with_c3d8i: true,
+            explicit_fallback_max_steps: 3_000_000,
         }
     }
 
@@ -157,7 +167,7 @@ pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> 
             (gm, None)
         }
         CompositeCase::L => {
-            if n % 2 != 0 {
+            if !n.is_multiple_of(2) {
                 return Err(Error::InvalidModel(format!(
                     "the L needs an even resolution so its notch lies on cell faces, got {n}"
                 )));
@@ -277,6 +287,8 @@ pub struct ResolutionRow {
     pub calculix_wall_time_s: Option<f64>,
     /// Quasi-static solver statistics.
     pub solve: Option<SolveReport>,
+    /// How the mass–spring equilibrium was found (quasi-static, or the explicit fallback and why).
+    pub mass_spring_method: Option<String>,
     /// Why the mass–spring solve failed, if it did.
     pub mass_spring_failure: Option<String>,
     /// Why CalculiX failed on this mesh, if it did.
@@ -336,6 +348,8 @@ pub struct CompositeReport {
 
 /// Runs the composite study (both cases unless their resolution lists are empty).
 pub fn run_composite(options: &CompositeOptions) -> Result<CompositeReport> {
+    // Fail before the mass–spring solves, not after, when the reference cannot be computed.
+    calculix::require_ccx()?;
     let mut cases = Vec::new();
     for (case, res) in [
         (CompositeCase::Cantilever, &options.cantilever_resolutions),
@@ -353,7 +367,7 @@ pub fn run_composite(options: &CompositeOptions) -> Result<CompositeReport> {
 
 struct Solved {
     model: CaseModel,
-    ours: std::result::Result<(Vec<V3>, f64, SolveReport), String>,
+    ours: std::result::Result<MassSpringSolution, String>,
     ccx: std::result::Result<(Vec<V3>, f64), String>,
 }
 
@@ -378,7 +392,7 @@ pub fn run_case(
     let mut solved = Vec::new();
     for &n in &res {
         let model = build_case(case, n, options)?;
-        let ours = solve_mass_spring(&model.scene, &options.solver).map_err(|e| e.to_string());
+        let ours = solve_mass_spring(&model.scene, options);
         let ccx = calculix::solve(&model.scene, &options.calculix)
             .map(|s| (s.displacements_m, s.wall_time_s))
             .map_err(|e| e.to_string());
@@ -441,17 +455,24 @@ pub fn run_case(
             mass_spring_wall_time_s: None,
             calculix_wall_time_s: None,
             solve: None,
+            mass_spring_method: None,
             mass_spring_failure: None,
             calculix_failure: None,
         };
         match &s.ours {
-            Ok((u, t, report)) => {
+            Ok(MassSpringSolution {
+                displacements_m: u,
+                wall_time_s: t,
+                report,
+                method,
+            }) => {
                 row.mass_spring_error = Some(ErrorStats::between(u, &at_ref, size));
                 row.mass_spring_max_strain = Some(max_green_strain(mesh, u));
                 row.mass_spring_max_displacement_m =
                     Some(u.iter().map(|v| v.norm()).fold(0.0, f64::max));
                 row.mass_spring_wall_time_s = Some(*t);
                 row.solve = Some(report.clone());
+                row.mass_spring_method = Some(method.clone());
             }
             Err(e) => row.mass_spring_failure = Some(e.clone()),
         }
@@ -460,9 +481,9 @@ pub fn run_case(
                 row.calculix_error = Some(ErrorStats::between(u, &at_ref, size));
                 row.calculix_max_strain = Some(max_green_strain(mesh, u));
                 row.calculix_wall_time_s = Some(*t);
-                if let Ok((ours, _, _)) = &s.ours {
+                if let Ok(ours) = &s.ours {
                     row.mass_spring_vs_calculix_same_mesh =
-                        Some(ErrorStats::between(ours, u, size));
+                        Some(ErrorStats::between(&ours.displacements_m, u, size));
                 }
             }
             Err(e) => row.calculix_failure = Some(e.clone()),
@@ -512,14 +533,72 @@ pub fn run_case(
     })
 }
 
+struct MassSpringSolution {
+    displacements_m: Vec<V3>,
+    wall_time_s: f64,
+    report: SolveReport,
+    method: String,
+}
+
+/// Errors are strings: a failure is reported in its row, and may combine two solvers' causes.
 fn solve_mass_spring(
     scene: &Scene,
-    settings: &QuasiStaticSettings,
-) -> Result<(Vec<V3>, f64, SolveReport)> {
+    options: &CompositeOptions,
+) -> std::result::Result<MassSpringSolution, String> {
     let start = Instant::now();
-    let (x, report) = QuasiStaticSolver::new(scene, settings.clone())?.solve(None)?;
-    let t = start.elapsed().as_secs_f64();
-    Ok((scene.displacements(&x), t, report))
+    let settings = &options.solver;
+    let quasi_static =
+        QuasiStaticSolver::new(scene, settings.clone()).and_then(|mut s| s.solve(None));
+    let failure = match quasi_static {
+        Ok((x, report)) => {
+            return Ok(MassSpringSolution {
+                displacements_m: scene.displacements(&x),
+                wall_time_s: start.elapsed().as_secs_f64(),
+                report,
+                method: "quasi-static".into(),
+            })
+        }
+        Err(e) if options.explicit_fallback_max_steps == 0 => return Err(e.to_string()),
+        Err(e) => e,
+    };
+    // Springs damped at their critical ratio: equilibrium is the same, reached by relaxation.
+    let mut mesh = scene.mesh.clone();
+    mesh.classes = mesh
+        .classes
+        .iter()
+        .map(|c| c.clone().with_damping_ratio(1.0))
+        .collect();
+    let damped = Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())
+        .map_err(|e| e.to_string())?;
+    let mut integrator = ExplicitIntegrator::new(&damped);
+    let run = integrator
+        .run_to_equilibrium(&ExplicitSettings {
+            residual_tolerance: settings.tolerance,
+            max_steps: options.explicit_fallback_max_steps,
+            ..Default::default()
+        })
+        .map_err(|e| format!("quasi-static solve failed ({failure}); explicit relaxation: {e}"))?;
+    if !run.converged {
+        return Err(format!(
+            "quasi-static solve failed ({failure}); explicit relaxation did not reach residual \
+             {:.1e} in {} steps (residual {:.3e})",
+            settings.tolerance, run.steps, run.residual
+        ));
+    }
+    let wall_time_s = start.elapsed().as_secs_f64();
+    Ok(MassSpringSolution {
+        displacements_m: damped.displacements(&integrator.positions),
+        wall_time_s,
+        report: SolveReport {
+            residual: run.residual,
+            wall_time_s,
+            ..SolveReport::default()
+        },
+        method: format!(
+            "explicit relaxation, {} steps (quasi-static failed: {failure})",
+            run.steps
+        ),
+    })
 }
 
 /// Slope of the least-squares line through `pts`, if at least two distinct abscissae.
@@ -734,6 +813,18 @@ impl CompositeReport {
                 opt(c.calculix_fitted_order, |v| format!("{v:.2}"))
             );
             for r in &c.rows {
+                if let Some(m) = r
+                    .mass_spring_method
+                    .as_deref()
+                    .filter(|m| *m != "quasi-static")
+                {
+                    let _ = writeln!(
+                        s,
+                        "\n* {}: mass–spring equilibrium by {}",
+                        r.label,
+                        first_line(m)
+                    );
+                }
                 if let Some(f) = &r.mass_spring_failure {
                     let _ = writeln!(
                         s,
@@ -818,6 +909,7 @@ mod tests {
             mass_spring_wall_time_s: Some(0.01),
             calculix_wall_time_s: None,
             solve: None,
+            mass_spring_method: Some("quasi-static".into()),
             mass_spring_failure: None,
             calculix_failure: Some("ccx crashed\ndetails".into()),
         };

@@ -1,1 +1,816 @@
-//! (in progress)
+//! Stability of the explicit integrator's automatic time step across the parameter ranges of
+//! lung tissue, and proof that the blow-up detector catches a step that is too large.
+//!
+//! A small block of elements is clamped on its bottom face, loaded by a pressure on its top
+//! face and a sideways body force, each sized to give a modest strain whatever E, ρ and the
+//! element size, and damped critically per spring as the thesis does (§4.1.3). Every case
+//! must reach equilibrium with `TimeStepBound`'s step, with bounded kinetic energy, and land
+//! where a dense Newton solve of the same scene lands.
+//!
+//! The true stability limit is measured two ways, both by bisection on the step: the spectral
+//! radius of the linearised velocity-Verlet map (exact for small motions) and the production
+//! integrator itself (does `run_to_equilibrium` report `Error::Diverged`?). Their ratio to the
+//! Gershgorin bound says how conservative the automatic step is.
+
+use nalgebra::{DMatrix, SMatrix, Vector3};
+use serde::Serialize;
+
+use super::patch::{free_dofs, DenseNewton};
+use crate::model::element::{CORNER_SIGNS, SPRINGS};
+use crate::model::{ConstraintSet, Loads, Material, SurfacePressure, VoxelGrid};
+use crate::simulation::{
+    ExplicitIntegrator, ExplicitSettings, QuasiStaticSettings, QuasiStaticSolver, Scene,
+    TimeStepBound,
+};
+use crate::{Error, Result};
+
+type V3 = Vector3<f64>;
+
+/// What the stability study runs.
+#[derive(Debug, Clone, Serialize)]
+pub struct StabilityConfig {
+    /// Elements of the block along x, y, z; clamped at z = 0.
+    pub cells: [usize; 3],
+    /// Young's moduli in pascals.
+    pub youngs_moduli_pa: Vec<f64>,
+    /// Poisson ratios.
+    pub poisson_ratios: Vec<f64>,
+    /// Element sizes in metres (the longest edge of the element).
+    pub element_sizes_m: Vec<f64>,
+    /// Element proportions, scaled so that the longest edge is the element size.
+    pub element_shapes: Vec<[f64; 3]>,
+    /// Densities in kg/m³.
+    pub densities_kg_per_m3: Vec<f64>,
+    /// Strain scale of the loads: top pressure = strain·E, sideways body force ρ·g with
+    /// g = strain·E/(ρ·height).
+    pub load_strain: f64,
+    /// Fraction of critical damping of every spring.
+    pub damping_ratio: f64,
+    /// Fraction of the critical step the automatic step uses.
+    pub safety: f64,
+    /// Step budget of each run to equilibrium.
+    pub max_steps: usize,
+    /// Multiple of the bound's critical step that must diverge.
+    pub overstep_factor: f64,
+    /// Step budget of the runs expected to diverge and of the empirical bisection.
+    pub divergence_steps: usize,
+    /// Bisection iterations for the true critical step (0 skips the measurement).
+    pub bisection_iterations: usize,
+}
+
+impl StabilityConfig {
+    /// The full grid: E 100 Pa – 100 kPa, ν 0.1 – 0.49, elements 1 – 20 mm, cubes and
+    /// 1 × 1.2 × 0.9 bricks, ρ 100 – 1050 kg/m³.
+    pub fn full() -> Self {
+        StabilityConfig {
+            cells: [3, 3, 3],
+            youngs_moduli_pa: vec![100.0, 1.0e3, 1.0e4, 1.0e5],
+            poisson_ratios: vec![0.1, 0.3, 0.45, 0.49],
+            element_sizes_m: vec![1e-3, 5e-3, 20e-3],
+            element_shapes: vec![[1.0, 1.0, 1.0], [1.0, 1.2, 0.9]],
+            densities_kg_per_m3: vec![100.0, 700.0, 1050.0],
+            load_strain: 0.02,
+            damping_ratio: 1.0,
+            safety: ExplicitSettings::default().safety,
+            max_steps: 400_000,
+            overstep_factor: 1.5,
+            divergence_steps: 20_000,
+            bisection_iterations: 14,
+        }
+    }
+
+    /// The corners of the grid only (extreme E, ν, size, density), for tests.
+    pub fn quick() -> Self {
+        StabilityConfig {
+            youngs_moduli_pa: vec![100.0, 1.0e5],
+            poisson_ratios: vec![0.1, 0.49],
+            element_sizes_m: vec![1e-3, 20e-3],
+            element_shapes: vec![[1.0, 1.0, 1.0]],
+            densities_kg_per_m3: vec![100.0, 1050.0],
+            bisection_iterations: 10,
+            ..Self::full()
+        }
+    }
+}
+
+/// Builds the study's block: clamped bottom, top pressure and sideways body force sized by
+/// `load_strain`, springs damped at `damping_ratio` of critical.
+pub fn clamped_block(
+    cells: [usize; 3],
+    edges_m: [f64; 3],
+    material: Material,
+    damping_ratio: f64,
+    load_strain: f64,
+) -> Result<Scene> {
+    let gm = VoxelGrid::filled_box(cells, edges_m, V3::zeros()).to_mesh(material)?;
+    let mut mesh = gm.mesh;
+    mesh.classes = mesh
+        .classes
+        .into_iter()
+        .map(|c| c.with_damping_ratio(damping_ratio))
+        .collect();
+    let top = cells[2] as u32;
+    let mut cs = ConstraintSet::new(mesh.node_count());
+    for (n, l) in gm.node_lattice.iter().enumerate() {
+        if l[2] == 0 {
+            cs.fix(n as u32, mesh.rest_positions_m[n])?;
+        }
+    }
+    let top_z = cells[2] as f64 * edges_m[2];
+    let on_top = |f: &[u32; 4]| f.iter().all(|&c| gm.node_lattice[c as usize][2] == top);
+    let faces: Vec<[u32; 4]> = mesh.external_faces.iter().copied().filter(on_top).collect();
+    let e = material.youngs_modulus_pa;
+    let g = load_strain * e / (material.density_kg_per_m3 * top_z);
+    let loads = Loads {
+        gravity_m_per_s2: V3::new(-g, 0.0, 0.0),
+        point_forces_n: Vec::new(),
+        pressures: vec![SurfacePressure {
+            faces,
+            pressure_pa: load_strain * e,
+            follows_deformation: true,
+        }],
+    };
+    Scene::new(mesh, cs, loads)
+}
+
+/// How one explicit run ended.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunOutcome {
+    /// Step used, s.
+    pub step_s: f64,
+    /// Steps taken (up to the detection when it diverged).
+    pub steps: usize,
+    /// Whether `run_to_equilibrium` reported equilibrium.
+    pub converged: bool,
+    /// Final relative force residual (absent when it diverged).
+    pub residual: Option<f64>,
+    /// Peak kinetic energy over the work of the loads at equilibrium (≤ ½ for a linear damped
+    /// system released from rest; absent when it diverged).
+    pub peak_kinetic_over_work: Option<f64>,
+    /// max |x_explicit − x_Newton| / max |x_Newton − rest| (absent when it diverged).
+    pub equilibrium_error: Option<f64>,
+    /// The blow-up `run_to_equilibrium` reported, if any.
+    pub divergence: Option<Divergence>,
+}
+
+impl RunOutcome {
+    /// Converged, finite, with bounded kinetic energy and at the Newton equilibrium.
+    pub fn passed(&self) -> bool {
+        self.converged
+            && self.divergence.is_none()
+            && self.equilibrium_error.is_some_and(|e| e < 1e-3)
+            && self.peak_kinetic_over_work.is_some_and(|k| k <= 1.0)
+    }
+}
+
+/// One parameter set: the automatic step, the proposed damping-aware step, and the overstep.
+#[derive(Debug, Clone, Serialize)]
+pub struct StabilityCase {
+    /// Young's modulus, Pa.
+    pub youngs_modulus_pa: f64,
+    /// Poisson ratio.
+    pub poisson_ratio: f64,
+    /// Element edges, m.
+    pub edges_m: [f64; 3],
+    /// Density, kg/m³.
+    pub density_kg_per_m3: f64,
+    /// `TimeStepBound`'s critical step, s.
+    pub critical_step_s: f64,
+    /// Critical step with the damping bound that includes the correction forces
+    /// (`proposed_critical_step`), s.
+    pub proposed_critical_step_s: f64,
+    /// The thesis's empirical rule, 2 % of the undamped period of the stiffest spring on the
+    /// lightest node: 0.02·2π·√(m/k), s.
+    pub thesis_step_s: f64,
+    /// Largest displacement at the Newton equilibrium over the block height.
+    pub max_displacement_over_height: f64,
+    /// max |x_production − x_Newton| / max |x_Newton − rest|: the production
+    /// `QuasiStaticSolver` against the dense Newton reference.
+    pub production_solver_difference: f64,
+    /// Run with the automatic step (`safety` × `TimeStepBound`).
+    pub automatic: RunOutcome,
+    /// Run with `safety` × the proposed critical step.
+    pub proposed: RunOutcome,
+    /// What a run at `overstep_factor` × `TimeStepBound`'s critical step ended with
+    /// (`None`: it did not diverge within the step budget).
+    pub overstep_divergence: Option<Divergence>,
+}
+
+/// A detected blow-up.
+#[derive(Debug, Clone, Serialize)]
+pub struct Divergence {
+    /// Step reported by `Error::Diverged`.
+    pub step: usize,
+    /// Cause reported by `Error::Diverged`.
+    pub cause: String,
+}
+
+/// How conservative the bound is, per ν and element shape (the ratio does not depend on E,
+/// ρ or size: all three scale time alone).
+#[derive(Debug, Clone, Serialize)]
+pub struct CriticalStep {
+    /// Poisson ratio.
+    pub poisson_ratio: f64,
+    /// Element proportions.
+    pub element_shape: [f64; 3],
+    /// Damping ratio of the springs.
+    pub damping_ratio: f64,
+    /// Largest step with spectral radius ≤ 1 of the linearised velocity-Verlet map, over the
+    /// bound's critical step.
+    pub linear_ratio: f64,
+    /// Largest step at which the production integrator does not report divergence within the
+    /// step budget, over the bound's critical step.
+    pub empirical_ratio: f64,
+    /// Same as `linear_ratio` with the dampers removed: isolates the ω_max bound.
+    pub undamped_linear_ratio: f64,
+    /// The linearised limit over `proposed_critical_step` (≥ 1 if the proposal is a bound).
+    pub proposed_linear_ratio: f64,
+}
+
+/// Outcome of the stability study.
+#[derive(Debug, Clone, Serialize)]
+pub struct StabilityReport {
+    /// What was run.
+    pub config: StabilityConfig,
+    /// Every automatic-step run.
+    pub cases: Vec<StabilityCase>,
+    /// True critical step over the bound, per ν and shape.
+    pub critical_steps: Vec<CriticalStep>,
+    /// Whether every automatic run converged, finitely and close to the Newton equilibrium.
+    pub all_stable: bool,
+    /// Same with the proposed damping-aware step.
+    pub all_proposed_stable: bool,
+    /// Whether every overstepped run was caught as `Error::Diverged`.
+    pub all_oversteps_caught: bool,
+}
+
+/// Runs the stability study.
+pub fn run_stability_study(config: &StabilityConfig) -> Result<StabilityReport> {
+    let mut cases = Vec::new();
+    let mut critical_steps = Vec::new();
+    for &shape in &config.element_shapes {
+        for &nu in &config.poisson_ratios {
+            for &size in &config.element_sizes_m {
+                let longest = shape.iter().cloned().fold(0.0, f64::max);
+                let edges = shape.map(|s| s * size / longest);
+                for &e in &config.youngs_moduli_pa {
+                    for &rho in &config.densities_kg_per_m3 {
+                        let material = Material::new(e, nu, rho)?;
+                        cases.push(stability_case(config, edges, material)?);
+                    }
+                }
+            }
+            if config.bisection_iterations > 0 {
+                let material = Material::new(1000.0, nu, 700.0)?;
+                let edges = shape.map(|s| s * 0.01);
+                critical_steps.push(critical_step(config, edges, material)?);
+            }
+        }
+    }
+    let all_stable = cases.iter().all(|c| c.automatic.passed());
+    let all_proposed_stable = cases.iter().all(|c| c.proposed.passed());
+    let all_oversteps_caught = cases.iter().all(|c| c.overstep_divergence.is_some());
+    Ok(StabilityReport {
+        config: config.clone(),
+        cases,
+        critical_steps,
+        all_stable,
+        all_proposed_stable,
+        all_oversteps_caught,
+    })
+}
+
+/// One parameter set: automatic and proposed steps checked against a dense Newton
+/// equilibrium, plus the overstep run.
+pub fn stability_case(
+    config: &StabilityConfig,
+    edges_m: [f64; 3],
+    material: Material,
+) -> Result<StabilityCase> {
+    let scene = clamped_block(
+        config.cells,
+        edges_m,
+        material,
+        config.damping_ratio,
+        config.load_strain,
+    )?;
+    let rest = scene.mesh.rest_positions_m.clone();
+    let bound = TimeStepBound::new(&scene, config.safety);
+    let proposed_critical = proposed_critical_step(&scene);
+    let (reference, _) = DenseNewton::default().solve(&scene, &rest)?;
+    let qs = QuasiStaticSettings {
+        tolerance: 1e-10,
+        ..Default::default()
+    };
+    let (production, _) = QuasiStaticSolver::new(&scene, qs)?.solve(None)?;
+    let u_ref = max_distance(&reference, &rest);
+    let run = |step_s: f64| run_checked(&scene, &reference, step_s, config.max_steps);
+    let automatic = run(bound.step_s)?;
+    let proposed = run(config.safety * proposed_critical)?;
+
+    let mut over = ExplicitIntegrator::new(&scene);
+    let overstep = ExplicitSettings {
+        fixed_step_s: Some(config.overstep_factor * bound.critical_step_s),
+        max_steps: config.divergence_steps,
+        ..Default::default()
+    };
+    let overstep_divergence = match over.run_to_equilibrium(&overstep) {
+        Err(Error::Diverged { step, cause }) => Some(Divergence { step, cause }),
+        Ok(_) => None,
+        Err(e) => return Err(e),
+    };
+
+    let height = config.cells[2] as f64 * edges_m[2];
+    Ok(StabilityCase {
+        youngs_modulus_pa: material.youngs_modulus_pa,
+        poisson_ratio: material.poisson_ratio,
+        edges_m,
+        density_kg_per_m3: material.density_kg_per_m3,
+        critical_step_s: bound.critical_step_s,
+        proposed_critical_step_s: proposed_critical,
+        thesis_step_s: thesis_step(&scene),
+        max_displacement_over_height: u_ref / height,
+        production_solver_difference: max_distance(&production, &reference) / u_ref,
+        automatic,
+        proposed,
+        overstep_divergence,
+    })
+}
+
+/// Runs `run_to_equilibrium` at a fixed step and checks the outcome against `reference`.
+pub fn run_checked(
+    scene: &Scene,
+    reference: &[V3],
+    step_s: f64,
+    max_steps: usize,
+) -> Result<RunOutcome> {
+    let rest = &scene.mesh.rest_positions_m;
+    let settings = ExplicitSettings {
+        fixed_step_s: Some(step_s),
+        max_steps,
+        ..Default::default()
+    };
+    let mut it = ExplicitIntegrator::new(scene);
+    let report = match it.run_to_equilibrium(&settings) {
+        Ok(r) => r,
+        Err(Error::Diverged { step, cause }) => {
+            return Ok(RunOutcome {
+                step_s,
+                steps: step,
+                converged: false,
+                residual: None,
+                peak_kinetic_over_work: None,
+                equilibrium_error: None,
+                divergence: Some(Divergence { step, cause }),
+            })
+        }
+        Err(e) => return Err(e),
+    };
+    let mut f_ext = vec![V3::zeros(); scene.node_count()];
+    scene.external_forces(reference, &mut f_ext);
+    let work: f64 = f_ext
+        .iter()
+        .zip(reference.iter().zip(rest))
+        .map(|(f, (x, r))| f.dot(&(x - r)))
+        .sum();
+    // Replay the same steps by hand to watch the kinetic energy the production loop hides.
+    let mut replay = ExplicitIntegrator::new(scene);
+    let mut peak_ke: f64 = 0.0;
+    for _ in 0..report.steps {
+        replay.step(step_s);
+        peak_ke = peak_ke.max(replay.kinetic_energy_j());
+    }
+    Ok(RunOutcome {
+        step_s,
+        steps: report.steps,
+        converged: report.converged,
+        residual: Some(report.residual),
+        peak_kinetic_over_work: Some(peak_ke / work),
+        equilibrium_error: Some(
+            max_distance(&it.positions, reference) / max_distance(reference, rest),
+        ),
+        divergence: None,
+    })
+}
+
+/// Critical step of `TimeStepBound` with the damping Gershgorin bound taken on the damping
+/// matrix *with* the correction forces, C_eff = (I − Sᵀ·W·S/2)·C_springs, as the force kernel
+/// applies them: it computes the corrections from spring plus damper forces, so the dampers
+/// are amplified exactly as the springs are (by 1/(2 − 4ν) on volumetric motion of a cube).
+/// `TimeStepBound` bounds ω with the corrected K but the damping rate with the bare dampers,
+/// which under-estimates it for ν > 1/4.
+pub fn proposed_critical_step(scene: &Scene) -> f64 {
+    let mesh = &scene.mesh;
+    let rows: Vec<[f64; 24]> = mesh
+        .classes
+        .iter()
+        .map(|c| {
+            let offsets = c.corner_offsets_m();
+            let mut cs = SMatrix::<f64, 24, 24>::zeros();
+            for (s, (a, b, _)) in SPRINGS.iter().enumerate() {
+                let n = (offsets[*b] - offsets[*a]).normalize();
+                let block = c.spring_damping_n_s_per_m[s] * n * n.transpose();
+                for r in 0..3 {
+                    for q in 0..3 {
+                        let v = block[(r, q)];
+                        cs[(3 * a + r, 3 * a + q)] += v;
+                        cs[(3 * b + r, 3 * b + q)] += v;
+                        cs[(3 * a + r, 3 * b + q)] -= v;
+                        cs[(3 * b + r, 3 * a + q)] -= v;
+                    }
+                }
+            }
+            let mut sel = SMatrix::<f64, 3, 24>::zeros();
+            for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+                for i in 0..3 {
+                    sel[(i, 3 * n + i)] = signs[i];
+                }
+            }
+            let amplify =
+                SMatrix::<f64, 24, 24>::identity() - 0.5 * sel.transpose() * c.correction_map * sel;
+            let ce = amplify * cs;
+            std::array::from_fn(|r| ce.row(r).iter().map(|v| v.abs()).sum())
+        })
+        .collect();
+    let mut row_sum = vec![[0.0f64; 3]; mesh.node_count()];
+    for (corners, &class) in mesh.elements.iter().zip(&mesh.element_class) {
+        for (k, &node) in corners.iter().enumerate() {
+            for i in 0..3 {
+                row_sum[node as usize][i] += rows[class as usize][3 * k + i];
+            }
+        }
+    }
+    let gamma = row_sum
+        .iter()
+        .zip(&mesh.node_mass_kg)
+        .flat_map(|(r, m)| r.map(|v| v / m))
+        .fold(0.0, f64::max);
+    let omega = TimeStepBound::new(scene, 1.0).omega_max_rad_per_s;
+    let xi = gamma / (2.0 * omega);
+    2.0 / omega * ((1.0 + xi * xi).sqrt() - xi)
+}
+
+/// 2 % of the undamped period of the stiffest spring acting on the lightest node (§4.1.3).
+fn thesis_step(scene: &Scene) -> f64 {
+    let k_max = scene
+        .mesh
+        .classes
+        .iter()
+        .flat_map(|c| {
+            SPRINGS
+                .iter()
+                .map(move |(_, _, kind)| c.spring_stiffness(*kind))
+        })
+        .fold(0.0, f64::max);
+    let m_min = scene
+        .mesh
+        .node_mass_kg
+        .iter()
+        .cloned()
+        .fold(f64::INFINITY, f64::min);
+    0.02 * 2.0 * std::f64::consts::PI * (m_min / k_max).sqrt()
+}
+
+fn max_distance(a: &[V3], b: &[V3]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| (p - q).norm())
+        .fold(0.0, f64::max)
+}
+
+/// Bisects the true critical step of one block, linearised and empirical, damped and not.
+pub fn critical_step(
+    config: &StabilityConfig,
+    edges_m: [f64; 3],
+    material: Material,
+) -> Result<CriticalStep> {
+    let scene = clamped_block(
+        config.cells,
+        edges_m,
+        material,
+        config.damping_ratio,
+        config.load_strain,
+    )?;
+    let bound = TimeStepBound::new(&scene, 1.0).critical_step_s;
+    let proposed = proposed_critical_step(&scene);
+    let lin = LinearVerlet::new(&scene)?;
+    let linear_ratio = bisect(config.bisection_iterations, |r| {
+        Ok(lin.spectral_radius(r * bound)? <= 1.0 + 1e-9)
+    })?;
+    let empirical_ratio = bisect(config.bisection_iterations, |r| {
+        let mut it = ExplicitIntegrator::new(&scene);
+        let settings = ExplicitSettings {
+            fixed_step_s: Some(r * bound),
+            max_steps: config.divergence_steps,
+            ..Default::default()
+        };
+        match it.run_to_equilibrium(&settings) {
+            Ok(_) => Ok(true),
+            Err(Error::Diverged { .. }) => Ok(false),
+            Err(e) => Err(e),
+        }
+    })?;
+    let undamped = clamped_block(config.cells, edges_m, material, 0.0, config.load_strain)?;
+    let bound0 = TimeStepBound::new(&undamped, 1.0).critical_step_s;
+    let lin0 = LinearVerlet::new(&undamped)?;
+    let undamped_linear_ratio = bisect(config.bisection_iterations, |r| {
+        Ok(lin0.spectral_radius(r * bound0)? <= 1.0 + 1e-9)
+    })?;
+    Ok(CriticalStep {
+        poisson_ratio: material.poisson_ratio,
+        element_shape: edges_m.map(|e| e / edges_m[0]),
+        damping_ratio: config.damping_ratio,
+        linear_ratio,
+        empirical_ratio,
+        undamped_linear_ratio,
+        proposed_linear_ratio: linear_ratio * bound / proposed,
+    })
+}
+
+/// Largest ratio r in [1/64, 8] with `stable(r)`, assuming stability is monotone in r.
+fn bisect(iterations: usize, mut stable: impl FnMut(f64) -> Result<bool>) -> Result<f64> {
+    let (mut lo, mut hi) = (1.0 / 64.0, 8.0);
+    if !stable(lo)? {
+        return Ok(0.0);
+    }
+    if stable(hi)? {
+        return Ok(hi);
+    }
+    for _ in 0..iterations {
+        let mid = (lo * hi as f64).sqrt();
+        if stable(mid)? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(lo)
+}
+
+/// The production velocity-Verlet step linearised about rest, on the free DOFs.
+///
+/// The integrator evaluates damping with the half-step velocity, so the state is
+/// (x, w = v(t − h/2)): a = A·x + B·w with A = M⁻¹·∂f/∂x and B = M⁻¹·∂f/∂v, then
+/// x' = x + h·(w + h·a) and w' = w + h·a.
+struct LinearVerlet {
+    a: DMatrix<f64>,
+    b: DMatrix<f64>,
+}
+
+impl LinearVerlet {
+    fn new(scene: &Scene) -> Result<Self> {
+        let rest = scene.mesh.rest_positions_m.clone();
+        let dofs = free_dofs(scene, &rest)?;
+        let n = scene.node_count();
+        let m = dofs.len();
+        let size = scene
+            .mesh
+            .classes
+            .iter()
+            .flat_map(|c| c.shape.edges_m)
+            .fold(0.0, f64::max);
+        let h = 1e-7 * size;
+        let zero = vec![V3::zeros(); n];
+        let mut fp = vec![V3::zeros(); n];
+        let mut fm = vec![V3::zeros(); n];
+        let mut a = DMatrix::zeros(m, m);
+        let mut b = DMatrix::zeros(m, m);
+        let mut x = rest.clone();
+        // Velocity scale giving damping forces of the same order as the elastic ones.
+        let vh = h * TimeStepBound::new(scene, 1.0).omega_max_rad_per_s;
+        let mut v = zero.clone();
+        for (col, &k) in dofs.iter().enumerate() {
+            x[k / 3][k % 3] += h;
+            scene.internal_forces(&x, Some(&zero), &mut fp);
+            x[k / 3][k % 3] -= 2.0 * h;
+            scene.internal_forces(&x, Some(&zero), &mut fm);
+            x[k / 3][k % 3] += h;
+            for (row, &r) in dofs.iter().enumerate() {
+                let mass = scene.mesh.node_mass_kg[r / 3];
+                a[(row, col)] = (fp[r / 3][r % 3] - fm[r / 3][r % 3]) / (2.0 * h) / mass;
+            }
+            v[k / 3][k % 3] = vh;
+            scene.internal_forces(&rest, Some(&v), &mut fp);
+            v[k / 3][k % 3] = -vh;
+            scene.internal_forces(&rest, Some(&v), &mut fm);
+            v[k / 3][k % 3] = 0.0;
+            for (row, &r) in dofs.iter().enumerate() {
+                let mass = scene.mesh.node_mass_kg[r / 3];
+                b[(row, col)] = (fp[r / 3][r % 3] - fm[r / 3][r % 3]) / (2.0 * vh) / mass;
+            }
+        }
+        Ok(LinearVerlet { a, b })
+    }
+
+    fn spectral_radius(&self, h: f64) -> Result<f64> {
+        let m = self.a.nrows();
+        let id = DMatrix::<f64>::identity(m, m);
+        let ha = &self.a * h;
+        let hb = &self.b * h;
+        let mut map = DMatrix::zeros(2 * m, 2 * m);
+        map.view_mut((0, 0), (m, m)).copy_from(&(&id + &ha * h));
+        map.view_mut((0, m), (m, m)).copy_from(&((&id + &hb) * h));
+        map.view_mut((m, 0), (m, m)).copy_from(&ha);
+        map.view_mut((m, m), (m, m)).copy_from(&(&id + &hb));
+        let eig = map
+            .try_schur(1e-12, 10_000)
+            .ok_or_else(|| Error::External("Schur decomposition did not converge".into()))?
+            .complex_eigenvalues();
+        Ok(eig.iter().map(|z| z.norm()).fold(0.0, f64::max))
+    }
+}
+
+fn opt_max(v: impl Iterator<Item = Option<f64>>) -> String {
+    let vals: Vec<f64> = v.flatten().collect();
+    if vals.is_empty() {
+        "–".into()
+    } else {
+        format!(
+            "{:.1e}",
+            vals.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+        )
+    }
+}
+
+impl StabilityReport {
+    /// Markdown: the automatic step's outcomes over the grid, and the measured critical steps.
+    pub fn to_markdown(&self) -> String {
+        let c = &self.config;
+        let mut s = String::new();
+        s.push_str("## Explicit integrator: automatic time step and blow-up detection\n\n");
+        s.push_str(&format!(
+            "Block of {}×{}×{} elements clamped at z = 0, top pressure {:.0} %·E (follower) and \
+             a sideways body force giving the same strain scale, springs at {} × critical \
+             damping (the thesis's regime). Grid: E {:?} Pa, ν {:?}, element size {:?} m, \
+             shapes {:?}, ρ {:?} kg/m³: {} runs. *Automatic*: step = {} × `TimeStepBound`'s \
+             critical step. *Proposed*: same, with the damping bound taken on the dampers as \
+             the correction forces amplify them (`proposed_critical_step`). A run passes when \
+             `run_to_equilibrium` reports equilibrium (residual ≤ 1e-6), peak kinetic energy ≤ \
+             the loads' work and the positions agree with a dense Newton solve to 1e-3 of the \
+             largest displacement. *Overstep*: {} × `TimeStepBound`'s critical step, which \
+             should end in `Error::Diverged`. E, ρ and size only rescale time (loads scale \
+             with E), so within a (shape, ν) row every run takes the same number of steps.\n\n",
+            c.cells[0],
+            c.cells[1],
+            c.cells[2],
+            100.0 * c.load_strain,
+            c.damping_ratio,
+            c.youngs_moduli_pa,
+            c.poisson_ratios,
+            c.element_sizes_m,
+            c.element_shapes,
+            c.densities_kg_per_m3,
+            self.cases.len(),
+            c.safety,
+            c.overstep_factor
+        ));
+        s.push_str(
+            "| shape | ν | runs | automatic passed | automatic diverged (earliest step) | \
+             proposed passed | steps automatic / proposed (max) | worst equilibrium error | \
+             worst KE / work | overstep caught |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        );
+        for &shape in &c.element_shapes {
+            for &nu in &c.poisson_ratios {
+                let group: Vec<&StabilityCase> = self
+                    .cases
+                    .iter()
+                    .filter(|k| {
+                        k.poisson_ratio == nu
+                            && (k.edges_m[1] / k.edges_m[0] - shape[1] / shape[0]).abs() < 1e-9
+                    })
+                    .collect();
+                let diverged: Vec<usize> = group
+                    .iter()
+                    .filter_map(|k| k.automatic.divergence.as_ref().map(|d| d.step))
+                    .collect();
+                let max_steps = |f: &dyn Fn(&StabilityCase) -> &RunOutcome| {
+                    group.iter().map(|k| f(k).steps).max().unwrap_or(0)
+                };
+                s.push_str(&format!(
+                    "| {:?} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} |\n",
+                    shape,
+                    nu,
+                    group.len(),
+                    group.iter().filter(|k| k.automatic.passed()).count(),
+                    if diverged.is_empty() {
+                        "0".to_string()
+                    } else {
+                        format!(
+                            "{} ({})",
+                            diverged.len(),
+                            diverged.iter().min().unwrap_or(&0)
+                        )
+                    },
+                    group.iter().filter(|k| k.proposed.passed()).count(),
+                    max_steps(&|k| &k.automatic),
+                    max_steps(&|k| &k.proposed),
+                    opt_max(group.iter().flat_map(|k| {
+                        [k.automatic.equilibrium_error, k.proposed.equilibrium_error]
+                    })),
+                    opt_max(group.iter().flat_map(|k| {
+                        [
+                            k.automatic.peak_kinetic_over_work,
+                            k.proposed.peak_kinetic_over_work,
+                        ]
+                    })),
+                    group
+                        .iter()
+                        .filter(|k| k.overstep_divergence.is_some())
+                        .count(),
+                ));
+            }
+        }
+        let range = |f: &dyn Fn(&StabilityCase) -> f64| {
+            let v: Vec<f64> = self.cases.iter().map(f).collect();
+            (
+                v.iter().cloned().fold(f64::INFINITY, f64::min),
+                v.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            )
+        };
+        let (a, b) = range(&|k| k.automatic.step_s);
+        s.push_str(&format!("\nAutomatic step: {a:.2e} – {b:.2e} s. "));
+        let (a, b) = range(&|k| k.automatic.step_s / k.thesis_step_s);
+        s.push_str(&format!(
+            "Automatic step over the thesis's rule (2 % of the stiffest spring's undamped \
+             period on the lightest node): {a:.2} – {b:.2}. "
+        ));
+        let (a, b) = range(&|k| k.proposed_critical_step_s / k.critical_step_s);
+        s.push_str(&format!(
+            "Proposed over current critical step: {a:.3} – {b:.3}. "
+        ));
+        let (a, b) = range(&|k| k.max_displacement_over_height);
+        s.push_str(&format!(
+            "Largest displacement / height at equilibrium: {a:.4} – {b:.4}. "
+        ));
+        let (_, b) = range(&|k| k.production_solver_difference);
+        s.push_str(&format!(
+            "The production `QuasiStaticSolver` lands within {b:.1e} (relative to the largest \
+             displacement) of the dense Newton reference.\n"
+        ));
+        if let Some(d) = self
+            .cases
+            .iter()
+            .find_map(|k| k.automatic.divergence.as_ref())
+        {
+            s.push_str(&format!(
+                "\nExample automatic-step blow-up: `Error::Diverged {{ step: {}, cause: \"{}\" }}`.\n",
+                d.step, d.cause
+            ));
+        }
+        if let Some(d) = self
+            .cases
+            .iter()
+            .find_map(|k| k.overstep_divergence.as_ref())
+        {
+            s.push_str(&format!(
+                "\nExample overstep detection: `Error::Diverged {{ step: {}, cause: \"{}\" }}`.\n",
+                d.step, d.cause
+            ));
+        }
+        if !self.critical_steps.is_empty() {
+            s.push_str(
+                "\n### True critical step over the bounds\n\n\
+                 Bisection on the step (E = 1 kPa, ρ = 700 kg/m³, 10 mm; the ratios do not \
+                 depend on them). *Linearised*: spectral radius of the velocity-Verlet map \
+                 linearised at rest (damping on the half-step velocity, as the integrator \
+                 does) ≤ 1. *Empirical*: the production integrator runs its step budget \
+                 without `Error::Diverged` (slightly optimistic: a slowly growing mode seeded \
+                 by round-off can stay hidden until the run converges). *Undamped*: \
+                 linearised, dampers removed (bound recomputed). A ratio below 1 means the \
+                 bound is not a bound; above the overstep factor, the overstep cannot \
+                 diverge.\n\n\
+                 | shape | ν | ζ | linearised / `TimeStepBound` | empirical / `TimeStepBound` | \
+                 undamped linearised / `TimeStepBound` | linearised / proposed |\n\
+                 |---|---|---|---|---|---|---|\n",
+            );
+            for k in &self.critical_steps {
+                s.push_str(&format!(
+                    "| {:?} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} |\n",
+                    k.element_shape.map(|v| (v * 1000.0).round() / 1000.0),
+                    k.poisson_ratio,
+                    k.damping_ratio,
+                    k.linear_ratio,
+                    k.empirical_ratio,
+                    k.undamped_linear_ratio,
+                    k.proposed_linear_ratio
+                ));
+            }
+        }
+        s.push_str(&format!(
+            "\nEvery automatic run stable and at equilibrium: **{}**. With the proposed step: \
+             **{}**. Every overstep caught: **{}**.\n",
+            if self.all_stable { "yes" } else { "NO" },
+            if self.all_proposed_stable {
+                "yes"
+            } else {
+                "NO"
+            },
+            if self.all_oversteps_caught {
+                "yes"
+            } else {
+                "NO"
+            }
+        ));
+        s
+    }
+}

@@ -1,0 +1,149 @@
+//! Stress test of the explicit integrator's automatic time step over lung-tissue parameters,
+//! and of the blow-up detector.
+
+use lungmotion::model::Material;
+use lungmotion::simulation::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
+use lungmotion::validation::patch::DenseNewton;
+use lungmotion::validation::stability::{
+    clamped_block, critical_step, proposed_critical_step, run_checked, StabilityConfig,
+};
+use lungmotion::Error;
+
+/// A 3 × 3 × 3 block, clamped, critically damped, loaded to ≈ 2 % strain.
+fn block(e: f64, nu: f64, rho: f64, edge: f64) -> lungmotion::simulation::Scene {
+    let material = Material::new(e, nu, rho).unwrap();
+    clamped_block([3, 3, 3], [edge; 3], material, 1.0, 0.02).unwrap()
+}
+
+#[test]
+fn automatic_step_reaches_equilibrium_across_lung_parameters() {
+    // Extremes of E, element size and density at the ν the current bound covers (see
+    // `automatic_step_is_stable_for_nearly_incompressible_tissue` for ν ≥ 0.4).
+    for nu in [0.1, 0.3] {
+        let mut steps = Vec::new();
+        for e in [100.0, 1.0e5] {
+            for edge in [1e-3, 20e-3] {
+                for rho in [100.0, 1050.0] {
+                    let scene = block(e, nu, rho, edge);
+                    let rest = scene.mesh.rest_positions_m.clone();
+                    let (reference, _) = DenseNewton::default().solve(&scene, &rest).unwrap();
+                    let h = TimeStepBound::new(&scene, ExplicitSettings::default().safety).step_s;
+                    let run = run_checked(&scene, &reference, h, 200_000).unwrap();
+                    let label = format!("E={e} ν={nu} edge={edge} ρ={rho}");
+                    assert!(run.divergence.is_none(), "{label}: {run:?}");
+                    assert!(run.converged, "{label}: {run:?}");
+                    assert!(run.residual.unwrap() <= 1e-6, "{label}: {run:?}");
+                    // Released from rest under dead loads, a damped linear system never holds
+                    // more than half the loads' final work as kinetic energy.
+                    assert!(
+                        run.peak_kinetic_over_work.unwrap() < 0.5,
+                        "{label}: {run:?}"
+                    );
+                    assert!(run.equilibrium_error.unwrap() < 1e-4, "{label}: {run:?}");
+                    steps.push(run.steps);
+                }
+            }
+        }
+        // E, ρ and size only rescale time: the same number of steps (to one check interval).
+        let (lo, hi) = (steps.iter().min().unwrap(), steps.iter().max().unwrap());
+        assert!(hi - lo <= 50, "ν={nu}: steps {steps:?}");
+    }
+}
+
+#[test]
+fn a_step_above_the_stability_limit_is_caught_as_diverged() {
+    let scene = block(1000.0, 0.3, 700.0, 0.01);
+    let bound = TimeStepBound::new(&scene, 1.0);
+    let settings = ExplicitSettings {
+        fixed_step_s: Some(1.5 * bound.critical_step_s),
+        max_steps: 20_000,
+        ..Default::default()
+    };
+    let mut it = ExplicitIntegrator::new(&scene);
+    match it.run_to_equilibrium(&settings) {
+        Err(Error::Diverged { step, cause }) => {
+            assert!(step > 0 && step <= 20_000, "step {step}");
+            assert!(!cause.is_empty());
+            let msg = Error::Diverged {
+                step,
+                cause: cause.clone(),
+            }
+            .to_string();
+            assert!(
+                msg.contains(&step.to_string()) && msg.contains(&cause),
+                "{msg}"
+            );
+        }
+        other => panic!("1.5 × the critical step should diverge, got {other:?}"),
+    }
+}
+
+fn small_study() -> StabilityConfig {
+    StabilityConfig {
+        cells: [2, 2, 2],
+        bisection_iterations: 12,
+        divergence_steps: 20_000,
+        ..StabilityConfig::full()
+    }
+}
+
+#[test]
+fn bound_is_conservative_where_it_holds_and_by_how_much() {
+    // Measured on a 2 × 2 × 2 block (3 × 3 × 3 in the report: ν = 0.1 → 1.54, ν = 0.3 → 1.27).
+    // At ν = 0.1 the true limit is more than 1.5 × the bound, so a 1.5 × overstep survives
+    // there: the issue is reported, not hidden.
+    let config = small_study();
+    for (nu, lo, hi) in [(0.1, 1.3, 1.8), (0.3, 1.0, 1.5)] {
+        let m = Material::new(1000.0, nu, 700.0).unwrap();
+        let c = critical_step(&config, [0.01; 3], m).unwrap();
+        assert!(
+            (lo..hi).contains(&c.linear_ratio),
+            "ν={nu}: true / bound = {}",
+            c.linear_ratio
+        );
+        // The production integrator agrees with the linearised map to within the bisection's
+        // resolution and its step budget's optimism.
+        assert!(
+            c.empirical_ratio >= 0.95 * c.linear_ratio && c.empirical_ratio < 1.25 * c.linear_ratio,
+            "{c:?}"
+        );
+        assert!(c.undamped_linear_ratio >= 1.0, "{c:?}");
+    }
+}
+
+#[test]
+fn damping_bound_with_corrections_is_a_true_bound_for_every_poisson_ratio() {
+    let config = small_study();
+    for nu in [0.1, 0.3, 0.45, 0.49] {
+        let m = Material::new(1000.0, nu, 700.0).unwrap();
+        let c = critical_step(&config, [0.01; 3], m).unwrap();
+        assert!(c.proposed_linear_ratio >= 1.0, "ν={nu}: {c:?}");
+        assert!(c.undamped_linear_ratio >= 1.0, "ν={nu}: {c:?}");
+    }
+    // And the step it gives reaches equilibrium where the current one blows up.
+    let scene = block(1000.0, 0.49, 700.0, 0.01);
+    let rest = scene.mesh.rest_positions_m.clone();
+    let (reference, _) = DenseNewton::default().solve(&scene, &rest).unwrap();
+    let h = 0.9 * proposed_critical_step(&scene);
+    let run = run_checked(&scene, &reference, h, 200_000).unwrap();
+    assert!(run.passed(), "{run:?}");
+}
+
+/// Fails today: `TimeStepBound` bounds the damping rate with the bare dampers, but the force
+/// kernel computes the correction forces from spring *and* damper forces, which amplifies the
+/// dampers by up to 1/(2 − 4ν) (25× at ν = 0.49). With critical damping the automatic step
+/// is then above the true limit for ν ≳ 0.4 (0.85 × at 0.4, 0.54 × at 0.45, 0.19 × at 0.49)
+/// and the run blows up within 50 steps. Un-ignore once the bound includes the corrections
+/// (`stability::proposed_critical_step` shows how).
+#[test]
+#[ignore = "TimeStepBound ignores the correction forces' amplification of damping (ν ≳ 0.4)"]
+fn automatic_step_is_stable_for_nearly_incompressible_tissue() {
+    for nu in [0.4, 0.45, 0.49] {
+        let scene = block(1000.0, nu, 700.0, 0.01);
+        let rest = scene.mesh.rest_positions_m.clone();
+        let (reference, _) = DenseNewton::default().solve(&scene, &rest).unwrap();
+        let h = TimeStepBound::new(&scene, ExplicitSettings::default().safety).step_s;
+        let run = run_checked(&scene, &reference, h, 400_000).unwrap();
+        assert!(run.passed(), "ν={nu}: {run:?}");
+    }
+}
