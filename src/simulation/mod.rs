@@ -9,5 +9,5 @@ pub mod scene;
 
 pub use explicit::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
 pub use forces::ForceEvaluator;
-pub use quasistatic::{QuasiStaticSettings, QuasiStaticSolver, SolveReport};
+pub use quasistatic::{PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, SolveReport};
 pub use scene::Scene;

@@ -34,6 +34,17 @@ pub struct QuasiStaticSettings {
     pub max_newton_iterations: usize,
     /// Krylov iterations allowed per Newton iteration.
     pub max_linear_iterations: usize,
+    /// Which preconditioner to build.
+    pub preconditioner: PreconditionerKind,
+}
+
+/// Preconditioner of the Krylov solves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum PreconditionerKind {
+    /// Multigrid when the mesh is one voxel lattice, else block Jacobi.
+    Auto,
+    /// Block Jacobi (3 × 3 nodal blocks) always: for comparison.
+    BlockJacobi,
 }
 
 impl Default for QuasiStaticSettings {
@@ -43,6 +54,7 @@ impl Default for QuasiStaticSettings {
             load_steps: 1,
             max_newton_iterations: 40,
             max_linear_iterations: 300,
+            preconditioner: PreconditionerKind::Auto,
         }
     }
 }
@@ -92,7 +104,11 @@ impl<'s> QuasiStaticSolver<'s> {
         let start = Instant::now();
         let rest = &scene.mesh.rest_positions_m;
         let projector = projectors(&scene.constraints, rest);
-        let preconditioner = match Lattice::infer(&scene.mesh) {
+        let lattice = match settings.preconditioner {
+            PreconditionerKind::Auto => Lattice::infer(&scene.mesh),
+            PreconditionerKind::BlockJacobi => None,
+        };
+        let preconditioner = match lattice {
             Some(lattice) => Preconditioner::Multigrid(Box::new(Multigrid::new(
                 &scene.mesh,
                 &lattice,
