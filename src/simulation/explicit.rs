@@ -168,6 +168,23 @@ impl<'s> ExplicitIntegrator<'s> {
         it
     }
 
+    /// Starts at rest from given positions (constrained nodes are moved onto their constraints).
+    pub fn from_positions(scene: &'s Scene, positions_m: &[V3]) -> Result<Self> {
+        if positions_m.len() != scene.node_count() {
+            return Err(Error::InvalidModel(format!(
+                "{} positions for {} nodes",
+                positions_m.len(),
+                scene.node_count()
+            )));
+        }
+        scene.check_finite(positions_m, 0)?;
+        let mut it = Self::new(scene);
+        it.positions.copy_from_slice(positions_m);
+        scene.constraints.project_positions(&mut it.positions);
+        it.update_accelerations(None);
+        Ok(it)
+    }
+
     fn update_accelerations(&mut self, v: Option<()>) {
         let vel = v.map(|_| &self.velocities[..]);
         self.scene

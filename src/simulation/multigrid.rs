@@ -107,6 +107,12 @@ struct Level {
     /// Reused buffer for the projected input of `apply`.
     scratch: std::sync::Mutex<Vec<f64>>,
     diag_inv: Vec<Matrix3<f64>>,
+    /// Diagonal 3 × 3 blocks of the stiffness, before shift and projection.
+    diag: Vec<Matrix3<f64>>,
+    /// Lumped nodal mass (fine level: the mesh's; coarse: restricted), kg.
+    mass: Vec<f64>,
+    /// Pseudo-transient shift σ: the level's operator is K + σ·M.
+    shift: f64,
     lambda_max: f64,
     /// Interpolation from the next coarser level: up to 8 (coarse node, weight) per node.
     prolong: Vec<[(u32, f64); 8]>,
@@ -184,6 +190,13 @@ impl Level {
                     .for_each(|c| c.iter().for_each(|&e| run(e)));
             }
         }
+        if self.shift > 0.0 {
+            let (yn, xn) = (nodes_mut(y), nodes(xs));
+            yn.par_iter_mut()
+                .zip(xn.par_iter())
+                .zip(self.mass.par_iter())
+                .for_each(|((y, x), m)| *y += x * (self.shift * m));
+        }
         if projected {
             self.project(y);
             let yn = nodes_mut(y);
@@ -243,6 +256,15 @@ impl Level {
     }
 }
 
+/// Dense LU of the coarsest level, with a tiny diagonal lift so a singular operator
+/// (a mechanism) still factors; the outer Krylov method absorbs the difference.
+fn coarse_factor(level: &Level) -> nalgebra::LU<f64, nalgebra::Dyn, nalgebra::Dyn> {
+    let dense = level.dense();
+    let lift = 1e-12 * dense.diagonal().amax().max(f64::MIN_POSITIVE);
+    let n = dense.nrows();
+    (dense + DMatrix::identity(n, n) * lift).lu()
+}
+
 /// Size and measured cost of one multigrid level.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct LevelCost {
@@ -286,6 +308,9 @@ impl Multigrid {
             projector,
             scratch: Default::default(),
             diag_inv: Vec::new(),
+            diag: Vec::new(),
+            mass: mesh.node_mass_kg.clone(),
+            shift: 0.0,
             lambda_max: 0.0,
             prolong: Vec::new(),
         };
@@ -303,11 +328,7 @@ impl Multigrid {
             cells = c_cells;
             node_ijk = c_nodes;
         }
-        let last = levels.last().expect("non-empty");
-        let dense = last.dense();
-        let shift = 1e-12 * dense.diagonal().amax().max(f64::MIN_POSITIVE);
-        let dense = dense + DMatrix::identity(3 * last.n_nodes, 3 * last.n_nodes) * shift;
-        let coarse_lu = dense.lu();
+        let coarse_lu = coarse_factor(levels.last().expect("non-empty"));
         let scratch = levels
             .iter()
             .map(|l| (0..6).map(|_| vec![0.0; 3 * l.n_nodes]).collect())
@@ -318,6 +339,15 @@ impl Multigrid {
             degree: 4,
             scratch,
         }
+    }
+
+    /// Sets the pseudo-transient shift σ (operator K + σ·M on every level) and refactors.
+    pub fn set_shift(&mut self, shift: f64) {
+        for l in &mut self.levels {
+            l.shift = shift;
+            l.update_diag_inv();
+        }
+        self.coarse_lu = coarse_factor(self.levels.last().expect("non-empty"));
     }
 
     /// Number of levels.
@@ -433,22 +463,8 @@ impl Level {
                 diag[n as usize] += k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
             }
         }
-        self.diag_inv = diag
-            .iter()
-            .enumerate()
-            .map(|(n, d)| {
-                let d = match self.projector.get(n).copied().flatten() {
-                    Some(p) => p * d * p + (Matrix3::identity() - p),
-                    None => *d,
-                };
-                d.try_inverse().unwrap_or_else(|| {
-                    let s = d.diagonal().amax().max(f64::MIN_POSITIVE);
-                    (d + Matrix3::identity() * 1e-9 * s)
-                        .try_inverse()
-                        .unwrap_or_else(Matrix3::identity)
-                })
-            })
-            .collect();
+        self.diag = diag;
+        self.update_diag_inv();
         // Power iteration for λmax(D⁻¹A).
         let n3 = 3 * self.n_nodes;
         let mut v: Vec<f64> = (0..n3)
@@ -468,6 +484,29 @@ impl Level {
         self.lambda_max = lambda.max(1e-12);
     }
 
+    /// Inverts the shifted, projected diagonal blocks.
+    fn update_diag_inv(&mut self) {
+        self.diag_inv = self
+            .diag
+            .iter()
+            .zip(&self.mass)
+            .enumerate()
+            .map(|(n, (d, m))| {
+                let d = d + Matrix3::identity() * (self.shift * m);
+                let d = match self.projector.get(n).copied().flatten() {
+                    Some(p) => p * d * p + (Matrix3::identity() - p),
+                    None => d,
+                };
+                d.try_inverse().unwrap_or_else(|| {
+                    let s = d.diagonal().amax().max(f64::MIN_POSITIVE);
+                    (d + Matrix3::identity() * 1e-9 * s)
+                        .try_inverse()
+                        .unwrap_or_else(Matrix3::identity)
+                })
+            })
+            .collect();
+    }
+
     fn dense(&self) -> DMatrix<f64> {
         let n3 = 3 * self.n_nodes;
         let mut a = DMatrix::zeros(n3, n3);
@@ -482,6 +521,11 @@ impl Level {
                         }
                     }
                 }
+            }
+        }
+        for (n, m) in self.mass.iter().enumerate() {
+            for r in 0..3 {
+                a[(3 * n + r, 3 * n + r)] += self.shift * m;
             }
         }
         for (n, p) in self.projector.iter().enumerate() {
@@ -743,6 +787,17 @@ fn coarsen(
         projector: vec![None; n_c],
         constrained: Vec::new(),
         scratch: Default::default(),
+        diag: Vec::new(),
+        mass: {
+            let mut m = vec![0.0; n_c];
+            for (row, mf) in fine.prolong.iter().zip(&fine.mass) {
+                for &(c, w) in row {
+                    m[c as usize] += w * mf;
+                }
+            }
+            m
+        },
+        shift: 0.0,
         diag_inv: Vec::new(),
         lambda_max: 0.0,
         prolong: Vec::new(),
@@ -804,8 +859,8 @@ mod tests {
             });
             let got = op.apply(&u);
             let mut flat_u = SMatrix::<f64, 24, 1>::zeros();
-            for n in 0..8 {
-                flat_u.fixed_view_mut::<3, 1>(3 * n, 0).copy_from(&u[n]);
+            for (n, un) in u.iter().enumerate() {
+                flat_u.fixed_view_mut::<3, 1>(3 * n, 0).copy_from(un);
             }
             let want = k * flat_u;
             for n in 0..8 {

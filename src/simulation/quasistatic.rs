@@ -36,6 +36,10 @@ pub struct QuasiStaticSettings {
     pub max_linear_iterations: usize,
     /// Which preconditioner to build.
     pub preconditioner: PreconditionerKind,
+    /// If Newton and pseudo-time steps fail (non-conservative corrections near a mechanism can
+    /// trap them), continue with critically damped explicit relaxation for at most this many
+    /// steps; 0 disables the fallback.
+    pub relaxation_max_steps: usize,
 }
 
 /// Preconditioner of the Krylov solves.
@@ -55,6 +59,7 @@ impl Default for QuasiStaticSettings {
             max_newton_iterations: 40,
             max_linear_iterations: 300,
             preconditioner: PreconditionerKind::Auto,
+            relaxation_max_steps: 2_000_000,
         }
     }
 }
@@ -70,6 +75,11 @@ pub struct SolveReport {
     pub residual: f64,
     /// Load increments used.
     pub load_steps: usize,
+    /// Newton steps taken as pseudo-time steps (σ > 0) because plain Newton could not
+    /// reduce the residual: non-zero flags a mechanism or a very large load.
+    pub pseudo_time_steps: usize,
+    /// Explicit relaxation steps taken by the fallback (0 when Newton converged).
+    pub relaxation_steps: usize,
     /// Multigrid levels (1 = block Jacobi or a single dense level).
     pub multigrid_levels: usize,
     /// Preconditioner set-up time in seconds (paid once per solver).
@@ -80,15 +90,23 @@ pub struct SolveReport {
 
 enum Preconditioner {
     Multigrid(Box<Multigrid>),
-    BlockJacobi(Vec<Matrix3<f64>>),
+    BlockJacobi {
+        diag: Vec<Matrix3<f64>>,
+        inverse: Vec<Matrix3<f64>>,
+    },
 }
 
 /// Quasi-static solver bound to one scene; reusable across solves (e.g. breathing frames).
 pub struct QuasiStaticSolver<'s> {
     scene: &'s Scene,
     settings: QuasiStaticSettings,
+    projector: Vec<Option<Matrix3<f64>>>,
     constrained: Vec<(u32, Matrix3<f64>)>,
     preconditioner: Preconditioner,
+    /// Current pseudo-transient shift σ of the preconditioner.
+    shift: f64,
+    /// Typical stiffness-to-mass ratio (median diagonal), the scale of σ.
+    shift_scale: f64,
     setup_time_s: f64,
 }
 
@@ -114,12 +132,19 @@ impl<'s> QuasiStaticSolver<'s> {
                 &lattice,
                 projector.clone(),
             ))),
-            None => Preconditioner::BlockJacobi(block_jacobi(scene, &projector)),
+            None => {
+                let diag = stiffness_diagonal(scene);
+                let inverse = invert_blocks(&diag, &scene.mesh.node_mass_kg, 0.0, &projector);
+                Preconditioner::BlockJacobi { diag, inverse }
+            }
         };
         Ok(QuasiStaticSolver {
             scene,
             settings,
             constrained: sparse(&projector),
+            shift_scale: shift_scale(scene),
+            shift: 0.0,
+            projector,
             preconditioner,
             setup_time_s: start.elapsed().as_secs_f64(),
         })
@@ -129,7 +154,7 @@ impl<'s> QuasiStaticSolver<'s> {
     pub fn preconditioner_profile(&self, repeats: usize) -> Vec<super::multigrid::LevelCost> {
         match &self.preconditioner {
             Preconditioner::Multigrid(mg) => mg.profile(repeats),
-            Preconditioner::BlockJacobi(_) => Vec::new(),
+            Preconditioner::BlockJacobi { .. } => Vec::new(),
         }
     }
 
@@ -155,7 +180,7 @@ impl<'s> QuasiStaticSolver<'s> {
             load_steps: steps,
             multigrid_levels: match &self.preconditioner {
                 Preconditioner::Multigrid(mg) => mg.level_count(),
-                Preconditioner::BlockJacobi(_) => 1,
+                Preconditioner::BlockJacobi { .. } => 1,
             },
             setup_time_s: self.setup_time_s,
             ..SolveReport::default()
@@ -171,12 +196,22 @@ impl<'s> QuasiStaticSolver<'s> {
             } else {
                 self.settings.tolerance.max(1e-4)
             };
-            self.newton(&constraints, lambda, tol, &mut x, &mut work, &mut report)?;
+            match self.newton(&constraints, lambda, tol, &mut x, &mut work, &mut report) {
+                Err(Error::NotConverged { .. }) if self.settings.relaxation_max_steps > 0 => {
+                    self.relax(&constraints, lambda, tol, &mut x, &mut report)?;
+                }
+                other => other?,
+            }
         }
         report.wall_time_s = start.elapsed().as_secs_f64();
         Ok((x, report))
     }
 
+    /// Newton iterations to `tol`; when a plain Newton step cannot reduce the residual
+    /// (a mechanism such as the element's twist modes, or a very large load), switches to
+    /// pseudo-transient continuation: solves (σ·M + J)·δ = r, an implicit pseudo-time step,
+    /// and lets σ shrink with the residual (switched evolution relaxation), which returns
+    /// to plain Newton near the solution.
     fn newton(
         &mut self,
         constraints: &ConstraintSet,
@@ -199,6 +234,7 @@ impl<'s> QuasiStaticSolver<'s> {
                     .fold(f64::INFINITY, f64::min)
             })
             .fold(f64::INFINITY, f64::min);
+        let mut sigma = 0.0;
         let mut res = residual(scene, constraints, lambda, x, w);
         for it in 0..self.settings.max_newton_iterations {
             if !res.is_finite() {
@@ -211,94 +247,55 @@ impl<'s> QuasiStaticSolver<'s> {
                 report.residual = res;
                 return Ok(());
             }
-            // Eisenstat–Walker-style forcing: loose early, tight near convergence.
-            let eta = (0.5 * res / tol.max(1e-300))
-                .sqrt()
-                .clamp(1.0, 1e3)
-                .recip()
-                .clamp(1e-3, 0.1);
-            let eta = if res < 100.0 * tol {
-                eta.min(1e-2)
+            // Loose linear solves far from the solution, tight near it.
+            let eta = if sigma > 0.0 {
+                0.1
             } else {
-                eta
+                (res / tol).sqrt().recip().clamp(1e-3, 0.1)
             };
             let b = flat(&w.r).to_vec();
-            let mut delta = vec![0.0; b.len()];
             let x_base = x.to_vec();
             let f_base = w.f.clone();
-            let constrained = &self.constrained;
-            let eps = 1e-7 * h_scale;
-            let preconditioner = &mut self.preconditioner;
-            let mut xp = vec![V3::zeros(); x.len()];
-            let mut fp = vec![V3::zeros(); x.len()];
-            let mut ext = vec![V3::zeros(); x.len()];
-            let mut apply = |v: &[f64], out: &mut [f64]| {
-                // −d(total force)/dx · v, projected; identity on constrained directions.
-                let vmax = v.iter().fold(0.0f64, |m, a| m.max(a.abs()));
-                if vmax == 0.0 {
-                    out.iter_mut().for_each(|o| *o = 0.0);
-                    return;
-                }
-                let hstep = eps / vmax;
-                let vn = nodes(v);
-                // Perturb along Π·v only: the operator is Π·J·Π + (I − Π).
-                for ((p, b), d) in xp.iter_mut().zip(&x_base).zip(vn) {
-                    *p = b + d * hstep;
-                }
-                for (nd, pm) in constrained {
-                    let nd = *nd as usize;
-                    xp[nd] = x_base[nd] + pm * vn[nd] * hstep;
-                }
-                total_force(scene, lambda, &xp, &mut fp, &mut ext);
-                let on = nodes_mut(out);
-                for ((o, a), b) in on.iter_mut().zip(&fp).zip(&f_base) {
-                    *o = (b - a) / hstep;
-                }
-                project_flat(constrained, out);
-                let on = nodes_mut(out);
-                for (nd, p) in constrained {
-                    let nd = *nd as usize;
-                    on[nd] += vn[nd] - p * vn[nd];
-                }
-            };
-            let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
-                Preconditioner::Multigrid(mg) => mg.apply(r, z),
-                Preconditioner::BlockJacobi(d) => {
-                    let (rn, zn) = (nodes(r), nodes_mut(z));
-                    for ((z, r), d) in zn.iter_mut().zip(rn).zip(d.iter()) {
-                        *z = d * r;
+            let mut accepted = None;
+            // Plain Newton first (σ = 0), then pseudo-time steps with growing σ if needed.
+            for attempt in 0..12 {
+                self.set_shift(sigma);
+                let delta =
+                    self.linear_solve(lambda, sigma, &x_base, &f_base, &b, eta, h_scale, report);
+                let dn = nodes(&delta);
+                // Newton: backtrack until the residual falls. Pseudo-time: take the step if it
+                // does not blow the residual up (non-monotone, as pseudo-transient methods are).
+                let (mut alpha, trials) = if sigma == 0.0 { (1.0, 8) } else { (1.0, 1) };
+                for _ in 0..trials {
+                    for ((xi, b), d) in x.iter_mut().zip(&x_base).zip(dn) {
+                        *xi = b + d * alpha;
                     }
+                    constraints.project_positions(x);
+                    let new_res = residual(scene, constraints, lambda, x, w);
+                    let ok = new_res.is_finite()
+                        && if sigma == 0.0 {
+                            new_res < res
+                        } else {
+                            new_res < 2.0 * res
+                        };
+                    if ok {
+                        accepted = Some(new_res);
+                        break;
+                    }
+                    alpha *= 0.5;
                 }
-            };
-            let (lin, _) = linalg::gmres(
-                &mut apply,
-                &mut precondition,
-                &b,
-                &mut delta,
-                40,
-                eta,
-                self.settings.max_linear_iterations,
-            );
-            report.linear_iterations += lin;
-            report.newton_iterations += 1;
-            // Backtracking line search on the residual norm.
-            let dn = nodes(&delta).to_vec();
-            let mut alpha = 1.0;
-            let mut accepted = false;
-            for _ in 0..8 {
-                for ((xi, b), d) in x.iter_mut().zip(&x_base).zip(&dn) {
-                    *xi = b + d * alpha;
-                }
-                constraints.project_positions(x);
-                let new_res = residual(scene, constraints, lambda, x, w);
-                if new_res.is_finite() && new_res < res {
-                    res = new_res;
-                    accepted = true;
+                if accepted.is_some() {
                     break;
                 }
-                alpha *= 0.5;
+                sigma = if sigma == 0.0 {
+                    self.shift_scale * 1e-2
+                } else {
+                    sigma * 10.0
+                };
+                report.pseudo_time_steps += usize::from(attempt == 0);
             }
-            if !accepted {
+            report.newton_iterations += 1;
+            let Some(new_res) = accepted else {
                 x.copy_from_slice(&x_base);
                 w.f = f_base;
                 res = residual(scene, constraints, lambda, x, w);
@@ -308,7 +305,17 @@ impl<'s> QuasiStaticSolver<'s> {
                     residual: res,
                     tolerance: tol,
                 });
+            };
+            if sigma > 0.0 {
+                report.pseudo_time_steps += 1;
+                // Switched evolution relaxation (the pseudo-time step grows as the residual
+                // falls), at least doubling per accepted step so a slow decrease cannot stall it.
+                sigma *= (new_res / res).min(0.5);
+                if sigma < self.shift_scale * 1e-8 {
+                    sigma = 0.0;
+                }
             }
+            res = new_res;
         }
         report.residual = res;
         if res <= tol {
@@ -320,6 +327,148 @@ impl<'s> QuasiStaticSolver<'s> {
                 tolerance: tol,
             })
         }
+    }
+
+    /// Fallback: damped explicit dynamics from `x` to equilibrium. Runs on a copy of the scene
+    /// whose springs carry critical Voigt damping and whose loads and imposed displacements
+    /// are scaled by λ, so the caller's scene is untouched.
+    fn relax(
+        &mut self,
+        constraints: &ConstraintSet,
+        lambda: f64,
+        tol: f64,
+        x: &mut [V3],
+        report: &mut SolveReport,
+    ) -> Result<()> {
+        let mut mesh = self.scene.mesh.clone();
+        for c in &mut mesh.classes {
+            *c = c.clone().with_damping_ratio(1.0);
+        }
+        let mut loads = self.scene.loads.clone();
+        loads.gravity_m_per_s2 *= lambda;
+        loads
+            .point_forces_n
+            .iter_mut()
+            .for_each(|(_, f)| *f *= lambda);
+        loads
+            .pressures
+            .iter_mut()
+            .for_each(|p| p.pressure_pa *= lambda);
+        let damped = Scene::new(mesh, constraints.clone(), loads)?;
+        let mut integrator = super::explicit::ExplicitIntegrator::from_positions(&damped, x)?;
+        let outcome = integrator.run_to_equilibrium(&super::explicit::ExplicitSettings {
+            residual_tolerance: tol,
+            kinetic_energy_fraction: 1.0,
+            max_steps: self.settings.relaxation_max_steps,
+            ..Default::default()
+        })?;
+        report.relaxation_steps += outcome.steps;
+        x.copy_from_slice(&integrator.positions);
+        report.residual = outcome.residual;
+        if outcome.converged {
+            Ok(())
+        } else {
+            Err(Error::NotConverged {
+                iterations: report.newton_iterations + outcome.steps,
+                residual: outcome.residual,
+                tolerance: tol,
+            })
+        }
+    }
+
+    fn set_shift(&mut self, sigma: f64) {
+        if sigma == self.shift {
+            return;
+        }
+        self.shift = sigma;
+        match &mut self.preconditioner {
+            Preconditioner::Multigrid(mg) => mg.set_shift(sigma),
+            Preconditioner::BlockJacobi { diag, inverse } => {
+                let mass = &self.scene.mesh.node_mass_kg;
+                *inverse = invert_blocks(diag, mass, sigma, &self.projector);
+            }
+        }
+    }
+
+    /// GMRES on (σ·M + J)·δ = b, J by finite differences of the exact forces at `x_base`.
+    #[allow(clippy::too_many_arguments)]
+    fn linear_solve(
+        &mut self,
+        lambda: f64,
+        sigma: f64,
+        x_base: &[V3],
+        f_base: &[V3],
+        b: &[f64],
+        eta: f64,
+        h_scale: f64,
+        report: &mut SolveReport,
+    ) -> Vec<f64> {
+        let scene = self.scene;
+        let mass = &scene.mesh.node_mass_kg;
+        let constrained = &self.constrained;
+        let eps = 1e-7 * h_scale;
+        let n = x_base.len();
+        let (mut xp, mut fp, mut ext) = (
+            vec![V3::zeros(); n],
+            vec![V3::zeros(); n],
+            vec![V3::zeros(); n],
+        );
+        let mut apply = |v: &[f64], out: &mut [f64]| {
+            // (σ·M − d(total force)/dx)·v, projected; identity on constrained directions.
+            let vmax = v.iter().fold(0.0f64, |m, a| m.max(a.abs()));
+            if vmax == 0.0 {
+                out.iter_mut().for_each(|o| *o = 0.0);
+                return;
+            }
+            let hstep = eps / vmax;
+            let vn = nodes(v);
+            // Perturb along Π·v only: the operator is Π·(σM + J)·Π + (I − Π).
+            for ((p, b), d) in xp.iter_mut().zip(x_base).zip(vn) {
+                *p = b + d * hstep;
+            }
+            for (nd, pm) in constrained {
+                let nd = *nd as usize;
+                xp[nd] = x_base[nd] + pm * vn[nd] * hstep;
+            }
+            total_force(scene, lambda, &xp, &mut fp, &mut ext);
+            let on = nodes_mut(out);
+            for ((((o, a), b), d), m) in on.iter_mut().zip(&fp).zip(f_base).zip(vn).zip(mass) {
+                *o = (b - a) / hstep + d * (sigma * m);
+            }
+            for (nd, pm) in constrained {
+                let nd = *nd as usize;
+                // The shift was added on Π·v only.
+                on[nd] -= (vn[nd] - pm * vn[nd]) * (sigma * mass[nd]);
+            }
+            project_flat(constrained, out);
+            let on = nodes_mut(out);
+            for (nd, p) in constrained {
+                let nd = *nd as usize;
+                on[nd] += vn[nd] - p * vn[nd];
+            }
+        };
+        let preconditioner = &mut self.preconditioner;
+        let mut precondition = |r: &[f64], z: &mut [f64]| match preconditioner {
+            Preconditioner::Multigrid(mg) => mg.apply(r, z),
+            Preconditioner::BlockJacobi { inverse, .. } => {
+                let (rn, zn) = (nodes(r), nodes_mut(z));
+                for ((z, r), d) in zn.iter_mut().zip(rn).zip(inverse.iter()) {
+                    *z = d * r;
+                }
+            }
+        };
+        let mut delta = vec![0.0; b.len()];
+        let (lin, _) = linalg::gmres(
+            &mut apply,
+            &mut precondition,
+            b,
+            &mut delta,
+            40,
+            eta,
+            self.settings.max_linear_iterations,
+        );
+        report.linear_iterations += lin;
+        delta
     }
 }
 
@@ -408,7 +557,7 @@ fn projectors(cs: &ConstraintSet, rest: &[V3]) -> Vec<Option<Matrix3<f64>>> {
     p
 }
 
-fn block_jacobi(scene: &Scene, projector: &[Option<Matrix3<f64>>]) -> Vec<Matrix3<f64>> {
+fn stiffness_diagonal(scene: &Scene) -> Vec<Matrix3<f64>> {
     let mesh = &scene.mesh;
     let ks: Vec<_> = mesh.classes.iter().map(|c| c.linear_stiffness()).collect();
     let mut d = vec![Matrix3::zeros(); mesh.node_count()];
@@ -418,14 +567,40 @@ fn block_jacobi(scene: &Scene, projector: &[Option<Matrix3<f64>>]) -> Vec<Matrix
             d[n as usize] += k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
         }
     }
-    d.iter()
+    d
+}
+
+/// Median over nodes of trace(K_nn) / (3·m_n): the squared frequency scale of σ.
+fn shift_scale(scene: &Scene) -> f64 {
+    let d = stiffness_diagonal(scene);
+    let mut r: Vec<f64> = d
+        .iter()
+        .zip(&scene.mesh.node_mass_kg)
+        .map(|(k, m)| k.trace() / (3.0 * m))
+        .collect();
+    r.sort_by(f64::total_cmp);
+    r.get(r.len() / 2)
+        .copied()
+        .unwrap_or(1.0)
+        .max(f64::MIN_POSITIVE)
+}
+
+fn invert_blocks(
+    diag: &[Matrix3<f64>],
+    mass: &[f64],
+    sigma: f64,
+    projector: &[Option<Matrix3<f64>>],
+) -> Vec<Matrix3<f64>> {
+    diag.iter()
+        .zip(mass)
         .zip(projector)
-        .map(|(d, p)| {
-            let m = match p {
+        .map(|((d, m), p)| {
+            let d = d + Matrix3::identity() * (sigma * m);
+            let d = match p {
                 Some(p) => p * d * p + (Matrix3::identity() - p),
-                None => *d,
+                None => d,
             };
-            m.try_inverse().unwrap_or_else(Matrix3::identity)
+            d.try_inverse().unwrap_or_else(Matrix3::identity)
         })
         .collect()
 }
