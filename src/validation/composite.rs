@@ -18,10 +18,7 @@ use serde::Serialize;
 use super::calculix::{self, CalculixOptions, ElementType};
 use crate::model::element::CORNER_SIGNS;
 use crate::model::{ConstraintSet, HexMesh, Loads, Material, VoxelGrid};
-use crate::simulation::{
-    ExplicitIntegrator, ExplicitSettings, QuasiStaticSettings, QuasiStaticSolver, Scene,
-    SolveReport,
-};
+use crate::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene, SolveReport};
 use crate::{Error, Result};
 
 type V3 = Vector3<f64>;
@@ -94,12 +91,6 @@ pub struct CompositeOptions {
     /// Also solve the finest mesh with C3D8I, to show how far C3D8's own locking moves the
     /// reference.
     pub check_reference_with_c3d8i: bool,
-    /// If the quasi-static solve fails, relax with critically damped explicit dynamics (the
-    /// thesis's own method) for at most this many steps; 0 disables the fallback.
-    ///
-    /// Needed because Baudet's element has three zero-energy twist modes (u_x ∝ s_y·s_z, …),
-    /// so a coarse mesh such as the 1×1×4 beam is a mechanism at rest and has no Newton step.
-    pub explicit_fallback_max_steps: usize,
 }
 
 impl CompositeOptions {
@@ -114,7 +105,6 @@ impl CompositeOptions {
             solver: QuasiStaticSettings::default(),
             calculix: CalculixOptions::default(),
             check_reference_with_c3d8i: true,
-            explicit_fallback_max_steps: 3_000_000,
         }
     }
 
@@ -540,64 +530,27 @@ struct MassSpringSolution {
     method: String,
 }
 
-/// Errors are strings: a failure is reported in its row, and may combine two solvers' causes.
+/// Errors are strings: a failure is reported in its row.
 fn solve_mass_spring(
     scene: &Scene,
     options: &CompositeOptions,
 ) -> std::result::Result<MassSpringSolution, String> {
     let start = Instant::now();
-    let settings = &options.solver;
-    let quasi_static =
-        QuasiStaticSolver::new(scene, settings.clone()).and_then(|mut s| s.solve(None));
-    let failure = match quasi_static {
-        Ok((x, report)) => {
-            return Ok(MassSpringSolution {
-                displacements_m: scene.displacements(&x),
-                wall_time_s: start.elapsed().as_secs_f64(),
-                report,
-                method: "quasi-static".into(),
-            })
-        }
-        Err(e) if options.explicit_fallback_max_steps == 0 => return Err(e.to_string()),
-        Err(e) => e,
-    };
-    // Springs damped at their critical ratio: equilibrium is the same, reached by relaxation.
-    let mut mesh = scene.mesh.clone();
-    mesh.classes = mesh
-        .classes
-        .iter()
-        .map(|c| c.clone().with_damping_ratio(1.0))
-        .collect();
-    let damped = Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())
+    let (x, report) = QuasiStaticSolver::new(scene, options.solver.clone())
+        .and_then(|mut s| s.solve(None))
         .map_err(|e| e.to_string())?;
-    let mut integrator = ExplicitIntegrator::new(&damped);
-    let run = integrator
-        .run_to_equilibrium(&ExplicitSettings {
-            residual_tolerance: settings.tolerance,
-            max_steps: options.explicit_fallback_max_steps,
-            ..Default::default()
-        })
-        .map_err(|e| format!("quasi-static solve failed ({failure}); explicit relaxation: {e}"))?;
-    if !run.converged {
-        return Err(format!(
-            "quasi-static solve failed ({failure}); explicit relaxation did not reach residual \
-             {:.1e} in {} steps (residual {:.3e})",
-            settings.tolerance, run.steps, run.residual
-        ));
-    }
-    let wall_time_s = start.elapsed().as_secs_f64();
+    // The solver says how it got there: plain Newton, pseudo-time steps across a mechanism
+    // (the element's twist modes on one-element-thick meshes), or damped relaxation.
+    let method = match (report.pseudo_time_steps, report.relaxation_steps) {
+        (0, 0) => "quasi-static (Newton)".to_string(),
+        (p, 0) => format!("quasi-static, {p} pseudo-time steps (mechanism)"),
+        (p, r) => format!("quasi-static, {p} pseudo-time steps, then {r} relaxation steps"),
+    };
     Ok(MassSpringSolution {
-        displacements_m: damped.displacements(&integrator.positions),
-        wall_time_s,
-        report: SolveReport {
-            residual: run.residual,
-            wall_time_s,
-            ..SolveReport::default()
-        },
-        method: format!(
-            "explicit relaxation, {} steps (quasi-static failed: {failure})",
-            run.steps
-        ),
+        displacements_m: scene.displacements(&x),
+        wall_time_s: start.elapsed().as_secs_f64(),
+        report,
+        method,
     })
 }
 
