@@ -5,7 +5,8 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use lungmotion::validation::report::{run_validation, ValidateOptions};
+use lungmotion::bench::{run_bench, BenchOptions};
+use lungmotion::validation::report::{run_validation, write_atomic, ValidateOptions};
 
 /// Predicts lung motion over a breathing curve with Baudet's parameterised hexahedral
 /// mass–spring model.
@@ -31,6 +32,24 @@ enum Command {
         #[arg(long)]
         no_calculix: bool,
     },
+    /// Measure speed and memory: force-evaluation throughput (1 thread and all threads),
+    /// memory per element and node, quasi-static solves of pressurised blocks, and CalculiX on
+    /// the same blocks; writes bench.json and bench.md (medians, side-by-side ratios).
+    Bench {
+        /// Directory for the reports.
+        #[arg(long, default_value = "bench-out")]
+        out: PathBuf,
+        /// Seconds-long smoke run on small blocks (numbers not meaningful).
+        #[arg(long)]
+        quick: bool,
+        /// Block sizes (cells per edge) also solved by CalculiX; 40 (64 000 elements) takes
+        /// about 5 minutes linear. Empty to skip.
+        #[arg(long, value_delimiter = ',', default_value = "20,30")]
+        calculix_cells: Vec<usize>,
+        /// Also run CalculiX with NLGEOM (our physics class; about 1 min at 20³, 10 min at 30³).
+        #[arg(long)]
+        nlgeom: bool,
+    },
 }
 
 fn main() -> ExitCode {
@@ -41,6 +60,12 @@ fn main() -> ExitCode {
             quick,
             no_calculix,
         } => validate(out, quick, !no_calculix),
+        Command::Bench {
+            out,
+            quick,
+            calculix_cells,
+            nlgeom,
+        } => bench(out, quick, calculix_cells, nlgeom),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -63,5 +88,34 @@ fn validate(out: PathBuf, quick: bool, calculix: bool) -> anyhow::Result<()> {
         out.join("validation.json").display(),
         out.join("validation.md").display()
     );
+    Ok(())
+}
+
+fn bench(
+    out: PathBuf,
+    quick: bool,
+    calculix_cells: Vec<usize>,
+    nlgeom: bool,
+) -> anyhow::Result<()> {
+    let mut options = if quick {
+        BenchOptions::quick()
+    } else {
+        BenchOptions::default()
+    };
+    if !quick {
+        options.calculix_block_cells = calculix_cells;
+    }
+    options.calculix_nlgeom = nlgeom;
+    eprintln!("lungmotion: benchmarking (medians of repeated runs; keep the machine quiet)");
+    let report = run_bench(&options)?;
+    std::fs::create_dir_all(&out)?;
+    write_atomic(
+        &out.join("bench.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+    let md = report.to_markdown();
+    write_atomic(&out.join("bench.md"), md.as_bytes())?;
+    println!("{md}");
+    eprintln!("lungmotion: wrote {}", out.join("bench.json").display());
     Ok(())
 }

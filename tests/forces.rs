@@ -247,3 +247,47 @@ fn internal_forces_sum_to_zero() {
         );
     }
 }
+
+#[test]
+fn chunk_schedule_scatters_every_element_once_with_few_barriers() {
+    use lungmotion::simulation::forces::ChunkSchedule;
+    for n in [7, 20, 33] {
+        let mesh = block([n, n, n], [5e-3; 3], Material::LUNG);
+        let schedule = ChunkSchedule::new(&mesh.elements, mesh.node_count()).unwrap();
+        if mesh.element_count() >= 4096 {
+            assert!(
+                schedule.colour_count() <= 3,
+                "{n}³: {}",
+                schedule.colour_count()
+            );
+        }
+        // Each node counts its elements, in 3 slots per node to exercise `per_node`.
+        let mut want = vec![0u32; 3 * mesh.node_count()];
+        for corners in &mesh.elements {
+            for &c in corners {
+                for i in 0..3 {
+                    want[3 * c as usize + i] += 1 + i as u32;
+                }
+            }
+        }
+        for parallel in [false, true] {
+            let mut got = vec![0u32; 3 * mesh.node_count()];
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(3)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                schedule.for_each_chunk(&mut got, 3, parallel, |elements, lo, window| {
+                    for corners in &mesh.elements[elements] {
+                        for &c in corners {
+                            for i in 0..3 {
+                                window[3 * (c as usize - lo) + i] += 1 + i as u32;
+                            }
+                        }
+                    }
+                })
+            });
+            assert_eq!(got, want, "{n}³, parallel {parallel}");
+        }
+    }
+}

@@ -454,15 +454,6 @@ struct Chunk {
     node_hi: u32,
 }
 
-/// How the elements are split for parallel evaluation; built once from the mesh.
-#[derive(Debug, Clone)]
-enum Schedule {
-    /// Colours of chunks with pairwise disjoint node windows, each colour sorted by window.
-    Chunks(Vec<Vec<Chunk>>),
-    /// The mesh's own element colouring (used when chunks would serialise the work).
-    ElementColours,
-}
-
 /// Chunk lengths tried, largest first (multiples of [`LANES`] so only a chunk's tail pads).
 const CHUNK_LENGTHS: [u32; 7] = [16384, 8192, 4096, 2048, 1024, 512, 256];
 /// More colours than this and the mesh's own element colouring is no worse.
@@ -470,50 +461,119 @@ const MAX_CHUNK_COLOURS: usize = 8;
 /// Chunks wanted in every colour, so that up to this many threads stay busy.
 const CHUNKS_PER_COLOUR: usize = 8;
 /// Below this many elements an evaluation runs on one thread (spawn cost dominates).
-const PARALLEL_MIN_ELEMENTS: usize = 4096;
+pub const PARALLEL_MIN_ELEMENTS: usize = 4096;
 /// Elements per parallel task in the element-colour fallback.
 const FALLBACK_TASK: usize = 256;
 /// Nodes per parallel task when zeroing the output.
 const ZERO_TASK: usize = 16384;
 
-impl Schedule {
-    fn build(mesh: &HexMesh) -> Schedule {
-        let n = mesh.element_count() as u32;
-        if (n as usize) < PARALLEL_MIN_ELEMENTS {
-            return Schedule::Chunks(colour_chunks(mesh, n.max(1)));
+/// A race-free parallel scatter plan for element loops: the element list cut into contiguous
+/// chunks, coloured so that the chunks of one colour touch disjoint node-index windows.
+///
+/// Each chunk writes through its own sub-slice of the output, so no `unsafe` and no atomics
+/// are needed, a pass has one barrier per colour (2–3 for lattice-numbered meshes instead of
+/// 8 element colours), and each thread walks its elements in memory order. Chunks run in the
+/// same order whatever the thread count, so sums are bit-for-bit reproducible. Any element
+/// operator that scatters into nodes (forces, matrix-free products) can use it.
+#[derive(Debug, Clone)]
+pub struct ChunkSchedule {
+    colours: Vec<Vec<Chunk>>,
+    node_count: usize,
+}
+
+impl ChunkSchedule {
+    /// Plans `elements` (corner node indices < `node_count`); `None` when the numbering has so
+    /// little locality that chunks would serialise the work (then colour single elements).
+    pub fn new(elements: &[[u32; 8]], node_count: usize) -> Option<Self> {
+        let n = elements.len();
+        let plan = |colours| ChunkSchedule {
+            colours,
+            node_count,
+        };
+        if n < PARALLEL_MIN_ELEMENTS {
+            return Some(plan(colour_chunks(elements, (n as u32).max(1))));
         }
         // Largest chunks that still give every colour enough chunks: fewest barriers and the
         // longest runs in memory order.
         let mut best: Option<(usize, Vec<Vec<Chunk>>)> = None;
         for len in CHUNK_LENGTHS {
-            let colours = colour_chunks(mesh, len);
+            let colours = colour_chunks(elements, len);
             let fewest = colours.iter().map(Vec::len).min().unwrap_or(0);
             if colours.len() > MAX_CHUNK_COLOURS {
                 continue;
             }
             if fewest >= CHUNKS_PER_COLOUR {
-                return Schedule::Chunks(colours);
+                return Some(plan(colours));
             }
             if best.as_ref().is_none_or(|(f, _)| fewest > *f) {
                 best = Some((fewest, colours));
             }
         }
         match best {
-            Some((fewest, colours)) if fewest >= 2 => Schedule::Chunks(colours),
-            _ => Schedule::ElementColours,
+            Some((fewest, colours)) if fewest >= 2 => Some(plan(colours)),
+            _ => None,
+        }
+    }
+
+    /// Colour passes (barriers) per parallel sweep.
+    pub fn colour_count(&self) -> usize {
+        self.colours.len()
+    }
+
+    /// Bytes held on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.colours
+            .iter()
+            .map(|v| v.capacity() * std::mem::size_of::<Chunk>())
+            .sum::<usize>()
+            + self.colours.capacity() * std::mem::size_of::<Vec<Chunk>>()
+    }
+
+    /// Calls `f(elements, node_lo, window)` for every chunk, colour by colour; the chunks of a
+    /// colour run in parallel on the current rayon pool when `parallel`.
+    ///
+    /// `out` holds `per_node` values per node; `window` is
+    /// `out[per_node·node_lo .. per_node·node_hi]`, so node `c` of the chunk's elements is at
+    /// `window[per_node·(c − node_lo) ..]`. An index outside the window panics on the bounds
+    /// check (an element list other than the planned one) instead of racing.
+    pub fn for_each_chunk<T, F>(&self, out: &mut [T], per_node: usize, parallel: bool, f: F)
+    where
+        T: Send,
+        F: Fn(std::ops::Range<usize>, usize, &mut [T]) + Sync,
+    {
+        assert_eq!(
+            out.len(),
+            per_node * self.node_count,
+            "output must hold {per_node} values for each of the {} planned nodes",
+            self.node_count
+        );
+        for colour in &self.colours {
+            let windows = split_windows(colour, out, per_node);
+            let run = |(chunk, window): (&Chunk, &mut [T])| {
+                f(
+                    chunk.first_element as usize..chunk.end_element as usize,
+                    chunk.node_lo as usize,
+                    window,
+                )
+            };
+            if parallel {
+                windows.into_par_iter().for_each(run);
+            } else {
+                windows.into_iter().for_each(run);
+            }
         }
     }
 }
 
 /// Cuts the elements into chunks of `len` and colours them greedily so that chunks of one
 /// colour have disjoint node windows.
-fn colour_chunks(mesh: &HexMesh, len: u32) -> Vec<Vec<Chunk>> {
-    let n = mesh.element_count() as u32;
+fn colour_chunks(elements: &[[u32; 8]], len: u32) -> Vec<Vec<Chunk>> {
+    let n = elements.len() as u32;
     let mut colours: Vec<Vec<Chunk>> = Vec::new();
     let mut start = 0;
     while start < n {
         let end = n.min(start.saturating_add(len));
-        let (lo, hi) = mesh.elements[start as usize..end as usize]
+        let (lo, hi) = elements[start as usize..end as usize]
             .iter()
             .flatten()
             .fold((u32::MAX, 0), |(lo, hi), &c| (lo.min(c), hi.max(c + 1)));
@@ -539,12 +599,37 @@ fn colour_chunks(mesh: &HexMesh, len: u32) -> Vec<Vec<Chunk>> {
     colours
 }
 
+/// Splits `out` into the disjoint node windows of one colour's chunks (sorted by window).
+fn split_windows<'c, 'o, T>(
+    colour: &'c [Chunk],
+    out: &'o mut [T],
+    per_node: usize,
+) -> Vec<(&'c Chunk, &'o mut [T])> {
+    let mut windows = Vec::with_capacity(colour.len());
+    let mut rest = out;
+    let mut offset = 0usize;
+    for chunk in colour {
+        let (lo, hi) = (
+            per_node * chunk.node_lo as usize,
+            per_node * chunk.node_hi as usize,
+        );
+        let tail = std::mem::take(&mut rest);
+        let (_, tail) = tail.split_at_mut(lo - offset);
+        let (window, tail) = tail.split_at_mut(hi - lo);
+        windows.push((chunk, window));
+        rest = tail;
+        offset = hi;
+    }
+    windows
+}
+
 /// Evaluates internal forces over a whole mesh.
 #[derive(Debug, Clone)]
 pub struct ForceEvaluator {
     kernels: Vec<ElementKernel>,
     lane_kernels: Vec<LaneKernel>,
-    schedule: Schedule,
+    /// `None`: the mesh numbering has no chunk locality; use the mesh's element colours.
+    schedule: Option<ChunkSchedule>,
     element_count: usize,
     node_count: usize,
 }
@@ -556,7 +641,7 @@ impl ForceEvaluator {
         ForceEvaluator {
             lane_kernels: kernels.iter().map(LaneKernel::splat).collect(),
             kernels,
-            schedule: Schedule::build(mesh),
+            schedule: ChunkSchedule::new(&mesh.elements, mesh.node_count()),
             element_count: mesh.element_count(),
             node_count: mesh.node_count(),
         }
@@ -570,25 +655,16 @@ impl ForceEvaluator {
     /// Number of barriers (colour passes) per evaluation on more than one thread.
     pub fn colour_passes(&self, mesh: &HexMesh) -> usize {
         match &self.schedule {
-            Schedule::Chunks(c) => c.len(),
-            Schedule::ElementColours => mesh.colors.len(),
+            Some(s) => s.colour_count(),
+            None => mesh.colors.len(),
         }
     }
 
     /// Bytes held by the evaluator (kernels and schedule), excluding the mesh.
     pub fn heap_bytes(&self) -> usize {
-        let sched = match &self.schedule {
-            Schedule::Chunks(c) => {
-                c.iter()
-                    .map(|v| v.capacity() * std::mem::size_of::<Chunk>())
-                    .sum::<usize>()
-                    + c.capacity() * std::mem::size_of::<Vec<Chunk>>()
-            }
-            Schedule::ElementColours => 0,
-        };
         self.kernels.capacity() * std::mem::size_of::<ElementKernel>()
             + self.lane_kernels.capacity() * std::mem::size_of::<LaneKernel>()
-            + sched
+            + self.schedule.as_ref().map_or(0, ChunkSchedule::heap_bytes)
     }
 
     /// Overwrites `out` with the internal (spring + damper + correction) force on every node.
@@ -624,28 +700,20 @@ impl ForceEvaluator {
             out.fill(V3::zeros());
         }
         match &self.schedule {
-            Schedule::Chunks(colours) => {
-                for colour in colours {
-                    let windows = split_windows(colour, out);
-                    let run = |(chunk, window): (&Chunk, &mut [V3])| {
-                        let mut sink = Window {
-                            lo: chunk.node_lo,
-                            out: window,
-                        };
-                        dispatch(
-                            &inp,
-                            &mut (chunk.first_element..chunk.end_element),
-                            &mut sink,
-                        );
+            Some(schedule) => {
+                schedule.for_each_chunk(out, 1, parallel, |elements, node_lo, window| {
+                    let mut sink = Window {
+                        lo: node_lo as u32,
+                        out: window,
                     };
-                    if parallel {
-                        windows.into_par_iter().for_each(run);
-                    } else {
-                        windows.into_iter().for_each(run);
-                    }
-                }
+                    dispatch(
+                        &inp,
+                        &mut (elements.start as u32..elements.end as u32),
+                        &mut sink,
+                    );
+                });
             }
-            Schedule::ElementColours => {
+            None => {
                 let shared = SharedOut(out.as_mut_ptr(), out.len());
                 for colour in &mesh.colors {
                     let run = |task: &[u32]| {
@@ -661,21 +729,4 @@ impl ForceEvaluator {
             }
         }
     }
-}
-
-/// Splits `out` into the disjoint node windows of one colour's chunks (sorted by window).
-fn split_windows<'c, 'o>(colour: &'c [Chunk], out: &'o mut [V3]) -> Vec<(&'c Chunk, &'o mut [V3])> {
-    let mut windows = Vec::with_capacity(colour.len());
-    let mut rest = out;
-    let mut offset = 0usize;
-    for chunk in colour {
-        let (lo, hi) = (chunk.node_lo as usize, chunk.node_hi as usize);
-        let tail = std::mem::take(&mut rest);
-        let (_, tail) = tail.split_at_mut(lo - offset);
-        let (window, tail) = tail.split_at_mut(hi - lo);
-        windows.push((chunk, window));
-        rest = tail;
-        offset = hi;
-    }
-    windows
 }
