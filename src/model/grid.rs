@@ -118,6 +118,11 @@ impl VoxelGrid {
                 }
             }
         }
+        // Grown by push: release the slack so node arrays cost what they hold.
+        positions.shrink_to_fit();
+        node_lattice.shrink_to_fit();
+        elements.shrink_to_fit();
+        element_cell.shrink_to_fit();
         let n_el = elements.len();
         let mesh = HexMesh::new(positions, elements, vec![0; n_el], vec![coeffs])?;
         Ok(GridMesh {
