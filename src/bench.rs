@@ -45,6 +45,8 @@ pub struct BenchOptions {
     /// Cells per edge of the blocks also solved by CalculiX (empty: skip). 40 takes minutes
     /// and gigabytes with NLGEOM.
     pub calculix_block_cells: Vec<usize>,
+    /// Cells per edge of the block on which the quasi-static methods are compared (0: skip).
+    pub solver_comparison_cells: usize,
     /// Run CalculiX with a small-strain linear step.
     pub calculix_linear: bool,
     /// Run CalculiX with a geometrically non-linear step (NLGEOM), the same physics class as
@@ -62,6 +64,7 @@ impl Default for BenchOptions {
             quasistatic_runs: 3,
             pressure_pa: -20.0,
             calculix_block_cells: vec![20, 30],
+            solver_comparison_cells: 20,
             calculix_linear: true,
             calculix_nlgeom: true,
         }
@@ -79,6 +82,7 @@ impl BenchOptions {
             quasistatic_runs: 1,
             pressure_pa: -20.0,
             calculix_block_cells: vec![],
+            solver_comparison_cells: 4,
             calculix_linear: true,
             calculix_nlgeom: false,
         }
@@ -336,6 +340,8 @@ pub struct BenchReport {
     pub quasistatic: Vec<Outcome<QuasiStaticBench>>,
     /// Scaling of the quasi-static time with element count.
     pub quasistatic_scaling: Option<ScalingFit>,
+    /// Quasi-static methods compared on one block (how the default was chosen).
+    pub solver_comparison: Vec<Outcome<SolverComparison>>,
     /// CalculiX side by side.
     pub calculix: Vec<Outcome<CalculixComparison>>,
     /// Peak resident memory of the process (VmHWM) at the end, bytes.
@@ -386,6 +392,10 @@ pub fn run_bench(options: &BenchOptions) -> Result<BenchReport> {
         )));
     }
     let quasistatic_scaling = fit_scaling(&quasistatic);
+    let solver_comparison = match options.solver_comparison_cells {
+        0 => Vec::new(),
+        n => compare_solvers(n, options.pressure_pa),
+    };
     let mut calculix_runs = Vec::new();
     let analyses: Vec<bool> = [
         (false, options.calculix_linear),
@@ -416,6 +426,7 @@ pub fn run_bench(options: &BenchOptions) -> Result<BenchReport> {
         memory,
         quasistatic,
         quasistatic_scaling,
+        solver_comparison,
         calculix: calculix_runs,
         peak_rss_bytes: peak_rss_bytes(),
         targets: Vec::new(),
@@ -974,6 +985,31 @@ impl BenchReport {
                 f.exponent, f.cells_per_edge
             );
         }
+        if !self.solver_comparison.is_empty() {
+            let _ = writeln!(s, "\n## Choosing the quasi-static method\n");
+            let _ = writeln!(
+                s,
+                "Same block and load, each method to relative residual 1e-6 (one run each, \
+                 set-up included). The solver's default is multigrid on lattice meshes; on \
+                 tiny blocks its set-up can cost more than it saves.\n"
+            );
+            let _ = writeln!(s, "| Method | Elements | Wall s | Iterations | Residual |");
+            let _ = writeln!(s, "|---|---|---|---|---|");
+            for c in &self.solver_comparison {
+                match c {
+                    Outcome::Measured(c) => {
+                        let _ = writeln!(
+                            s,
+                            "| {} | {} | {:.3} | {} | {:.1e} |",
+                            c.method, c.elements, c.wall_time_s, c.iterations, c.residual
+                        );
+                    }
+                    Outcome::Failed(e) | Outcome::Skipped(e) => {
+                        let _ = writeln!(s, "| – | – | – | – | {e} |");
+                    }
+                }
+            }
+        }
         let _ = writeln!(s, "\n## CalculiX side by side\n");
         let _ = writeln!(
             s,
@@ -1130,4 +1166,98 @@ mod tests {
         }
         serde_json::to_string(&report).unwrap();
     }
+}
+
+/// One quasi-static method on the comparison block.
+#[derive(Debug, Clone, Serialize)]
+pub struct SolverComparison {
+    /// What was run.
+    pub method: String,
+    /// Elements of the block.
+    pub elements: usize,
+    /// Wall time including set-up, seconds.
+    pub wall_time_s: f64,
+    /// Newton/Krylov iterations ("n / m") or explicit steps.
+    pub iterations: String,
+    /// Relative force residual reached.
+    pub residual: f64,
+}
+
+/// Newton–Krylov with multigrid, with block Jacobi, and damped explicit relaxation on the
+/// same pressurised block.
+fn compare_solvers(cells: usize, pressure_pa: f64) -> Vec<Outcome<SolverComparison>> {
+    use crate::simulation::{
+        ExplicitIntegrator, ExplicitSettings, PreconditionerKind, QuasiStaticSettings,
+        QuasiStaticSolver,
+    };
+    let newton = |kind: PreconditionerKind, label: &str| -> Result<SolverComparison> {
+        let scene = symmetric_block_under_pressure(
+            [cells; 3],
+            BENCH_ELEMENT_EDGE_M,
+            Material::LUNG,
+            pressure_pa,
+        )?;
+        let start = Instant::now();
+        let settings = QuasiStaticSettings {
+            preconditioner: kind,
+            max_linear_iterations: 5000,
+            relaxation_max_steps: 0,
+            ..QuasiStaticSettings::default()
+        };
+        let (_, r) = QuasiStaticSolver::new(&scene, settings)?.solve(None)?;
+        Ok(SolverComparison {
+            method: label.into(),
+            elements: scene.mesh.element_count(),
+            wall_time_s: start.elapsed().as_secs_f64(),
+            iterations: format!(
+                "{} Newton / {} Krylov",
+                r.newton_iterations, r.linear_iterations
+            ),
+            residual: r.residual,
+        })
+    };
+    let relaxation = || -> Result<SolverComparison> {
+        let mut scene = symmetric_block_under_pressure(
+            [cells; 3],
+            BENCH_ELEMENT_EDGE_M,
+            Material::LUNG,
+            pressure_pa,
+        )?;
+        let start = Instant::now();
+        let mut mesh = scene.mesh.clone();
+        for c in &mut mesh.classes {
+            *c = c.clone().with_damping_ratio(1.0);
+        }
+        scene =
+            crate::simulation::Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?;
+        let mut it = ExplicitIntegrator::new(&scene);
+        let r = it.run_to_equilibrium(&ExplicitSettings {
+            residual_tolerance: 1e-6,
+            kinetic_energy_fraction: 1.0,
+            max_steps: 2_000_000,
+            ..ExplicitSettings::default()
+        })?;
+        Ok(SolverComparison {
+            method: "explicit velocity Verlet, critical Voigt damping (dynamic relaxation)".into(),
+            elements: scene.mesh.element_count(),
+            wall_time_s: start.elapsed().as_secs_f64(),
+            iterations: format!(
+                "{} steps{}",
+                r.steps,
+                if r.converged { "" } else { " (not converged)" }
+            ),
+            residual: r.residual,
+        })
+    };
+    vec![
+        Outcome::from_result(newton(
+            PreconditionerKind::Auto,
+            "Newton–Krylov (GMRES), geometric multigrid V-cycle",
+        )),
+        Outcome::from_result(newton(
+            PreconditionerKind::BlockJacobi,
+            "Newton–Krylov (GMRES), block Jacobi",
+        )),
+        Outcome::from_result(relaxation()),
+    ]
 }
