@@ -25,7 +25,7 @@ enum Command {
         /// Directory for the reports.
         #[arg(long, default_value = "validation-out")]
         out: PathBuf,
-        /// Smaller composite resolutions (cantilever to 4×4×16, L to 8³).
+        /// Smaller composite resolutions (cantilever to 4×4×16, L to 8³) and stability grid.
         #[arg(long)]
         quick: bool,
         /// Skip the CalculiX comparisons (no `ccx` needed).

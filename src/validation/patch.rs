@@ -929,7 +929,7 @@ impl PatchReport {
             }
         }
         s.push_str("\n### Force kernel vs `linear_stiffness()`\n\n");
-        s.push_str("| shape | ν | max |J_kernel + K| / max |K| |\n|---|---|---|\n");
+        s.push_str("| shape | ν | max abs(J_kernel + K) / max abs(K) |\n|---|---|---|\n");
         for (edges, nu, err) in &self.kernel_linearisation {
             s.push_str(&format!(
                 "| {} | {} | {:.1e} |\n",

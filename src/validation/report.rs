@@ -7,12 +7,14 @@ use serde::Serialize;
 
 use super::composite::{run_composite, CompositeOptions, CompositeReport};
 use super::patch::{run_patch_tests, PatchConfig, PatchReport};
+use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
+use super::sweep::{run_strain_sweeps, SweepConfig, SweepReport};
 use crate::Result;
 
 /// Which studies to run.
 #[derive(Debug, Clone, Serialize)]
 pub struct ValidateOptions {
-    /// Smaller composite resolutions (minutes instead of tens of minutes).
+    /// Smaller composite resolutions and stability grid (about a minute instead of several).
     pub quick: bool,
     /// Run the CalculiX comparisons (needs `ccx`).
     pub calculix: bool,
@@ -27,6 +29,10 @@ pub struct ValidationReport {
     pub options: ValidateOptions,
     /// Single-element patch tests.
     pub patch: PatchReport,
+    /// Strain sweeps 0–20 % and bulk ±15 % against the thesis's error curves.
+    pub sweep: SweepReport,
+    /// Explicit integrator: automatic time step across materials and sizes, overstep caught.
+    pub stability: StabilityReport,
     /// Composite cases against CalculiX (absent when skipped).
     pub composite: Option<CompositeReport>,
     /// Wall time of the whole suite, seconds.
@@ -41,6 +47,14 @@ pub fn run_validation(
     let start = Instant::now();
     progress("patch tests (single element, closed forms)");
     let patch = run_patch_tests(&PatchConfig::default())?;
+    progress("strain sweeps (traction 0–20 %, bulk ±15 %)");
+    let sweep = run_strain_sweeps(&SweepConfig::default())?;
+    progress("stability stress test (automatic time step, 1.5× overstep)");
+    let stability = run_stability_study(&if options.quick {
+        StabilityConfig::quick()
+    } else {
+        StabilityConfig::full()
+    })?;
     let composite = if options.calculix {
         progress("composite cases against CalculiX (cantilever, L)");
         let opts = if options.quick {
@@ -56,6 +70,8 @@ pub fn run_validation(
         version: env!("CARGO_PKG_VERSION"),
         options: options.clone(),
         patch,
+        sweep,
+        stability,
         composite,
         wall_time_s: start.elapsed().as_secs_f64(),
     })
@@ -71,8 +87,14 @@ impl ValidationReport {
             if self.options.calculix { "on" } else { "off" },
             self.wall_time_s
         );
-        s.push_str(&self.patch.to_markdown());
-        s.push('\n');
+        for section in [
+            self.patch.to_markdown(),
+            self.sweep.to_markdown(),
+            self.stability.to_markdown(),
+        ] {
+            s.push_str(&section);
+            s.push('\n');
+        }
         if let Some(c) = &self.composite {
             s.push_str(&c.to_markdown());
             s.push('\n');
