@@ -224,3 +224,78 @@ pub(crate) fn color_elements(elements: &[[u32; 8]], n_nodes: usize) -> Vec<Vec<u
     }
     colors
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{BrickShape, Material};
+
+    fn unit_cube() -> (Vec<Vector3<f64>>, [u32; 8], BrickCoefficients) {
+        let pos = CORNER_SIGNS
+            .iter()
+            .map(|s| Vector3::new(s[0], s[1], s[2]) * 0.5)
+            .collect();
+        let c =
+            BrickCoefficients::new(BrickShape::cube(1.0), Material::new(1.0, 0.3, 1.0).unwrap())
+                .unwrap();
+        (pos, [0, 1, 2, 3, 4, 5, 6, 7], c)
+    }
+
+    fn err(r: Result<HexMesh>) -> String {
+        match r {
+            Err(Error::InvalidModel(m)) => m,
+            other => panic!("expected InvalidModel, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn refuses_malformed_meshes_with_a_reason() {
+        let (pos, el, c) = unit_cube();
+        assert!(HexMesh::new(pos.clone(), vec![el], vec![0], vec![c.clone()]).is_ok());
+
+        let m = err(HexMesh::new(
+            pos.clone(),
+            vec![[0, 1, 2, 3, 4, 5, 6, 9]],
+            vec![0],
+            vec![c.clone()],
+        ));
+        assert!(m.contains("node 9"), "{m}");
+
+        let mut nan = pos.clone();
+        nan[3].y = f64::NAN;
+        let m = err(HexMesh::new(nan, vec![el], vec![0], vec![c.clone()]));
+        assert!(m.contains("node 3") && m.contains("non-finite"), "{m}");
+
+        // Mirrored corner order: the element is inverted.
+        let m = err(HexMesh::new(
+            pos.clone(),
+            vec![[4, 5, 6, 7, 0, 1, 2, 3]],
+            vec![0],
+            vec![c.clone()],
+        ));
+        assert!(m.contains("inverted or has zero volume"), "{m}");
+
+        // Collapsed to zero volume: corners 4–7 on top of 0–3.
+        let mut flat = pos.clone();
+        for k in 4..8 {
+            flat[k] = flat[k - 4];
+        }
+        let m = err(HexMesh::new(flat, vec![el], vec![0], vec![c.clone()]));
+        assert!(m.contains("edge 2"), "{m}");
+
+        let m = err(HexMesh::new(
+            pos.clone(),
+            vec![el],
+            vec![1],
+            vec![c.clone()],
+        ));
+        assert!(m.contains("missing class 1"), "{m}");
+
+        let m = err(HexMesh::new(pos.clone(), vec![], vec![], vec![c.clone()]));
+        assert!(m.contains("no elements"), "{m}");
+
+        let bigger = BrickCoefficients::new(BrickShape::cube(2.0), c.material).unwrap();
+        let m = err(HexMesh::new(pos, vec![el], vec![0], vec![bigger]));
+        assert!(m.contains("class expects"), "{m}");
+    }
+}
