@@ -9,6 +9,30 @@
 //! * [`validation`]: measured accuracy against closed forms, the thesis's published
 //!   results and CalculiX.
 //!
+//! # Example
+//!
+//! A 4 × 4 × 4 block of 5 mm lung-tissue cubes, one octant with symmetry planes, inflated by a
+//! uniform −20 Pa follower pressure and solved quasi-statically:
+//!
+//! ```
+//! use lungmotion::model::Material;
+//! use lungmotion::simulation::{QuasiStaticSettings, QuasiStaticSolver};
+//! use lungmotion::validation::cases::symmetric_block_under_pressure;
+//!
+//! let scene = symmetric_block_under_pressure([4, 4, 4], 0.005, Material::LUNG, -20.0)?;
+//! let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())?;
+//! let (positions, report) = solver.solve(None)?;
+//! assert!(report.residual <= 1e-6);
+//!
+//! // Small-strain theory: ΔV/V = −p/K with K the bulk modulus (E, ν exact in this element).
+//! let mesh = &scene.mesh;
+//! let v0 = mesh.enclosed_volume_m3(&mesh.rest_positions_m);
+//! let dv = (mesh.enclosed_volume_m3(&positions) - v0) / v0;
+//! let linear = 20.0 / Material::LUNG.bulk_modulus_pa();
+//! assert!((dv - linear).abs() < 0.1 * linear);
+//! # Ok::<(), lungmotion::Error>(())
+//! ```
+//!
 //! Units: the mechanical core works in SI (metres, newtons, pascals, kilograms, seconds);
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
