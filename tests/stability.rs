@@ -5,7 +5,7 @@ use lungmotion::model::Material;
 use lungmotion::simulation::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
 use lungmotion::validation::patch::DenseNewton;
 use lungmotion::validation::stability::{
-    clamped_block, critical_step, run_checked, StabilityConfig,
+    clamped_block, critical_step, min_volume_ratio, run_checked, StabilityConfig,
 };
 use lungmotion::Error;
 
@@ -17,9 +17,8 @@ fn block(e: f64, nu: f64, rho: f64, edge: f64) -> lungmotion::simulation::Scene 
 
 #[test]
 fn automatic_step_reaches_equilibrium_across_lung_parameters() {
-    // Extremes of E, element size and density at the ν the current bound covers (see
-    // `automatic_step_is_stable_for_nearly_incompressible_tissue` for ν ≥ 0.4).
-    for nu in [0.1, 0.3] {
+    // Extremes of E, element size and density, from compressible to nearly incompressible.
+    for nu in [0.1, 0.3, 0.49] {
         let mut steps = Vec::new();
         for e in [100.0, 1.0e5] {
             for edge in [1e-3, 20e-3] {
@@ -88,12 +87,17 @@ fn small_study() -> StabilityConfig {
 }
 
 #[test]
-fn bound_is_conservative_where_it_holds_and_by_how_much() {
-    // Measured on a 2 × 2 × 2 block (3 × 3 × 3 in the report: ν = 0.1 → 1.54, ν = 0.3 → 1.27).
-    // At ν = 0.1 the true limit is more than 1.5 × the bound, so a 1.5 × overstep survives
-    // there: the issue is reported, not hidden.
+fn time_step_bound_is_a_true_bound_and_the_linearisation_matches_the_integrator() {
+    // Measured on a 2 × 2 × 2 block: 1.51, 1.43, 1.45, 1.47 (3 × 3 × 3 in the report: 1.51,
+    // 1.40, 1.44 at ν = 0.1, 0.3, 0.49). At ν = 0.1 the true limit is above 1.5 × the bound,
+    // so a 1.5 × overstep is stable there: the bound is conservative, not the detector blind.
     let config = small_study();
-    for (nu, lo, hi) in [(0.1, 1.3, 1.8), (0.3, 1.0, 1.5)] {
+    for (nu, lo, hi) in [
+        (0.1, 1.4, 1.7),
+        (0.3, 1.3, 1.6),
+        (0.45, 1.3, 1.6),
+        (0.49, 1.3, 1.6),
+    ] {
         let m = Material::new(1000.0, nu, 700.0).unwrap();
         let c = critical_step(&config, [0.01; 3], m).unwrap();
         assert!(
@@ -101,28 +105,17 @@ fn bound_is_conservative_where_it_holds_and_by_how_much() {
             "ν={nu}: true / bound = {}",
             c.linear_ratio
         );
-        // The production integrator agrees with the linearised map to within the bisection's
-        // resolution and its step budget's optimism.
-        assert!(
-            c.empirical_ratio >= 0.95 * c.linear_ratio && c.empirical_ratio < 1.25 * c.linear_ratio,
-            "{c:?}"
-        );
-        assert!(c.undamped_linear_ratio >= 1.0, "{c:?}");
-    }
-}
-
-#[test]
-fn time_step_bound_is_a_true_bound_for_every_poisson_ratio() {
-    let config = small_study();
-    for nu in [0.1, 0.3, 0.45, 0.49] {
-        let m = Material::new(1000.0, nu, 700.0).unwrap();
-        let c = critical_step(&config, [0.01; 3], m).unwrap();
-        assert!(c.linear_ratio >= 1.0, "ν={nu}: {c:?}");
         assert!(c.undamped_linear_ratio >= 1.0, "ν={nu}: {c:?}");
-        // The linearised map is built from the element matrices; the kernel must match them,
-        // dampers included (bare, not amplified by the corrections).
+        // The map is built from the element matrices; the kernel must match them, dampers
+        // included (bare, not amplified by the corrections)…
         assert!(c.kernel_stiffness_mismatch < 1e-6, "ν={nu}: {c:?}");
         assert!(c.kernel_damping_mismatch < 1e-6, "ν={nu}: {c:?}");
+        // …and the production step must go unstable where the map does (to the bisection's
+        // resolution and the loads' small nonlinearity).
+        assert!(
+            (c.empirical_ratio / c.linear_ratio - 1.0).abs() < 0.02,
+            "ν={nu}: {c:?}"
+        );
     }
 }
 
@@ -139,5 +132,32 @@ fn automatic_step_is_stable_for_nearly_incompressible_tissue() {
         let h = TimeStepBound::new(&scene, ExplicitSettings::default().safety).step_s;
         let run = run_checked(&scene, &reference, h, 400_000).unwrap();
         assert!(run.passed(), "ν={nu}: {run:?}");
+    }
+}
+
+/// Fails today: at ν = 0.49 the true limit is 1.44 × `TimeStepBound`'s critical step, so
+/// 1.5 × and 1.6 × are unstable, yet `run_to_equilibrium` does not report `Error::Diverged`.
+/// The unstable mode saturates instead of growing (`BlowUpGuard` looks for exponential growth
+/// of kinetic energy): at 1.5 × the run ends Ok and unconverged after its budget, at 1.6 × it
+/// inverts elements (signed volume ≈ −1 × rest) and reports convergence to that false
+/// equilibrium.
+#[test]
+#[ignore = "BlowUpGuard misses saturated instabilities and inverted-element equilibria"]
+fn unstable_steps_are_reported_for_nearly_incompressible_tissue() {
+    let scene = block(1000.0, 0.49, 700.0, 0.01);
+    let bound = TimeStepBound::new(&scene, 1.0);
+    for factor in [1.5, 1.6] {
+        let settings = ExplicitSettings {
+            fixed_step_s: Some(factor * bound.critical_step_s),
+            max_steps: 20_000,
+            ..Default::default()
+        };
+        let mut it = ExplicitIntegrator::new(&scene);
+        let outcome = it.run_to_equilibrium(&settings);
+        assert!(
+            matches!(outcome, Err(Error::Diverged { .. })),
+            "{factor} × critical: {outcome:?}, smallest volume ratio {}",
+            min_volume_ratio(&scene, &it.positions)
+        );
     }
 }

@@ -1,16 +1,21 @@
 //! Stability of the explicit integrator's automatic time step across the parameter ranges of
-//! lung tissue, and proof that the blow-up detector catches a step that is too large.
+//! lung tissue, and whether the blow-up detector catches a step that is too large.
 //!
 //! A small block of elements is clamped on its bottom face, loaded by a pressure on its top
 //! face and a sideways body force, each sized to give a modest strain whatever E, ρ and the
 //! element size, and damped critically per spring as the thesis does (§4.1.3). Every case
 //! must reach equilibrium with `TimeStepBound`'s step, with bounded kinetic energy, and land
-//! where a dense Newton solve of the same scene lands.
+//! where a dense Newton solve of the same scene lands. A run at a multiple of the critical step
+//! should end in `Error::Diverged`; where it does not, the report says whether the step was
+//! below the true limit or the instability went unflagged (saturated oscillation, or a false
+//! equilibrium with inverted elements).
 //!
-//! The true stability limit is measured two ways, both by bisection on the step: the spectral
-//! radius of the linearised velocity-Verlet map (exact for small motions) and the production
-//! integrator itself (does `run_to_equilibrium` report `Error::Diverged`?). Their ratio to the
-//! Gershgorin bound says how conservative the automatic step is.
+//! The true stability limit is measured by bisection on the step, from the spectral radius of
+//! the linearised velocity-Verlet map (exact for small motions) and from the production
+//! `ExplicitIntegrator::step` (does it settle at the Newton equilibrium?). Their ratio to the
+//! Gershgorin bound says how conservative the automatic step is. `run_to_equilibrium` is
+//! measured apart: every `check_every` steps it refreshes the accelerations with the full-step
+//! velocity, which is not the plain velocity-Verlet map and moves its limit a little.
 //!
 //! The linearised map is built from the element matrices, not from the kernel: stiffness
 //! `BrickCoefficients::linear_stiffness()` (springs and corrections), damping the bare spring
@@ -57,9 +62,11 @@ pub struct StabilityConfig {
     pub safety: f64,
     /// Step budget of each run to equilibrium.
     pub max_steps: usize,
-    /// Multiple of the bound's critical step that must diverge.
+    /// Multiple of the bound's critical step that should diverge (it cannot where the true
+    /// limit is above it).
     pub overstep_factor: f64,
-    /// Step budget of the runs expected to diverge and of the empirical bisection.
+    /// Step budget of the overstep runs and of the empirical bisections (divided by the step
+    /// ratio below 1).
     pub divergence_steps: usize,
     /// Bisection iterations for the true critical step (0 skips the measurement).
     pub bisection_iterations: usize,
@@ -158,6 +165,8 @@ pub struct RunOutcome {
     pub equilibrium_error: Option<f64>,
     /// The blow-up `run_to_equilibrium` reported, if any.
     pub divergence: Option<Divergence>,
+    /// Smallest signed element volume over rest volume at the end (< 0: inverted elements).
+    pub min_volume_ratio: Option<f64>,
 }
 
 impl RunOutcome {
@@ -193,9 +202,8 @@ pub struct StabilityCase {
     pub production_solver_difference: f64,
     /// Run with the automatic step (`safety` × `TimeStepBound`).
     pub automatic: RunOutcome,
-    /// What a run at `overstep_factor` × `TimeStepBound`'s critical step ended with
-    /// (`None`: it did not diverge within the step budget).
-    pub overstep_divergence: Option<Divergence>,
+    /// Run at `overstep_factor` × `TimeStepBound`'s critical step with `divergence_steps`.
+    pub overstep: RunOutcome,
 }
 
 /// A detected blow-up.
@@ -220,16 +228,15 @@ pub struct CriticalStep {
     /// Largest step with spectral radius ≤ 1 of the linearised velocity-Verlet map, over the
     /// bound's critical step.
     pub linear_ratio: f64,
-    /// Largest step at which the production integrator does not report divergence within the
-    /// step budget, over the bound's critical step.
+    /// Largest step at which plain `ExplicitIntegrator::step`s settle at equilibrium, / bound.
     pub empirical_ratio: f64,
+    /// Same with `run_to_equilibrium`, whose periodic acceleration refresh shifts the limit.
+    pub run_to_equilibrium_ratio: f64,
     /// Same as `linear_ratio` with the dampers removed: isolates the ω_max bound.
     pub undamped_linear_ratio: f64,
-    /// max |∂f/∂x + K| / max |K| on the free DOFs: the kernel's stiffness at rest against the
-    /// assembled `linear_stiffness()` the linearised map uses.
+    /// max |∂f/∂x + K| / max |K|: kernel Jacobian at rest against `linear_stiffness()`.
     pub kernel_stiffness_mismatch: f64,
-    /// max |∂f/∂v + C| / max |C| on the free DOFs, C the bare spring dampers: order one if the
-    /// kernel routed its damper forces through the corrections.
+    /// max |∂f/∂v + C| / max |C|, C the bare dampers (order one if corrections amplify them).
     pub kernel_damping_mismatch: f64,
 }
 
@@ -272,7 +279,7 @@ pub fn run_stability_study(config: &StabilityConfig) -> Result<StabilityReport> 
         }
     }
     let all_stable = cases.iter().all(|c| c.automatic.passed());
-    let all_oversteps_caught = cases.iter().all(|c| c.overstep_divergence.is_some());
+    let all_oversteps_caught = cases.iter().all(|c| c.overstep.divergence.is_some());
     Ok(StabilityReport {
         config: config.clone(),
         cases,
@@ -307,17 +314,12 @@ pub fn stability_case(
     let u_ref = max_distance(&reference, &rest);
     let automatic = run_checked(&scene, &reference, bound.step_s, config.max_steps)?;
 
-    let mut over = ExplicitIntegrator::new(&scene);
-    let overstep = ExplicitSettings {
-        fixed_step_s: Some(config.overstep_factor * bound.critical_step_s),
-        max_steps: config.divergence_steps,
-        ..Default::default()
-    };
-    let overstep_divergence = match over.run_to_equilibrium(&overstep) {
-        Err(Error::Diverged { step, cause }) => Some(Divergence { step, cause }),
-        Ok(_) => None,
-        Err(e) => return Err(e),
-    };
+    let overstep = run_checked(
+        &scene,
+        &reference,
+        config.overstep_factor * bound.critical_step_s,
+        config.divergence_steps,
+    )?;
 
     let height = config.cells[2] as f64 * edges_m[2];
     Ok(StabilityCase {
@@ -330,7 +332,7 @@ pub fn stability_case(
         max_displacement_over_height: u_ref / height,
         production_solver_difference: max_distance(&production, &reference) / u_ref,
         automatic,
-        overstep_divergence,
+        overstep,
     })
 }
 
@@ -359,6 +361,7 @@ pub fn run_checked(
                 peak_kinetic_over_work: None,
                 equilibrium_error: None,
                 divergence: Some(Divergence { step, cause }),
+                min_volume_ratio: None,
             })
         }
         Err(e) => return Err(e),
@@ -378,6 +381,7 @@ pub fn run_checked(
                 max_distance(&it.positions, reference) / max_distance(reference, rest),
             ),
             divergence: None,
+            min_volume_ratio: Some(min_volume_ratio(scene, &it.positions)),
         });
     }
     let mut f_ext = vec![V3::zeros(); scene.node_count()];
@@ -404,7 +408,45 @@ pub fn run_checked(
             max_distance(&it.positions, reference) / max_distance(reference, rest),
         ),
         divergence: None,
+        min_volume_ratio: Some(min_volume_ratio(scene, &it.positions)),
     })
+}
+
+/// Smallest signed element volume (centre axes ex, ey, ez) over rest volume; < 0 if inverted.
+pub fn min_volume_ratio(scene: &Scene, x: &[V3]) -> f64 {
+    let mesh = &scene.mesh;
+    mesh.elements
+        .iter()
+        .zip(&mesh.element_class)
+        .map(|(corners, &class)| {
+            let p = corners.map(|c| x[c as usize]);
+            let ex = (p[1] - p[0]) + (p[2] - p[3]) + (p[5] - p[4]) + (p[6] - p[7]);
+            let ey = (p[3] - p[0]) + (p[2] - p[1]) + (p[7] - p[4]) + (p[6] - p[5]);
+            let ez = (p[4] - p[0]) + (p[5] - p[1]) + (p[6] - p[2]) + (p[7] - p[3]);
+            ex.dot(&ey.cross(&ez)) / 64.0 / mesh.classes[class as usize].shape.volume_m3()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// Whether plain `ExplicitIntegrator::step`s of `step_s` from rest settle at `reference` (to
+/// 1e-6 of the largest displacement) within `max_steps`; the velocity-Verlet map the
+/// linearisation models, without `run_to_equilibrium`'s acceleration refresh.
+fn plain_steps_settle(scene: &Scene, reference: &[V3], step_s: f64, max_steps: usize) -> bool {
+    let tolerance = 1e-6 * max_distance(reference, &scene.mesh.rest_positions_m);
+    let mut it = ExplicitIntegrator::new(scene);
+    while it.steps < max_steps {
+        for _ in 0..50 {
+            it.step(step_s);
+        }
+        // `max_distance` would skip NaNs (f64::max ignores them).
+        if !it.positions.iter().all(|p| p.iter().all(|v| v.is_finite())) {
+            return false;
+        }
+        if max_distance(&it.positions, reference) <= tolerance {
+            return true;
+        }
+    }
+    false
 }
 
 /// 2 % of the undamped period of the stiffest spring acting on the lightest node (§4.1.3).
@@ -454,18 +496,15 @@ pub fn critical_step(
     let linear_ratio = bisect(config.bisection_iterations, |r| {
         Ok(lin.spectral_radius(r * bound)? <= 1.0 + 1e-9)
     })?;
+    let (reference, _) = DenseNewton::default().solve(&scene, &scene.mesh.rest_positions_m)?;
+    // Small steps need proportionally more of them to settle.
+    let budget = |r: f64| (config.divergence_steps as f64 / r.min(1.0)).ceil() as usize;
     let empirical_ratio = bisect(config.bisection_iterations, |r| {
-        let mut it = ExplicitIntegrator::new(&scene);
-        let settings = ExplicitSettings {
-            fixed_step_s: Some(r * bound),
-            max_steps: config.divergence_steps,
-            ..Default::default()
-        };
-        match it.run_to_equilibrium(&settings) {
-            Ok(_) => Ok(true),
-            Err(Error::Diverged { .. }) => Ok(false),
-            Err(e) => Err(e),
-        }
+        Ok(plain_steps_settle(&scene, &reference, r * bound, budget(r)))
+    })?;
+    let run_to_equilibrium_ratio = bisect(config.bisection_iterations, |r| {
+        let run = run_checked(&scene, &reference, r * bound, budget(r))?;
+        Ok(run.converged && run.equilibrium_error.is_some_and(|e| e < 1e-3))
     })?;
     let undamped = clamped_block(config.cells, edges_m, material, 0.0, config.load_strain)?;
     let bound0 = TimeStepBound::new(&undamped, 1.0).critical_step_s;
@@ -479,15 +518,17 @@ pub fn critical_step(
         damping_ratio: config.damping_ratio,
         linear_ratio,
         empirical_ratio,
+        run_to_equilibrium_ratio,
         undamped_linear_ratio,
         kernel_stiffness_mismatch,
         kernel_damping_mismatch,
     })
 }
 
-/// Largest ratio r in [1/64, 8] with `stable(r)`, assuming stability is monotone in r.
+/// Largest ratio r in [1/8, 8] with `stable(r)` (0 if none), assuming stability is monotone
+/// in r.
 fn bisect(iterations: usize, mut stable: impl FnMut(f64) -> Result<bool>) -> Result<f64> {
-    let (mut lo, mut hi) = (1.0 / 64.0, 8.0);
+    let (mut lo, mut hi) = (1.0 / 8.0, 8.0);
     if !stable(lo)? {
         return Ok(0.0);
     }
@@ -631,6 +672,19 @@ fn opt_max(v: impl Iterator<Item = Option<f64>>) -> String {
     }
 }
 
+/// How an overstep run ended, in the words of the report's table.
+fn overstep_kind(run: &RunOutcome) -> &'static str {
+    if run.divergence.is_some() {
+        "diverged"
+    } else if run.passed() {
+        "at equilibrium"
+    } else if run.converged {
+        "converged elsewhere"
+    } else {
+        "not converged"
+    }
+}
+
 impl StabilityReport {
     /// Markdown: the automatic step's outcomes over the grid, and the measured critical steps.
     pub fn to_markdown(&self) -> String {
@@ -642,12 +696,14 @@ impl StabilityReport {
              a sideways body force giving the same strain scale, springs at {} × critical \
              damping (the thesis's regime). Grid: E {:?} Pa, ν {:?}, element size {:?} m, \
              shapes {:?}, ρ {:?} kg/m³: {} runs. *Automatic*: step = {} × `TimeStepBound`'s \
-             critical step. A run passes when \
-             `run_to_equilibrium` reports equilibrium (residual ≤ 1e-6), peak kinetic energy ≤ \
-             the loads' work and the positions agree with a dense Newton solve to 1e-3 of the \
-             largest displacement. *Overstep*: {} × `TimeStepBound`'s critical step, which \
-             should end in `Error::Diverged`. E, ρ and size only rescale time (loads scale \
-             with E), so within a (shape, ν) row every run takes the same number of steps.\n\n",
+             critical step. A run passes when `run_to_equilibrium` reports equilibrium \
+             (residual ≤ 1e-6), peak kinetic energy ≤ the loads' work and the positions agree \
+             with a dense Newton solve to 1e-3 of the largest displacement. *Overstep*: {} × \
+             `TimeStepBound`'s critical step, {} steps at most, which should end in \
+             `Error::Diverged`; otherwise it stays at the equilibrium (the step is below the \
+             true limit), converges elsewhere (a false equilibrium, smallest element volume \
+             given) or runs out of steps. E, ρ and size only rescale time (loads scale with \
+             E), so within a (shape, ν) row every run takes the same number of steps.\n\n",
             c.cells[0],
             c.cells[1],
             c.cells[2],
@@ -660,31 +716,65 @@ impl StabilityReport {
             c.densities_kg_per_m3,
             self.cases.len(),
             c.safety,
-            c.overstep_factor
+            c.overstep_factor,
+            c.divergence_steps
         ));
         s.push_str(
             "| shape | ν | runs | automatic passed | automatic diverged (earliest step) | \
              automatic failed unflagged | steps (max) | worst equilibrium error (passed runs) | \
-             worst KE / work | overstep caught |\n\
-             |---|---|---|---|---|---|---|---|---|---|\n",
+             worst KE / work | overstep / linearised limit | overstep outcomes |\n\
+             |---|---|---|---|---|---|---|---|---|---|---|\n",
         );
         for &shape in &c.element_shapes {
+            let same_shape = |edges: [f64; 3]| {
+                (edges[1] / edges[0] - shape[1] / shape[0]).abs() < 1e-9
+                    && (edges[2] / edges[0] - shape[2] / shape[0]).abs() < 1e-9
+            };
             for &nu in &c.poisson_ratios {
                 let group: Vec<&StabilityCase> = self
                     .cases
                     .iter()
-                    .filter(|k| {
-                        k.poisson_ratio == nu
-                            && (k.edges_m[1] / k.edges_m[0] - shape[1] / shape[0]).abs() < 1e-9
-                    })
+                    .filter(|k| k.poisson_ratio == nu && same_shape(k.edges_m))
                     .collect();
                 let diverged: Vec<usize> = group
                     .iter()
                     .filter_map(|k| k.automatic.divergence.as_ref().map(|d| d.step))
                     .collect();
                 let passed_error = |r: &RunOutcome| r.equilibrium_error.filter(|_| r.passed());
+                let limit = self
+                    .critical_steps
+                    .iter()
+                    .find(|k| k.poisson_ratio == nu && same_shape(k.element_shape))
+                    .map_or("–".to_string(), |k| {
+                        format!("{:.3}", c.overstep_factor / k.linear_ratio)
+                    });
+                let mut outcomes = Vec::new();
+                for kind in [
+                    "diverged",
+                    "at equilibrium",
+                    "converged elsewhere",
+                    "not converged",
+                ] {
+                    let runs: Vec<&RunOutcome> = group
+                        .iter()
+                        .map(|k| &k.overstep)
+                        .filter(|r| overstep_kind(r) == kind)
+                        .collect();
+                    if runs.is_empty() {
+                        continue;
+                    }
+                    let volume = runs
+                        .iter()
+                        .filter_map(|r| r.min_volume_ratio)
+                        .fold(f64::INFINITY, f64::min);
+                    outcomes.push(if kind == "converged elsewhere" {
+                        format!("{} {kind} (volume ≥ {volume:.2})", runs.len())
+                    } else {
+                        format!("{} {kind}", runs.len())
+                    });
+                }
                 s.push_str(&format!(
-                    "| {:?} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+                    "| {:?} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
                     shape,
                     nu,
                     group.len(),
@@ -705,10 +795,8 @@ impl StabilityReport {
                     group.iter().map(|k| k.automatic.steps).max().unwrap_or(0),
                     opt_max(group.iter().map(|k| passed_error(&k.automatic))),
                     opt_max(group.iter().map(|k| k.automatic.peak_kinetic_over_work)),
-                    group
-                        .iter()
-                        .filter(|k| k.overstep_divergence.is_some())
-                        .count(),
+                    limit,
+                    outcomes.join(", "),
                 ));
             }
         }
@@ -742,13 +830,14 @@ impl StabilityReport {
         {
             s.push_str(&format!(
                 "\nExample unflagged failure (ν = {}): `run_to_equilibrium` returned Ok after \
-                 {} steps, not converged, residual {:.2}, positions off the equilibrium by \
-                 {:.2} × the static displacement: a saturated oscillation the blow-up guard \
-                 does not recognise.\n",
+                 {} steps, converged {}, residual {:.2}, positions off the equilibrium by \
+                 {:.2} × the static displacement, smallest element volume {:.2} × rest.\n",
                 k.poisson_ratio,
                 k.automatic.steps,
+                k.automatic.converged,
                 k.automatic.residual.unwrap_or(f64::NAN),
-                k.automatic.equilibrium_error.unwrap_or(f64::NAN)
+                k.automatic.equilibrium_error.unwrap_or(f64::NAN),
+                k.automatic.min_volume_ratio.unwrap_or(f64::NAN)
             ));
         }
         if let Some(d) = self
@@ -764,12 +853,43 @@ impl StabilityReport {
         if let Some(d) = self
             .cases
             .iter()
-            .find_map(|k| k.overstep_divergence.as_ref())
+            .find_map(|k| k.overstep.divergence.as_ref())
         {
             s.push_str(&format!(
                 "\nExample overstep detection: `Error::Diverged {{ step: {}, cause: \"{}\" }}`.\n",
                 d.step, d.cause
             ));
+        }
+        for (kind, why) in [
+            (
+                "converged elsewhere",
+                "the unstable mode turned elements inside out and the run settled in that \
+                 false equilibrium, which neither `BlowUpGuard` nor the convergence test \
+                 rejects",
+            ),
+            (
+                "not converged",
+                "a bounded instability: the oscillation saturates instead of growing \
+                 exponentially, so `BlowUpGuard` does not flag it and the run ends Ok at its \
+                 step budget",
+            ),
+        ] {
+            if let Some(k) = self
+                .cases
+                .iter()
+                .find(|k| overstep_kind(&k.overstep) == kind)
+            {
+                s.push_str(&format!(
+                    "\nExample overstep {kind} (ν = {}): {} steps, residual {:.1e}, positions \
+                     off the equilibrium by {:.2} × the static displacement, smallest element \
+                     volume {:.2} × rest: {why}.\n",
+                    k.poisson_ratio,
+                    k.overstep.steps,
+                    k.overstep.residual.unwrap_or(f64::NAN),
+                    k.overstep.equilibrium_error.unwrap_or(f64::NAN),
+                    k.overstep.min_volume_ratio.unwrap_or(f64::NAN)
+                ));
+            }
         }
         if !self.critical_steps.is_empty() {
             s.push_str(
@@ -777,26 +897,29 @@ impl StabilityReport {
                  Bisection on the step (E = 1 kPa, ρ = 700 kg/m³, 10 mm; the ratios do not \
                  depend on them). *Linearised*: spectral radius of the velocity-Verlet map \
                  linearised at rest (damping on the half-step velocity, as the integrator \
-                 does) ≤ 1. *Empirical*: the production integrator runs its step budget \
-                 without `Error::Diverged` (slightly optimistic: a slowly growing mode seeded \
-                 by round-off can stay hidden until the run converges). *Undamped*: \
-                 linearised, dampers removed (bound recomputed). The map is built from \
-                 `linear_stiffness()` and the bare spring dampers; the last two columns \
-                 compare the force kernel's Jacobians at rest with them (max abs(J + K) / max \
-                 abs(K), same for C). A ratio below 1 means the bound is not a bound; above \
-                 the overstep factor, the overstep cannot diverge.\n\n\
+                 does) ≤ 1; the map is built from `linear_stiffness()` and the bare spring \
+                 dampers, and the last two columns compare the force kernel's Jacobians at \
+                 rest with them (max abs(J + K) / max abs(K), same for C). *Empirical*: plain \
+                 `ExplicitIntegrator::step`s settle at the Newton equilibrium. \
+                 *`run_to_equilibrium`*: it converges there (it refreshes the accelerations \
+                 with the full-step velocity at every check, which shifts its limit). \
+                 *Undamped*: linearised, dampers removed (bound recomputed). A ratio below 1 \
+                 means the bound is not a bound; above the overstep factor, the overstep \
+                 cannot diverge.\n\n\
                  | shape | ν | ζ | linearised / `TimeStepBound` | empirical / `TimeStepBound` | \
-                 undamped linearised / `TimeStepBound` | kernel vs K | kernel vs C |\n\
-                 |---|---|---|---|---|---|---|---|\n",
+                 `run_to_equilibrium` / `TimeStepBound` | undamped linearised / \
+                 `TimeStepBound` | kernel vs K | kernel vs C |\n\
+                 |---|---|---|---|---|---|---|---|---|\n",
             );
             for k in &self.critical_steps {
                 s.push_str(&format!(
-                    "| {:?} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0e} | {:.0e} |\n",
+                    "| {:?} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0e} | {:.0e} |\n",
                     k.element_shape.map(|v| (v * 1000.0).round() / 1000.0),
                     k.poisson_ratio,
                     k.damping_ratio,
                     k.linear_ratio,
                     k.empirical_ratio,
+                    k.run_to_equilibrium_ratio,
                     k.undamped_linear_ratio,
                     k.kernel_stiffness_mismatch,
                     k.kernel_damping_mismatch
