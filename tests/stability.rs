@@ -135,14 +135,11 @@ fn automatic_step_is_stable_for_nearly_incompressible_tissue() {
     }
 }
 
-/// Fails today: at ν = 0.49 the true limit is 1.44 × `TimeStepBound`'s critical step, so
-/// 1.5 × and 1.6 × are unstable, yet `run_to_equilibrium` does not report `Error::Diverged`.
-/// The unstable mode saturates instead of growing (`BlowUpGuard` looks for exponential growth
-/// of kinetic energy): at 1.5 × the run ends Ok and unconverged after its budget, at 1.6 × it
-/// inverts elements (signed volume ≈ −1 × rest) and reports convergence to that false
-/// equilibrium.
+/// At ν = 0.49 the true limit is 1.44 × `TimeStepBound`'s critical step, so 1.5 × and 1.6 ×
+/// are unstable. The unstable mode saturates instead of growing exponentially and, left alone,
+/// inverts elements and settles with a small residual; `BlowUpGuard` refuses inverted elements,
+/// so both runs must end in `Error::Diverged` rather than a false equilibrium.
 #[test]
-#[ignore = "BlowUpGuard misses saturated instabilities and inverted-element equilibria"]
 fn unstable_steps_are_reported_for_nearly_incompressible_tissue() {
     let scene = block(1000.0, 0.49, 700.0, 0.01);
     let bound = TimeStepBound::new(&scene, 1.0);

@@ -319,6 +319,7 @@ impl BlowUpGuard {
     /// Returns an error naming the step and the cause if the state has blown up.
     pub fn check(&mut self, scene: &Scene, x: &[V3], ke: f64, step: usize) -> Result<()> {
         scene.check_finite(x, step)?;
+        scene.check_not_inverted(x, step)?;
         if !ke.is_finite() {
             return Err(Error::Diverged {
                 step,

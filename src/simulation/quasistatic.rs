@@ -203,6 +203,8 @@ impl<'s> QuasiStaticSolver<'s> {
                 other => other?,
             }
         }
+        // An equilibrium with an inverted element is not one the tissue can reach.
+        scene.check_not_inverted(&x, report.newton_iterations)?;
         report.wall_time_s = start.elapsed().as_secs_f64();
         Ok((x, report))
     }

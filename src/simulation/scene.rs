@@ -94,6 +94,44 @@ impl Scene {
         Ok(())
     }
 
+    /// The element with the smallest signed volume over its rest volume, if that ratio is at or
+    /// below `threshold` (0 finds inverted elements). The volume is the triple product of the
+    /// averaged edge vectors, exact for parallelepipeds.
+    pub fn most_compressed_element(&self, x: &[V3], threshold: f64) -> Option<(usize, f64)> {
+        use rayon::prelude::*;
+        let mesh = &self.mesh;
+        let ratio = |e: usize| {
+            let c = mesh.elements[e].map(|n| x[n as usize]);
+            let ex = (c[1] - c[0]) + (c[2] - c[3]) + (c[5] - c[4]) + (c[6] - c[7]);
+            let ey = (c[3] - c[0]) + (c[2] - c[1]) + (c[7] - c[4]) + (c[6] - c[5]);
+            let ez = (c[4] - c[0]) + (c[5] - c[1]) + (c[6] - c[2]) + (c[7] - c[3]);
+            let v = ex.dot(&ey.cross(&ez)) / 64.0;
+            v / mesh.classes[mesh.element_class[e] as usize]
+                .shape
+                .volume_m3()
+        };
+        (0..mesh.element_count())
+            .into_par_iter()
+            .map(|e| (e, ratio(e)))
+            .filter(|(_, r)| *r <= threshold || !r.is_finite())
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+    }
+
+    /// Refuses states with an inverted element: no valid equilibrium or motion has one, and an
+    /// unstable run can settle into such a state with a small residual.
+    pub fn check_not_inverted(&self, x: &[V3], step: usize) -> Result<()> {
+        match self.most_compressed_element(x, 0.0) {
+            Some((e, r)) => Err(Error::Diverged {
+                step,
+                cause: format!(
+                    "element {e} is inverted (signed volume {r:.3} × its rest volume): \
+                     time step above the stability limit, or a load too large for the mesh"
+                ),
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Displacements (positions − rest) in metres.
     pub fn displacements(&self, x: &[V3]) -> Vec<V3> {
         x.iter()
