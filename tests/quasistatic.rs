@@ -11,6 +11,30 @@ use lungmotion::validation::cases::symmetric_block_under_pressure;
 use lungmotion::Error;
 use nalgebra::Vector3;
 
+/// A beam of `cells` cubes along x, clamped at x = 0, under gravity along −z; springs damped
+/// at `damping_ratio` × critical.
+fn cantilever_under_gravity(
+    cells: [usize; 3],
+    edge_m: f64,
+    mat: Material,
+    damping_ratio: f64,
+) -> Scene {
+    let grid = VoxelGrid::filled_box(cells, [edge_m; 3], Vector3::zeros());
+    let mut gm = grid.to_mesh(mat).unwrap();
+    gm.mesh.classes[0] = gm.mesh.classes[0].clone().with_damping_ratio(damping_ratio);
+    let mut cs = ConstraintSet::new(gm.mesh.node_count());
+    for (i, l) in gm.node_lattice.iter().enumerate() {
+        if l[0] == 0 {
+            cs.fix(i as u32, gm.mesh.rest_positions_m[i]).unwrap();
+        }
+    }
+    let loads = Loads {
+        gravity_m_per_s2: Vector3::new(0.0, 0.0, -9.81),
+        ..Loads::default()
+    };
+    Scene::new(gm.mesh, cs, loads).unwrap()
+}
+
 fn volume_strain(scene: &Scene, x: &[Vector3<f64>]) -> f64 {
     let v0 = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m);
     (scene.mesh.enclosed_volume_m3(x) - v0) / v0
@@ -57,22 +81,9 @@ fn multigrid_and_block_jacobi_agree_and_converge() {
 
 #[test]
 fn agrees_with_explicit_dynamics_at_equilibrium() {
-    // Cantilever of 2×2×6 cubes under gravity, clamped at x = 0.
+    // Cantilever of 2×2×6 cubes under gravity, clamped at x = 0, dampers for the dynamics.
     let mat = Material::new(50_000.0, 0.3, 1000.0).unwrap();
-    let grid = VoxelGrid::filled_box([6, 2, 2], [0.01; 3], Vector3::zeros());
-    let mut gm = grid.to_mesh(mat).unwrap();
-    gm.mesh.classes[0] = gm.mesh.classes[0].clone().with_damping_ratio(1.0);
-    let mut cs = ConstraintSet::new(gm.mesh.node_count());
-    for (i, l) in gm.node_lattice.iter().enumerate() {
-        if l[0] == 0 {
-            cs.fix(i as u32, gm.mesh.rest_positions_m[i]).unwrap();
-        }
-    }
-    let loads = Loads {
-        gravity_m_per_s2: Vector3::new(0.0, 0.0, -9.81),
-        ..Loads::default()
-    };
-    let scene = Scene::new(gm.mesh, cs, loads).unwrap();
+    let scene = cantilever_under_gravity([6, 2, 2], 0.01, mat, 1.0);
     let (xq, _) = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())
         .unwrap()
         .solve(None)
@@ -247,19 +258,7 @@ fn mechanism_is_solved_and_flagged() {
     // report, that it needed pseudo-time steps or relaxation. The equilibrium of a mechanism
     // is not unique, so it is checked by its residual, not against another solver's state.
     let mat = Material::new(1000.0, 0.3, 2.0).unwrap();
-    let grid = VoxelGrid::filled_box([4, 1, 1], [0.1; 3], Vector3::zeros());
-    let gm = grid.to_mesh(mat).unwrap();
-    let mut cs = ConstraintSet::new(gm.mesh.node_count());
-    for (i, l) in gm.node_lattice.iter().enumerate() {
-        if l[0] == 0 {
-            cs.fix(i as u32, gm.mesh.rest_positions_m[i]).unwrap();
-        }
-    }
-    let loads = Loads {
-        gravity_m_per_s2: Vector3::new(0.0, 0.0, -9.81),
-        ..Loads::default()
-    };
-    let scene = Scene::new(gm.mesh, cs, loads).unwrap();
+    let scene = cantilever_under_gravity([4, 1, 1], 0.1, mat, 0.0);
     let (x, report) = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())
         .unwrap()
         .solve(None)
