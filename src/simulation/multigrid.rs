@@ -10,14 +10,26 @@
 //! by dense LU.
 //!
 //! Cost: the fine level needs no assembled matrix (one shared 24 × 24 block per class), coarse
-//! levels store 4.6 kB per coarse cell (1/8, 1/64 … of the fine count). Set-up is linear in the
-//! element count.
+//! levels store 4.6 kB per distinct coarse cell matrix (cells with the same children, classes
+//! and constraint projectors share one). Set-up is linear in the element count.
+//!
+//! Operator products are the hot path (≈ 9 per level per V-cycle, one fewer where the
+//! smoother starts from zero). Every level scatters through a [`ChunkSchedule`], so a product
+//! has 2–3 barriers instead of one per element colour, and needs neither a lock nor a copy of
+//! the input: constraint projections are applied while gathering the few elements that touch
+//! a constrained node. The fine level evaluates the springs four elements at a time (one
+//! element per SIMD lane, AVX2 chosen at run time as in the force kernel); four consecutive
+//! elements of a lattice row share their x-faces, so they load and store 20 nodes instead of
+//! 32. Coarse cells are multiplied one at a time with fused multiply–adds (AVX2 + FMA), since
+//! neighbouring cells may have different matrices.
 
 use std::collections::HashMap;
+use std::ops::{Add, Mul, Sub};
 
 use nalgebra::{DMatrix, Matrix3, SMatrix, Vector3};
 use rayon::prelude::*;
 
+use super::forces::{ChunkSchedule, PARALLEL_MIN_ELEMENTS};
 use super::linalg::{nodes, nodes_mut};
 use crate::model::element::CORNER_SIGNS;
 use crate::model::HexMesh;
@@ -99,13 +111,24 @@ struct Level {
     matrices: Vec<M24>,
     /// Fine level only: the same operators as springs (cheaper than dense 24 × 24 products).
     springs: Vec<LinearSprings>,
+    /// `springs` replicated across SIMD lanes, one per class.
+    lane_springs: Vec<LaneSprings>,
+    /// World → lattice rotation of the springs (row-major, per lane), `None` when axis-aligned.
+    rotation: Option<[Lanes; 9]>,
     colors: Vec<Vec<u32>>,
+    /// Race-free chunked scatter plan; `None` when the numbering lacks locality (use `colors`).
+    schedule: Option<ChunkSchedule>,
     /// Constraint projector per node (fine level only; `None` = free), for set-up.
     projector: Vec<Option<Matrix3<f64>>>,
     /// The same, listed sparsely for the hot paths.
     constrained: Vec<(u32, Matrix3<f64>)>,
-    /// Reused buffer for the projected input of `apply`.
-    scratch: std::sync::Mutex<Vec<f64>>,
+    /// Per node, index into `constrained` or [`FREE`] (empty when nothing is constrained).
+    slot: Vec<u32>,
+    /// Per element, whether a corner is constrained (empty when nothing is constrained).
+    touches_constraint: Vec<bool>,
+    /// Per aligned quad of elements (4q … 4q + 3), whether they are consecutive along one
+    /// lattice row, each sharing its +x face with the next (lattice-ordered meshes).
+    row_quad: Vec<bool>,
     diag_inv: Vec<Matrix3<f64>>,
     /// Diagonal 3 × 3 blocks of the stiffness, before shift and projection.
     diag: Vec<Matrix3<f64>>,
@@ -118,93 +141,690 @@ struct Level {
     prolong: Vec<[(u32, f64); 8]>,
 }
 
+/// `slot` of an unconstrained node.
+const FREE: u32 = u32::MAX;
+
+/// Elements evaluated together, one per SIMD lane (4 × f64 fills an AVX2 register).
+const LANES: usize = 4;
+
+/// One f64 per lane; plain arrays so that LLVM vectorises every operation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C, align(32))]
+struct Lanes([f64; LANES]);
+
+impl Lanes {
+    const ZERO: Lanes = Lanes([0.0; LANES]);
+
+    #[inline(always)]
+    fn splat(v: f64) -> Self {
+        Lanes([v; LANES])
+    }
+}
+
+macro_rules! lane_op {
+    ($trait:ident, $method:ident, $op:tt) => {
+        impl $trait for Lanes {
+            type Output = Lanes;
+            #[inline(always)]
+            fn $method(self, rhs: Lanes) -> Lanes {
+                let mut r = self;
+                for i in 0..LANES {
+                    r.0[i] = self.0[i] $op rhs.0[i];
+                }
+                r
+            }
+        }
+    };
+}
+lane_op!(Add, add, +);
+lane_op!(Sub, sub, -);
+lane_op!(Mul, mul, *);
+
+/// A 3-vector per lane.
+type LaneV3 = [Lanes; 3];
+
+/// Row-major 3 × 3 matrix times a lane vector, summed left to right like nalgebra's product.
+#[inline(always)]
+fn mat_vec(m: &[Lanes; 9], v: &LaneV3) -> LaneV3 {
+    std::array::from_fn(|r| m[3 * r] * v[0] + m[3 * r + 1] * v[1] + m[3 * r + 2] * v[2])
+}
+
+/// Transposed row-major 3 × 3 matrix times a lane vector.
+#[inline(always)]
+fn mat_t_vec(m: &[Lanes; 9], v: &LaneV3) -> LaneV3 {
+    std::array::from_fn(|r| m[r] * v[0] + m[3 + r] * v[1] + m[6 + r] * v[2])
+}
+
+/// Where element products are added: one chunk's node window of the output, or (fallback)
+/// the whole output shared by the elements of one colour.
+trait Sink {
+    /// The three output values of `node`.
+    fn node(&mut self, node: u32) -> &mut [f64; 3];
+}
+
+/// A chunk's own window `out[3·lo..]` of the output.
+struct Window<'a> {
+    lo: u32,
+    out: &'a mut [f64],
+}
+
+impl Sink for Window<'_> {
+    #[inline(always)]
+    fn node(&mut self, node: u32) -> &mut [f64; 3] {
+        // A node below the window wraps to a huge index and panics on the bounds check.
+        let b = 3 * node.wrapping_sub(self.lo) as usize;
+        (&mut self.out[b..b + 3]).try_into().expect("3 values")
+    }
+}
+
 #[derive(Clone, Copy)]
-struct Shared(*mut f64);
+struct Shared(*mut f64, usize);
 // SAFETY: used only colour by colour; elements of one colour share no node.
 unsafe impl Send for Shared {}
 unsafe impl Sync for Shared {}
-impl Shared {
-    /// # Safety
-    /// `i` in bounds, no concurrent access to the same index.
-    #[inline]
-    unsafe fn add(&self, i: usize, v: f64) {
-        *self.0.add(i) += v;
+
+impl Sink for Shared {
+    #[inline(always)]
+    fn node(&mut self, node: u32) -> &mut [f64; 3] {
+        let b = 3 * node as usize;
+        assert!(b + 3 <= self.1, "node {node} beyond the output");
+        // SAFETY: in bounds (checked above); no other thread touches this node while the
+        // colour is processed (the element colouring guarantees it).
+        unsafe { &mut *(self.0.add(b) as *mut [f64; 3]) }
     }
 }
+
+/// A source of element indices handed out [`LANES`] at a time.
+trait ElementSource {
+    /// Fills `ids` with the next batch (the last one padded by repeating its last element)
+    /// and returns how many are real, or `None` when exhausted.
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize>;
+}
+
+impl ElementSource for std::ops::Range<u32> {
+    #[inline(always)]
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
+        if self.start >= self.end {
+            return None;
+        }
+        let count = ((self.end - self.start) as usize).min(LANES);
+        for (l, id) in ids.iter_mut().enumerate() {
+            *id = self.start + l.min(count - 1) as u32;
+        }
+        self.start += count as u32;
+        Some(count)
+    }
+}
+
+impl ElementSource for std::slice::Iter<'_, u32> {
+    #[inline(always)]
+    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
+        let rest = self.as_slice();
+        if rest.is_empty() {
+            return None;
+        }
+        let count = rest.len().min(LANES);
+        for (l, id) in ids.iter_mut().enumerate() {
+            *id = rest[l.min(count - 1)];
+        }
+        *self = rest[count..].iter();
+        Some(count)
+    }
+}
+
+/// The corners of [`LANES`] elements as lane vectors (`AVX2`: the caller is compiled for AVX2).
+#[inline(always)]
+fn gather<const AVX2: bool>(
+    x: &[f64],
+    corners: &[&[u32; 8]; LANES],
+    row: bool,
+    u: &mut [LaneV3; 8],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: `AVX2` is only set inside functions compiled for AVX2, which run only after
+        // the CPU was checked for it.
+        unsafe {
+            if row {
+                avx2::gather_row(x, corners, u);
+            } else {
+                avx2::gather(x, corners, u);
+            }
+        }
+        return;
+    }
+    let _ = row;
+    let node = |c: u32| -> &[f64; 3] {
+        let b = 3 * c as usize;
+        x[b..b + 3].try_into().expect("3 coordinates")
+    };
+    for (n, un) in u.iter_mut().enumerate() {
+        // Array literals, not `map`: `map` is not reliably inlined into the hot loop.
+        let p = [
+            node(corners[0][n]),
+            node(corners[1][n]),
+            node(corners[2][n]),
+            node(corners[3][n]),
+        ];
+        for (i, v) in un.iter_mut().enumerate() {
+            *v = Lanes([p[0][i], p[1][i], p[2][i], p[3][i]]);
+        }
+    }
+}
+
+/// Adds lane `l < count` of `f` to the corners of element `l`, corner by corner.
+#[inline(always)]
+fn scatter<const AVX2: bool, S: Sink>(
+    f: &[LaneV3; 8],
+    corners: &[&[u32; 8]; LANES],
+    count: usize,
+    row: bool,
+    sink: &mut S,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if AVX2 {
+        // SAFETY: as in `gather`.
+        unsafe {
+            if row {
+                avx2::scatter_row(f, corners, sink);
+            } else {
+                avx2::scatter(f, corners, count, sink);
+            }
+        }
+        return;
+    }
+    let _ = row;
+    for (n, fc) in f.iter().enumerate() {
+        for (l, cs) in corners.iter().enumerate().take(count) {
+            let o = sink.node(cs[n]);
+            for i in 0..3 {
+                o[i] += fc[i].0[l];
+            }
+        }
+    }
+}
+
+/// K·u on [`LANES`] cells at once, `k(i)` giving entry i of the column-major 24 × 24 K per
+/// lane. Each row sums its columns in order, like the one-cell column-by-column product.
+#[inline(always)]
+fn dense_lanes(k: impl Fn(usize) -> Lanes, u: &[LaneV3; 8], f: &mut [LaneV3; 8]) {
+    for (r, fr) in f.as_flattened_mut().iter_mut().enumerate() {
+        let mut acc = Lanes::ZERO;
+        for (j, uj) in u.as_flattened().iter().enumerate() {
+            acc = acc + k(24 * j + r) * *uj;
+        }
+        *fr = acc;
+    }
+}
+
+/// AVX2 forms of the batch gather and scatter (node triples ↔ lane vectors by shuffles).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{LaneV3, Lanes, Sink, LANES};
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    fn to_lanes(v: __m256d) -> Lanes {
+        // SAFETY: both are 32 bytes of four f64.
+        unsafe { std::mem::transmute::<__m256d, Lanes>(v) }
+    }
+
+    #[inline(always)]
+    fn from_lanes(v: Lanes) -> __m256d {
+        // SAFETY: both are 32 bytes of four f64.
+        unsafe { std::mem::transmute::<Lanes, __m256d>(v) }
+    }
+
+    /// See `super::gather`. Not itself marked AVX2, so that it can be forced inline into its
+    /// AVX2 caller (where the intrinsics then inline too).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    pub(super) unsafe fn gather(x: &[f64], corners: &[&[u32; 8]; LANES], u: &mut [LaneV3; 8]) {
+        for (n, un) in u.iter_mut().enumerate() {
+            // Array literals, not `map`: `map` is not reliably inlined into the hot loop.
+            let nodes = [corners[0][n], corners[1][n], corners[2][n], corners[3][n]];
+            *un = load_lanes(x, &nodes).map(to_lanes);
+        }
+    }
+
+    /// `gather` for a row quad: corner b of lane l is corner a of lane l + 1, so each x line
+    /// loads 5 nodes instead of 8 and shifts lanes for the other corner.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    pub(super) unsafe fn gather_row(x: &[f64], corners: &[&[u32; 8]; LANES], u: &mut [LaneV3; 8]) {
+        for &(a, b) in &super::ROW_LINES {
+            let nodes = [corners[0][a], corners[1][a], corners[2][a], corners[3][a]];
+            let ua = load_lanes(x, &nodes);
+            let last = corners[3][b] as usize;
+            let tail = &x[3 * last..3 * last + 3];
+            for (i, va) in ua.iter().enumerate() {
+                // Lanes 1, 2, 3 of corner a become lanes 0, 1, 2 of corner b.
+                let down = _mm256_permute4x64_pd::<0b00_11_10_01>(*va);
+                u[b][i] = to_lanes(_mm256_blend_pd::<0b1000>(down, _mm256_set1_pd(tail[i])));
+                u[a][i] = to_lanes(*va);
+            }
+        }
+    }
+
+    /// The 3 coordinates of 4 nodes as x, y and z lane vectors.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    unsafe fn load_lanes(x: &[f64], nodes: &[u32; LANES]) -> [__m256d; 3] {
+        let node = |c: u32| -> *const f64 {
+            let b = 3 * c as usize;
+            x[b..b + 3].as_ptr()
+        };
+        let p = [
+            node(nodes[0]),
+            node(nodes[1]),
+            node(nodes[2]),
+            node(nodes[3]),
+        ];
+        // SAFETY: each p[l] points at 3 readable f64 (sliced just above).
+        unsafe {
+            let lo = _mm256_insertf128_pd::<1>(
+                _mm256_castpd128_pd256(_mm_loadu_pd(p[0])),
+                _mm_loadu_pd(p[2]),
+            );
+            let hi = _mm256_insertf128_pd::<1>(
+                _mm256_castpd128_pd256(_mm_loadu_pd(p[1])),
+                _mm_loadu_pd(p[3]),
+            );
+            let z01 = _mm_loadh_pd(_mm_load_sd(p[0].add(2)), p[1].add(2));
+            let z23 = _mm_loadh_pd(_mm_load_sd(p[2].add(2)), p[3].add(2));
+            [
+                _mm256_unpacklo_pd(lo, hi),
+                _mm256_unpackhi_pd(lo, hi),
+                _mm256_insertf128_pd::<1>(_mm256_castpd128_pd256(z01), z23),
+            ]
+        }
+    }
+
+    /// `scatter` for a row quad: along each x line, lane l's corner b is lane l + 1's corner a,
+    /// so the two are summed in registers first and the line takes 5 node updates, not 8.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    pub(super) unsafe fn scatter_row<S: Sink>(
+        f: &[LaneV3; 8],
+        corners: &[&[u32; 8]; LANES],
+        sink: &mut S,
+    ) {
+        for &(a, b) in &super::ROW_LINES {
+            let mut g = [_mm256_setzero_pd(); 3];
+            for (g, (fa, fb)) in g.iter_mut().zip(f[a].iter().zip(&f[b])) {
+                // fb moved up one lane (lane 0 ← 0): corner b of lane l is corner a of l + 1.
+                let up = _mm256_blend_pd::<0b0001>(
+                    _mm256_permute4x64_pd::<0b10_01_00_00>(from_lanes(*fb)),
+                    _mm256_setzero_pd(),
+                );
+                *g = _mm256_add_pd(from_lanes(*fa), up);
+            }
+            let nodes = [corners[0][a], corners[1][a], corners[2][a], corners[3][a]];
+            add_lanes(sink, &nodes, LANES, g);
+            let o = sink.node(corners[3][b]);
+            for (o, fb) in o.iter_mut().zip(&f[b]) {
+                *o += fb.0[3];
+            }
+        }
+    }
+
+    /// See `super::scatter`; same order of additions. Inlined like `gather`.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    pub(super) unsafe fn scatter<S: Sink>(
+        f: &[LaneV3; 8],
+        corners: &[&[u32; 8]; LANES],
+        count: usize,
+        sink: &mut S,
+    ) {
+        for (n, fc) in f.iter().enumerate() {
+            let nodes = [corners[0][n], corners[1][n], corners[2][n], corners[3][n]];
+            add_lanes(sink, &nodes, count, fc.map(from_lanes));
+        }
+    }
+
+    /// Adds lane l of the component vectors `v` to `nodes[l]`, for l < `count`.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    unsafe fn add_lanes<S: Sink>(
+        sink: &mut S,
+        nodes: &[u32; LANES],
+        count: usize,
+        v: [__m256d; 3],
+    ) {
+        let [vx, vy, vz] = v;
+        let t0 = _mm256_unpacklo_pd(vx, vy); // x0 y0 x2 y2
+        let t1 = _mm256_unpackhi_pd(vx, vy); // x1 y1 x3 y3
+        let xy = [
+            _mm256_castpd256_pd128(t0),
+            _mm256_castpd256_pd128(t1),
+            _mm256_extractf128_pd::<1>(t0),
+            _mm256_extractf128_pd::<1>(t1),
+        ];
+        let z01 = _mm256_castpd256_pd128(vz);
+        let z23 = _mm256_extractf128_pd::<1>(vz);
+        let z = [
+            z01,
+            _mm_unpackhi_pd(z01, z01),
+            z23,
+            _mm_unpackhi_pd(z23, z23),
+        ];
+        for (l, &c) in nodes.iter().enumerate().take(count) {
+            let p = sink.node(c).as_mut_ptr();
+            // SAFETY: `p` points at the node's 3 writable f64.
+            unsafe {
+                _mm_storeu_pd(p, _mm_add_pd(_mm_loadu_pd(p), xy[l]));
+                _mm_store_sd(p.add(2), _mm_add_sd(_mm_load_sd(p.add(2)), z[l]));
+            }
+        }
+    }
+}
+
+/// Corner pairs (a, b) joined by the element's x edges: corner b of an element is corner a
+/// of the next element along its row.
+const ROW_LINES: [(usize, usize); 4] = [(0, 1), (3, 2), (4, 5), (7, 6)];
+
+/// Nodes per parallel task in the node-wise passes of a product.
+const NODE_TASK: usize = 8192;
 
 impl Level {
     /// y = A·x on this level.
     fn apply(&self, x: &[f64], y: &mut [f64]) {
-        y.iter_mut().for_each(|v| *v = 0.0);
-        let mut guard = self.scratch.lock().unwrap_or_else(|e| e.into_inner());
-        let projected = !self.constrained.is_empty();
-        if projected {
-            guard.clear();
-            guard.extend_from_slice(x);
-            self.project(&mut guard);
+        self.apply_with(x, y, true);
+    }
+
+    /// `apply`, with `simd` = false forcing the portable kernels (to test them on any CPU).
+    fn apply_with(&self, x: &[f64], y: &mut [f64], simd: bool) {
+        assert_eq!(x.len(), 3 * self.n_nodes);
+        assert_eq!(y.len(), 3 * self.n_nodes);
+        let parallel =
+            rayon::current_num_threads() > 1 && self.elements.len() >= PARALLEL_MIN_ELEMENTS;
+        // Start from the shift term σ·M·(Π x), so the element sums need no zeroed output.
+        let init = |(y, (x, m)): (&mut [f64], (&[f64], &[f64]))| {
+            if self.shift > 0.0 {
+                for ((y, x), m) in y.chunks_exact_mut(3).zip(x.chunks_exact(3)).zip(m) {
+                    let s = self.shift * m;
+                    y[0] = x[0] * s;
+                    y[1] = x[1] * s;
+                    y[2] = x[2] * s;
+                }
+            } else {
+                y.fill(0.0);
+            }
+        };
+        if parallel {
+            y.par_chunks_mut(3 * NODE_TASK)
+                .zip(
+                    x.par_chunks(3 * NODE_TASK)
+                        .zip(self.mass.par_chunks(NODE_TASK)),
+                )
+                .for_each(init);
+        } else {
+            init((y, (x, &self.mass[..])));
         }
-        let xs: &[f64] = if projected { &guard } else { x };
-        let out = Shared(y.as_mut_ptr());
-        let run = |e: u32| {
-            let e = e as usize;
-            let corners = &self.elements[e];
-            if let Some(op) = self.springs.get(self.matrix_of[e] as usize) {
-                let xe = corners.map(|n| {
-                    let n = 3 * n as usize;
-                    V3::new(xs[n], xs[n + 1], xs[n + 2])
-                });
-                let ye = op.apply(&xe);
-                for (c, &n) in corners.iter().enumerate() {
-                    for (i, v) in ye[c].iter().enumerate() {
-                        // SAFETY: colour discipline, see `Shared`.
-                        unsafe { out.add(3 * n as usize + i, *v) };
+        if self.shift > 0.0 {
+            let (yn, xn) = (nodes_mut(y), nodes(x));
+            for (n, p) in &self.constrained {
+                let n = *n as usize;
+                yn[n] = (p * xn[n]) * (self.shift * self.mass[n]);
+            }
+        }
+        match &self.schedule {
+            Some(schedule) => schedule.for_each_chunk(y, 3, parallel, |elements, lo, window| {
+                let mut sink = Window {
+                    lo: lo as u32,
+                    out: window,
+                };
+                let mut batch = elements.start as u32..elements.end as u32;
+                self.scatter(x, &mut batch, &mut sink, simd);
+            }),
+            None => {
+                let shared = Shared(y.as_mut_ptr(), y.len());
+                for colour in &self.colors {
+                    let run =
+                        |task: &[u32]| self.scatter(x, &mut task.iter(), &mut { shared }, simd);
+                    if parallel && colour.len() >= 512 {
+                        colour.par_chunks(128).for_each(run);
+                    } else {
+                        run(colour);
                     }
+                }
+            }
+        }
+        if !self.constrained.is_empty() {
+            let (yn, xn) = (nodes_mut(y), nodes(x));
+            for (n, p) in &self.constrained {
+                let n = *n as usize;
+                yn[n] = p * yn[n] + (xn[n] - p * xn[n]);
+            }
+        }
+    }
+
+    /// Adds the element products of `elements` (applied to Π x) into `sink`, with the widest
+    /// vector instructions the CPU offers.
+    fn scatter<E: ElementSource, S: Sink>(
+        &self,
+        x: &[f64],
+        elements: &mut E,
+        sink: &mut S,
+        simd: bool,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if simd {
+            #[target_feature(enable = "avx2")]
+            unsafe fn avx2<E: ElementSource, S: Sink>(
+                level: &Level,
+                x: &[f64],
+                elements: &mut E,
+                sink: &mut S,
+            ) {
+                level.batches::<true, E, S>(x, elements, sink)
+            }
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn avx2_fma<E: ElementSource, S: Sink>(
+                level: &Level,
+                x: &[f64],
+                elements: &mut E,
+                sink: &mut S,
+            ) {
+                let mut ids = [0u32; LANES];
+                while let Some(count) = elements.next_batch(&mut ids) {
+                    for &e in &ids[..count] {
+                        // SAFETY: compiled for, and called on, a CPU with AVX2 and FMA.
+                        unsafe { level.dense_cell(x, e as usize, sink) };
+                    }
+                }
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                if self.lane_springs.is_empty() && std::arch::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU supports AVX2 and FMA (checked just above).
+                    unsafe { avx2_fma(self, x, elements, sink) };
+                } else {
+                    // SAFETY: the CPU supports AVX2 (checked just above).
+                    unsafe { avx2(self, x, elements, sink) };
                 }
                 return;
             }
-            let k = &self.matrices[self.matrix_of[e] as usize];
-            let mut xe = [0.0f64; 24];
-            for (c, &n) in corners.iter().enumerate() {
-                xe[3 * c..3 * c + 3].copy_from_slice(&xs[3 * n as usize..3 * n as usize + 3]);
-            }
-            // Column-major storage: accumulate column by column so the inner loop vectorises.
-            let mut ye = [0.0f64; 24];
-            for (col, xv) in k.as_slice().chunks_exact(24).zip(xe) {
-                for (y, kv) in ye.iter_mut().zip(col) {
-                    *y += kv * xv;
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = simd;
+        self.batches::<false, E, S>(x, elements, sink)
+    }
+
+    /// One cell's dense product, column by column with fused multiply–adds, the cell's input
+    /// broadcast straight from `x` and its 24 outputs kept in six registers: per cell rather
+    /// than per batch since neighbouring cells may have different matrices.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA; only call from functions compiled for both.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn dense_cell<S: Sink>(&self, x: &[f64], e: usize, sink: &mut S) {
+        use std::arch::x86_64::*;
+        let corners = &self.elements[e];
+        let k = self.matrices[self.matrix_of[e] as usize].as_slice();
+        assert_eq!(k.len(), 576);
+        // Constrained corners are read from projected local copies, the others from `x`.
+        let project = self.touches_constraint.get(e).copied().unwrap_or(false);
+        let mut local = [[0.0; 3]; 8];
+        let mut is_local = [false; 8];
+        if project {
+            for ((&n, l), is) in corners.iter().zip(&mut local).zip(&mut is_local) {
+                if self.slot[n as usize] != FREE {
+                    *l = self.projected_input(x, n, true).into();
+                    *is = true;
                 }
             }
-            for (c, &n) in corners.iter().enumerate() {
-                for i in 0..3 {
-                    // SAFETY: colour discipline, see `Shared`.
-                    unsafe { out.add(3 * n as usize + i, ye[3 * c + i]) };
-                }
-            }
-        };
-        for color in &self.colors {
-            if color.len() < 512 {
-                color.iter().for_each(|&e| run(e));
+        }
+        let mut p = [std::ptr::null::<f64>(); 8];
+        for (c, (&n, p)) in corners.iter().zip(&mut p).enumerate() {
+            let b = 3 * n as usize;
+            *p = if is_local[c] {
+                local[c].as_ptr()
             } else {
-                color
-                    .par_chunks(128)
-                    .for_each(|c| c.iter().for_each(|&e| run(e)));
+                x[b..b + 3].as_ptr()
+            };
+        }
+        #[repr(C, align(32))]
+        struct Out([f64; 24]);
+        let mut ye = Out([0.0; 24]);
+        // SAFETY: every p[c] points at 3 readable f64 (sliced or local above), `k` holds 576
+        // f64 (asserted), `ye` is 32-byte aligned; AVX2 and FMA are the caller's contract.
+        unsafe {
+            let mut acc = [_mm256_setzero_pd(); 6];
+            for j in 0..24 {
+                let xj = _mm256_broadcast_sd(&*p[j / 3].add(j % 3));
+                let col = k.as_ptr().add(24 * j);
+                for (r, a) in acc.iter_mut().enumerate() {
+                    *a = _mm256_fmadd_pd(_mm256_loadu_pd(col.add(4 * r)), xj, *a);
+                }
+            }
+            for (r, a) in acc.iter().enumerate() {
+                _mm256_store_pd(ye.0.as_mut_ptr().add(4 * r), *a);
             }
         }
-        if self.shift > 0.0 {
-            let (yn, xn) = (nodes_mut(y), nodes(xs));
-            yn.par_iter_mut()
-                .zip(xn.par_iter())
-                .zip(self.mass.par_iter())
-                .for_each(|((y, x), m)| *y += x * (self.shift * m));
+        for (&n, y) in corners.iter().zip(ye.0.chunks_exact(3)) {
+            sink.node(n).iter_mut().zip(y).for_each(|(o, y)| *o += y);
         }
-        if projected {
-            self.project(y);
-            let yn = nodes_mut(y);
-            let xn = nodes(x);
-            for (n, p) in &self.constrained {
-                let n = *n as usize;
-                yn[n] += xn[n] - p * xn[n];
+    }
+
+    /// The batch loop: gather [`LANES`] elements' corners, apply the springs or the cell
+    /// matrix, scatter. `AVX2`: the caller is compiled for AVX2, so intrinsics may be used.
+    #[inline(always)]
+    fn batches<const AVX2: bool, E: ElementSource, S: Sink>(
+        &self,
+        x: &[f64],
+        elements: &mut E,
+        sink: &mut S,
+    ) {
+        let mut ids = [0u32; LANES];
+        let mut mixed: Option<LaneSprings> = None;
+        // Reused (not returned) so that no batch zeroes or copies them.
+        let mut u = [[Lanes::ZERO; 3]; 8];
+        let mut f = u;
+        while let Some(count) = elements.next_batch(&mut ids) {
+            let corners: [&[u32; 8]; LANES] = [
+                &self.elements[ids[0] as usize],
+                &self.elements[ids[1] as usize],
+                &self.elements[ids[2] as usize],
+                &self.elements[ids[3] as usize],
+            ];
+            let projected = !self.touches_constraint.is_empty()
+                && ids.iter().any(|&e| self.touches_constraint[e as usize]);
+            // Only the AVX2 kernels exploit the nodes shared along a row.
+            let row = AVX2 && count == LANES && self.is_row_quad(&ids);
+            if projected {
+                self.gather_projected(x, &corners, &ids, &mut u);
+            } else {
+                gather::<AVX2>(x, &corners, row, &mut u);
             }
+            let m0 = self.matrix_of[ids[0] as usize];
+            let uniform = ids[1..].iter().all(|&e| self.matrix_of[e as usize] == m0);
+            if self.lane_springs.is_empty() {
+                if uniform {
+                    let k = self.matrices[m0 as usize].as_slice();
+                    dense_lanes(|i| Lanes::splat(k[i]), &u, &mut f);
+                } else {
+                    let k = [0, 1, 2, 3].map(|l| {
+                        self.matrices[self.matrix_of[ids[l] as usize] as usize].as_slice()
+                    });
+                    dense_lanes(|i| Lanes([k[0][i], k[1][i], k[2][i], k[3][i]]), &u, &mut f);
+                }
+            } else {
+                let kernel = if uniform {
+                    &self.lane_springs[m0 as usize]
+                } else {
+                    let classes = ids.map(|e| self.matrix_of[e as usize]);
+                    &*mixed.insert(LaneSprings::gather(&self.lane_springs, &classes))
+                };
+                kernel.apply(self.rotation.as_ref(), &mut u, &mut f);
+            }
+            scatter::<AVX2, S>(&f, &corners, count, row, sink);
+        }
+    }
+
+    /// Whether the batch is one whole row quad (see `row_quad`).
+    #[inline(always)]
+    fn is_row_quad(&self, ids: &[u32; LANES]) -> bool {
+        let q = ids[0] as usize / LANES;
+        (ids[0] as usize).is_multiple_of(LANES)
+            && ids[3] == ids[0] + 3
+            && self.row_quad.get(q).copied().unwrap_or(false)
+    }
+
+    /// Node `c` of the input, projected when `project` and the node is constrained.
+    #[inline(always)]
+    fn projected_input(&self, x: &[f64], c: u32, project: bool) -> V3 {
+        let b = 3 * c as usize;
+        let v = V3::new(x[b], x[b + 1], x[b + 2]);
+        match self.slot[c as usize] {
+            s if project && s != FREE => self.constrained[s as usize].1 * v,
+            _ => v,
+        }
+    }
+
+    /// The lanes of a batch with constrained corners, projected (the rare, slow path).
+    #[inline(never)]
+    fn gather_projected(
+        &self,
+        x: &[f64],
+        corners: &[&[u32; 8]; LANES],
+        ids: &[u32; LANES],
+        u: &mut [LaneV3; 8],
+    ) {
+        let project = ids.map(|e| self.touches_constraint[e as usize]);
+        for (n, un) in u.iter_mut().enumerate() {
+            // Whole lane vectors, not single lanes: see `gather`.
+            let p = [
+                self.projected_input(x, corners[0][n], project[0]),
+                self.projected_input(x, corners[1][n], project[1]),
+                self.projected_input(x, corners[2][n], project[2]),
+                self.projected_input(x, corners[3][n], project[3]),
+            ];
+            for (i, v) in un.iter_mut().enumerate() {
+                *v = Lanes([p[0][i], p[1][i], p[2][i], p[3][i]]);
+            }
+        }
+    }
+
+    /// Π v for node `n` (v itself when the node is free).
+    #[inline]
+    fn project_node(&self, n: usize, v: V3) -> V3 {
+        match self.slot.get(n) {
+            Some(&s) if s != FREE => self.constrained[s as usize].1 * v,
+            _ => v,
         }
     }
 
@@ -223,8 +843,16 @@ impl Level {
             .for_each(|((z, r), d)| *z = d * r);
     }
 
-    /// Chebyshev iteration on D⁻¹A over [λmax/ratio, 1.1·λmax], improving x for A·x = b.
-    fn smooth(&self, b: &[f64], x: &mut [f64], degree: usize, scratch: &mut [Vec<f64>]) {
+    /// Chebyshev iteration on D⁻¹A over [λmax/ratio, 1.1·λmax], improving x for A·x = b;
+    /// `x_is_zero` skips the first product (A·0 = 0 exactly).
+    fn smooth(
+        &self,
+        b: &[f64],
+        x: &mut [f64],
+        x_is_zero: bool,
+        degree: usize,
+        scratch: &mut [Vec<f64>],
+    ) {
         // Interval measured on pressurised blocks: degree 4 over [λmax/30, 1.1·λmax] needed the
         // fewest fine-level products per digit of residual.
         let (upper, lower) = (1.1 * self.lambda_max, self.lambda_max / 30.0);
@@ -234,27 +862,67 @@ impl Level {
         let [r, z, d, ..] = scratch else {
             unreachable!()
         };
-        self.apply(x, r);
-        r.iter_mut().zip(b).for_each(|(r, b)| *r = b - *r);
-        self.jacobi(r, z);
-        d.iter_mut().zip(z.iter()).for_each(|(d, z)| *d = z / theta);
+        if x_is_zero {
+            r.fill(0.0);
+        } else {
+            self.apply(x, r);
+        }
+        if degree == 0 {
+            return;
+        }
+        // One pass per step over all vectors (r ← b − r, z ← D⁻¹r, d, x ← x + d) instead of
+        // one per operation: the same arithmetic, a quarter of the memory traffic.
+        self.sweep(b, r, d, x, |dinv, b, r, d, x| {
+            *r = b - *r;
+            *d = (dinv * *r) / theta;
+            *x += *d;
+        });
         let mut rho = 1.0 / sigma;
-        for k in 0..degree {
-            x.iter_mut().zip(d.iter()).for_each(|(x, d)| *x += d);
-            if k + 1 == degree {
-                break;
-            }
+        for _ in 1..degree {
             self.apply(d, z);
-            r.iter_mut().zip(z.iter()).for_each(|(r, z)| *r -= z);
-            self.jacobi(r, z);
             let rho_new = 1.0 / (2.0 * sigma - rho);
-            d.iter_mut()
-                .zip(z.iter())
-                .for_each(|(d, z)| *d = rho_new * rho * *d + 2.0 * rho_new / delta * z);
+            let (keep, gain) = (rho_new * rho, 2.0 * rho_new / delta);
+            self.sweep(z, r, d, x, |dinv, z, r, d, x| {
+                *r -= z;
+                *d = *d * keep + (dinv * *r) * gain;
+                *x += *d;
+            });
             rho = rho_new;
         }
     }
+
+    /// Runs `f(D⁻¹ block, s, r, d, x)` node by node, in parallel on long levels.
+    fn sweep<F>(&self, s: &[f64], r: &mut [f64], d: &mut [f64], x: &mut [f64], f: F)
+    where
+        F: Fn(&Matrix3<f64>, V3, &mut V3, &mut V3, &mut V3) + Sync,
+    {
+        let run = |s: &[V3], r: &mut [V3], d: &mut [V3], x: &mut [V3], dinv: &[Matrix3<f64>]| {
+            for ((s, r), (d, (x, dinv))) in s
+                .iter()
+                .zip(r)
+                .zip(d.iter_mut().zip(x.iter_mut().zip(dinv)))
+            {
+                f(dinv, *s, r, d, x);
+            }
+        };
+        let (s, r, d, x) = (nodes(s), nodes_mut(r), nodes_mut(d), nodes_mut(x));
+        let dinv = &self.diag_inv[..];
+        if self.n_nodes >= SWEEP_PARALLEL_NODES && rayon::current_num_threads() > 1 {
+            s.par_chunks(NODE_TASK)
+                .zip(r.par_chunks_mut(NODE_TASK))
+                .zip(
+                    d.par_chunks_mut(NODE_TASK)
+                        .zip(x.par_chunks_mut(NODE_TASK).zip(dinv.par_chunks(NODE_TASK))),
+                )
+                .for_each(|((s, r), (d, (x, dinv)))| run(s, r, d, x, dinv));
+        } else {
+            run(s, r, d, x, dinv);
+        }
+    }
 }
+
+/// Levels with at least this many nodes sweep their vectors in parallel.
+const SWEEP_PARALLEL_NODES: usize = 4 * NODE_TASK;
 
 /// Dense LU of the coarsest level, with a tiny diagonal lift so a singular operator
 /// (a mechanism) still factors; the outer Krylov method absorbs the difference.
@@ -292,7 +960,19 @@ const COARSEST_NODES: usize = 150;
 impl Multigrid {
     /// Builds the hierarchy; `projector[n]` is the constraint projection of node n (None = free).
     pub fn new(mesh: &HexMesh, lattice: &Lattice, projector: Vec<Option<Matrix3<f64>>>) -> Self {
-        let class_k: Vec<M24> = mesh.classes.iter().map(|c| c.linear_stiffness()).collect();
+        // Element matrices are in the element frame; the products work in world coordinates,
+        // so rotate them by the lattice axes (R·K·Rᵀ per corner block) for the diagonal, the
+        // Galerkin products and the coarse solve to describe the same operator.
+        let mut r24 = M24::zeros();
+        for n in 0..8 {
+            r24.fixed_view_mut::<3, 3>(3 * n, 3 * n)
+                .copy_from(&lattice.axes);
+        }
+        let class_k: Vec<M24> = mesh
+            .classes
+            .iter()
+            .map(|c| r24 * c.linear_stiffness() * r24.transpose())
+            .collect();
         let mut fine = Level {
             n_nodes: mesh.node_count(),
             elements: mesh.elements.clone(),
@@ -303,10 +983,15 @@ impl Multigrid {
                 .iter()
                 .map(|c| LinearSprings::new(c, &lattice.axes))
                 .collect(),
+            lane_springs: Vec::new(),
+            rotation: None,
             colors: mesh.colors.clone(),
+            schedule: None,
             constrained: sparse(&projector),
             projector,
-            scratch: Default::default(),
+            slot: Vec::new(),
+            touches_constraint: Vec::new(),
+            row_quad: Vec::new(),
             diag_inv: Vec::new(),
             diag: Vec::new(),
             mass: mesh.node_mass_kg.clone(),
@@ -410,20 +1095,18 @@ impl Multigrid {
         }
         let mut scratch = std::mem::take(&mut self.scratch[l]);
         let level = &self.levels[l];
-        level.smooth(b, x, self.degree, &mut scratch[..3]);
-        // Residual, restricted.
+        level.smooth(b, x, true, self.degree, &mut scratch[..3]);
+        // Residual, projected and restricted in one pass. The coarse right-hand side and
+        // solution live in the coarse level's spare scratch vectors (no allocation per cycle).
         let r = &mut scratch[0];
         level.apply(x, r);
-        r.iter_mut().zip(b).for_each(|(r, b)| *r = b - *r);
-        if !level.constrained.is_empty() {
-            level.project(r);
-        }
-        let nc = self.levels[l + 1].n_nodes;
-        let mut rc = vec![0.0; 3 * nc];
+        let mut rc = std::mem::take(&mut self.scratch[l + 1][3]);
+        let mut xc = std::mem::take(&mut self.scratch[l + 1][5]);
+        rc.fill(0.0);
         {
-            let rcn = nodes_mut(&mut rc);
+            let (rcn, rn, bn) = (nodes_mut(&mut rc), nodes(r), nodes(b));
             for (n, row) in level.prolong.iter().enumerate() {
-                let rn = V3::new(r[3 * n], r[3 * n + 1], r[3 * n + 2]);
+                let rn = level.project_node(n, bn[n] - rn[n]);
                 for &(c, w) in row {
                     if w != 0.0 {
                         rcn[c as usize] += rn * w;
@@ -431,31 +1114,67 @@ impl Multigrid {
                 }
             }
         }
-        let mut xc = vec![0.0; 3 * nc];
         self.vcycle(l + 1, &rc, &mut xc);
         let level = &self.levels[l];
         {
+            // Prolongation, projection and correction in one parallel pass.
             let xcn = nodes(&xc);
-            let corr = &mut scratch[4];
-            let cn = nodes_mut(corr);
-            cn.par_iter_mut()
-                .zip(level.prolong.par_iter())
-                .for_each(|(c, row)| {
-                    *c = row.iter().map(|&(i, w)| xcn[i as usize] * w).sum();
+            let xn = nodes_mut(x);
+            xn.par_chunks_mut(NODE_TASK)
+                .zip(level.prolong.par_chunks(NODE_TASK))
+                .enumerate()
+                .for_each(|(t, (x, rows))| {
+                    for (i, (x, row)) in x.iter_mut().zip(rows).enumerate() {
+                        let c: V3 = row.iter().map(|&(i, w)| xcn[i as usize] * w).sum();
+                        *x += level.project_node(t * NODE_TASK + i, c);
+                    }
                 });
-            if !level.constrained.is_empty() {
-                level.project(corr);
-            }
-            x.iter_mut().zip(corr.iter()).for_each(|(x, c)| *x += c);
         }
-        level.smooth(b, x, self.degree, &mut scratch[..3]);
+        self.scratch[l + 1][3] = rc;
+        self.scratch[l + 1][5] = xc;
+        level.smooth(b, x, false, self.degree, &mut scratch[..3]);
         self.scratch[l] = scratch;
     }
 }
 
 impl Level {
+    /// Derives the product's lookup tables (lane kernels, constraint slots, scatter schedule)
+    /// from the level's elements, springs and constraints.
+    fn plan(&mut self) {
+        self.lane_springs = self.springs.iter().map(LaneSprings::splat).collect();
+        self.rotation = self
+            .springs
+            .first()
+            .and_then(|s| s.to_lattice)
+            .map(|r| std::array::from_fn(|i| Lanes::splat(r[(i / 3, i % 3)])));
+        if self.constrained.is_empty() {
+            self.slot = Vec::new();
+            self.touches_constraint = Vec::new();
+        } else {
+            self.slot = vec![FREE; self.n_nodes];
+            for (i, (n, _)) in self.constrained.iter().enumerate() {
+                self.slot[*n as usize] = i as u32;
+            }
+            self.touches_constraint = self
+                .elements
+                .iter()
+                .map(|cs| cs.iter().any(|&c| self.slot[c as usize] != FREE))
+                .collect();
+        }
+        self.schedule = ChunkSchedule::new(&self.elements, self.n_nodes);
+        self.row_quad = self
+            .elements
+            .chunks_exact(LANES)
+            .map(|q| {
+                q.windows(2)
+                    .all(|p| ROW_LINES.iter().all(|&(a, b)| p[0][b] == p[1][a]))
+            })
+            .collect();
+    }
+
     /// Diagonal blocks, their inverses and the spectral radius of D⁻¹A (power iteration).
     fn finish(&mut self) {
+        self.plan();
         let mut diag = vec![Matrix3::zeros(); self.n_nodes];
         for (e, corners) in self.elements.iter().enumerate() {
             let k = &self.matrices[self.matrix_of[e] as usize];
@@ -572,6 +1291,7 @@ struct LinearSprings {
 }
 
 /// Edge springs (a, b, axis) and diagonals (a, b) of the element, as in `element::SPRINGS`.
+#[cfg(test)]
 const EDGES: [(usize, usize, usize); 12] = [
     (0, 1, 0),
     (3, 2, 0),
@@ -605,8 +1325,9 @@ impl LinearSprings {
         }
     }
 
-    /// K·u for the 8 corner displacements u (K = −∂force/∂u), world frame in and out.
-    #[inline]
+    /// K·u for the 8 corner displacements u (K = −∂force/∂u), world frame in and out: the
+    /// one-element reference for [`LaneSprings::apply`].
+    #[cfg(test)]
     fn apply(&self, u_world: &[V3; 8]) -> [V3; 8] {
         let u = match &self.to_lattice {
             Some(r) => u_world.map(|v| r * v),
@@ -639,6 +1360,126 @@ impl LinearSprings {
         match &self.to_lattice {
             Some(r) => f.map(|v| r.transpose() * v),
             None => f,
+        }
+    }
+}
+
+/// [`LinearSprings`] replicated across lanes (or gathered, for batches mixing classes).
+#[derive(Debug, Clone)]
+struct LaneSprings {
+    edge_k: [Lanes; 3],
+    diag_k: Lanes,
+    diag_dir: [LaneV3; 4],
+    /// Row-major correction map W.
+    correction_map: [Lanes; 9],
+}
+
+impl LaneSprings {
+    fn splat(s: &LinearSprings) -> Self {
+        LaneSprings {
+            edge_k: s.edge_k.map(Lanes::splat),
+            diag_k: Lanes::splat(s.diag_k),
+            diag_dir: s.diag_dir.map(|d| [d.x, d.y, d.z].map(Lanes::splat)),
+            correction_map: std::array::from_fn(|r| Lanes::splat(s.correction_map[(r / 3, r % 3)])),
+        }
+    }
+
+    /// Lane `l` taken from `kernels[classes[l]]`.
+    fn gather(kernels: &[LaneSprings], classes: &[u32; LANES]) -> Self {
+        let pick = |get: &dyn Fn(&LaneSprings) -> Lanes| {
+            Lanes(std::array::from_fn(|l| {
+                get(&kernels[classes[l] as usize]).0[l]
+            }))
+        };
+        LaneSprings {
+            edge_k: std::array::from_fn(|i| pick(&|k| k.edge_k[i])),
+            diag_k: pick(&|k| k.diag_k),
+            diag_dir: std::array::from_fn(|d| std::array::from_fn(|i| pick(&|k| k.diag_dir[d][i]))),
+            correction_map: std::array::from_fn(|r| pick(&|k| k.correction_map[r])),
+        }
+    }
+
+    /// `LinearSprings::apply` on [`LANES`] elements at once (`rotation`: world → lattice,
+    /// row-major). Same operations in the same order, except that the axial resultants are
+    /// summed before the exact scaling by −½, which leaves them bit-for-bit unchanged.
+    /// `u` (world frame) is rotated in place; `f` is overwritten.
+    #[inline(always)]
+    fn apply(&self, rotation: Option<&[Lanes; 9]>, u: &mut [LaneV3; 8], f: &mut [LaneV3; 8]) {
+        if let Some(r) = rotation {
+            for v in u.iter_mut() {
+                *v = mat_vec(r, v);
+            }
+        }
+        // The `EDGES` table spelled out with constant indices (a loop over the table indexes
+        // memory). Every corner has exactly one edge along each axis, so the edges initialise
+        // all of `f` (0 + t and 0 − t, as the accumulating form computes them).
+        macro_rules! edge {
+            ($(($a:literal, $b:literal, $i:literal)),*) => {$(
+                let t = self.edge_k[$i] * (u[$b][$i] - u[$a][$i]);
+                f[$a][$i] = Lanes::ZERO + t;
+                f[$b][$i] = Lanes::ZERO - t;
+            )*};
+        }
+        edge!(
+            (0, 1, 0),
+            (3, 2, 0),
+            (4, 5, 0),
+            (7, 6, 0),
+            (0, 3, 1),
+            (1, 2, 1),
+            (4, 7, 1),
+            (5, 6, 1),
+            (0, 4, 2),
+            (1, 5, 2),
+            (2, 6, 2),
+            (3, 7, 2)
+        );
+        macro_rules! diagonal {
+            ($(($d:literal, $a:literal, $b:literal)),*) => {$(
+                let d = &self.diag_dir[$d];
+                let du: LaneV3 = [
+                    u[$b][0] - u[$a][0],
+                    u[$b][1] - u[$a][1],
+                    u[$b][2] - u[$a][2],
+                ];
+                let s = self.diag_k * (d[0] * du[0] + d[1] * du[1] + d[2] * du[2]);
+                for i in 0..3 {
+                    let t = d[i] * s;
+                    f[$a][i] = f[$a][i] + t;
+                    f[$b][i] = f[$b][i] - t;
+                }
+            )*};
+        }
+        diagonal!((0, 0, 6), (1, 1, 7), (2, 2, 4), (3, 3, 5));
+        // axial_i = −½ Σ_n s_n,i f_n,i (scaling by ±½ is exact, so it can come last).
+        let mut g = [Lanes::ZERO; 3];
+        for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+            for i in 0..3 {
+                g[i] = if signs[i] > 0.0 {
+                    g[i] + f[n][i]
+                } else {
+                    g[i] - f[n][i]
+                };
+            }
+        }
+        let half = Lanes::splat(-0.5);
+        let axial = [half * g[0], half * g[1], half * g[2]];
+        let w = mat_vec(&self.correction_map, &axial);
+        // f ← −(f + s·w), written as (−f) ∓ w: negation is exact.
+        for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+            for i in 0..3 {
+                let neg = Lanes::ZERO - f[n][i];
+                f[n][i] = if signs[i] > 0.0 {
+                    neg - w[i]
+                } else {
+                    neg + w[i]
+                };
+            }
+        }
+        if let Some(r) = rotation {
+            for v in f.iter_mut() {
+                *v = mat_t_vec(r, v);
+            }
         }
     }
 }
@@ -729,29 +1570,38 @@ fn coarsen(
             row
         })
         .collect();
-    // Galerkin coarse element matrices.
-    let constrained = |e: usize| {
-        fine.elements[e]
-            .iter()
-            .any(|&n| fine.projector.get(n as usize).copied().flatten().is_some())
-    };
-    // Coarse cells whose children are unconstrained and share matrices are identical (all the
-    // interior of a lung): compute their product once and share it.
-    let mut by_children: HashMap<Vec<(usize, u32)>, u32> = HashMap::new();
+    // Galerkin coarse element matrices. A coarse cell's matrix depends only on its children's
+    // offsets, classes and corner projectors; cells agreeing on all three (the interior, and
+    // runs along flat constrained faces) share one computed matrix, which keeps the level's
+    // matrices few enough to stay in cache during products.
+    let mut projector_id: HashMap<[u64; 9], u32> = HashMap::new();
+    let node_projector: Vec<u32> = fine
+        .projector
+        .iter()
+        .map(|p| match p {
+            None => 0,
+            Some(p) => {
+                let bits: [u64; 9] = std::array::from_fn(|i| p.as_slice()[i].to_bits());
+                let next = projector_id.len() as u32 + 1;
+                *projector_id.entry(bits).or_insert(next)
+            }
+        })
+        .collect();
+    let mut by_children: HashMap<Vec<(usize, u32, [u32; 8])>, u32> = HashMap::new();
     let mut matrices: Vec<M24> = Vec::new();
     let mut matrix_of: Vec<u32> = Vec::with_capacity(children.len());
     for kids in &children {
-        let key: Option<Vec<(usize, u32)>> = if kids.iter().any(|&(e, _)| constrained(e as usize)) {
-            None
-        } else {
-            let mut k: Vec<(usize, u32)> = kids
-                .iter()
-                .map(|&(e, o)| (o, fine.matrix_of[e as usize]))
-                .collect();
-            k.sort_unstable();
-            Some(k)
-        };
-        if let Some(&m) = key.as_ref().and_then(|k| by_children.get(k)) {
+        let mut key: Vec<(usize, u32, [u32; 8])> = kids
+            .iter()
+            .map(|&(e, o)| {
+                let e = e as usize;
+                let p =
+                    fine.elements[e].map(|n| node_projector.get(n as usize).copied().unwrap_or(0));
+                (o, fine.matrix_of[e], p)
+            })
+            .collect();
+        key.sort_unstable();
+        if let Some(&m) = by_children.get(&key) {
             matrix_of.push(m);
             continue;
         }
@@ -770,9 +1620,7 @@ fn coarsen(
         }
         matrices.push(kc);
         let m = (matrices.len() - 1) as u32;
-        if let Some(k) = key {
-            by_children.insert(k, m);
-        }
+        by_children.insert(key, m);
         matrix_of.push(m);
     }
     let n_c = c_nodes.len();
@@ -783,10 +1631,15 @@ fn coarsen(
         elements: c_elements,
         matrices,
         springs: Vec::new(),
+        lane_springs: Vec::new(),
+        rotation: None,
         colors,
+        schedule: None,
         projector: vec![None; n_c],
         constrained: Vec::new(),
-        scratch: Default::default(),
+        slot: Vec::new(),
+        touches_constraint: Vec::new(),
+        row_quad: Vec::new(),
         diag: Vec::new(),
         mass: {
             let mut m = vec![0.0; n_c];
@@ -871,6 +1724,164 @@ mod tests {
                         got[n][i],
                         want[3 * n + i]
                     );
+                }
+            }
+        }
+    }
+
+    /// A lung-like irregular lattice: an ellipsoid with holes, two element classes on
+    /// non-cubic bricks, and plane, line and fixed constraints on scattered nodes.
+    fn irregular_multigrid(axes: Matrix3<f64>) -> Multigrid {
+        let cells = [26, 22, 18];
+        let mut active = Vec::new();
+        for k in 0..cells[2] {
+            for j in 0..cells[1] {
+                for i in 0..cells[0] {
+                    let r: f64 = [i, j, k]
+                        .iter()
+                        .zip(&cells)
+                        .map(|(&c, &n)| ((c as f64 + 0.5) / n as f64 * 2.0 - 1.0).powi(2))
+                        .sum();
+                    active.push(r < 1.25 && (i * 7 + j * 3 + k) % 11 != 0);
+                }
+            }
+        }
+        let grid = crate::model::VoxelGrid {
+            cells,
+            cell_size_m: [0.004, 0.005, 0.0045],
+            origin_m: V3::new(0.01, -0.02, 0.03),
+            axes,
+            active,
+        };
+        let mut mesh = grid.to_mesh(Material::LUNG).unwrap().mesh;
+        assert!(
+            mesh.element_count() >= PARALLEL_MIN_ELEMENTS,
+            "exercise the parallel path"
+        );
+        let shape = mesh.classes[0].shape;
+        mesh.classes.push(
+            BrickCoefficients::new(shape, Material::new(2500.0, 0.35, 1.0).unwrap()).unwrap(),
+        );
+        for (e, class) in mesh.element_class.iter_mut().enumerate() {
+            *class = ((e * 7919) % 5 == 0) as u32;
+        }
+        let lattice = Lattice::infer(&mesh).unwrap();
+        let d = V3::new(1.0, 2.0, 0.5).normalize();
+        let normal = axes.column(2).into_owned();
+        let projector = lattice
+            .node
+            .iter()
+            .map(|l| match l {
+                [_, _, 0] => Some(Matrix3::identity() - normal * normal.transpose()),
+                [3, _, _] => Some(d * d.transpose()),
+                [i, j, 1] if (i + j) % 17 == 0 => Some(Matrix3::zeros()),
+                _ => None,
+            })
+            .collect();
+        let mut mg = Multigrid::new(&mesh, &lattice, projector);
+        let fine = &mg.levels[0];
+        mg.set_shift(0.3 * fine.diag[0].norm() / fine.mass[0]);
+        mg
+    }
+
+    /// The straightforward product: one element at a time, serially, input projected into a
+    /// copy, then shift, output projection and identity on the constrained directions.
+    fn reference_apply(level: &Level, x: &[f64]) -> Vec<f64> {
+        let mut xs = x.to_vec();
+        project_flat(&level.constrained, &mut xs);
+        let mut y = vec![0.0; x.len()];
+        for (e, corners) in level.elements.iter().enumerate() {
+            let m = level.matrix_of[e] as usize;
+            let ue =
+                corners.map(|n| V3::from_column_slice(&xs[3 * n as usize..3 * n as usize + 3]));
+            let ye: Vec<V3> = match level.springs.get(m) {
+                Some(op) => op.apply(&ue).to_vec(),
+                None => {
+                    let flat = SMatrix::<f64, 24, 1>::from_iterator(ue.iter().flatten().copied());
+                    let f = level.matrices[m] * flat;
+                    (0..8)
+                        .map(|c| f.fixed_rows::<3>(3 * c).into_owned())
+                        .collect()
+                }
+            };
+            for (&n, f) in corners.iter().zip(&ye) {
+                let n = 3 * n as usize;
+                y[n..n + 3]
+                    .iter_mut()
+                    .zip(f.iter())
+                    .for_each(|(y, f)| *y += f);
+            }
+        }
+        for (n, m) in level.mass.iter().enumerate() {
+            for i in 0..3 {
+                y[3 * n + i] += level.shift * m * xs[3 * n + i];
+            }
+        }
+        project_flat(&level.constrained, &mut y);
+        for (n, p) in &level.constrained {
+            let n = 3 * *n as usize;
+            let xn = V3::from_column_slice(&x[n..n + 3]);
+            let add = xn - p * xn;
+            y[n..n + 3]
+                .iter_mut()
+                .zip(add.iter())
+                .for_each(|(y, a)| *y += a);
+        }
+        y
+    }
+
+    #[test]
+    fn batched_products_equal_the_per_element_product() {
+        let rotated = *Rotation3::from_euler_angles(0.2, 0.5, -0.3).matrix();
+        for axes in [Matrix3::identity(), rotated] {
+            let mut mg = irregular_multigrid(axes);
+            assert!(!mg.levels[0].constrained.is_empty());
+            assert!(mg.levels[0].schedule.is_some());
+            assert!(mg.levels[0].row_quad.iter().any(|&r| r));
+            for variant in ["chunks", "colours", "dense fine level"] {
+                match variant {
+                    // The element-colour path, used when the numbering lacks locality.
+                    "colours" => mg.levels.iter_mut().for_each(|l| l.schedule = None),
+                    // Dense cell products with constrained corners and mixed matrices.
+                    "dense fine level" => {
+                        mg.levels[0].springs.clear();
+                        mg.levels[0].plan();
+                    }
+                    _ => {}
+                }
+                for (l, level) in mg.levels.iter().enumerate() {
+                    let x: Vec<f64> = (0..3 * level.n_nodes)
+                        .map(|i| (0.37 * i as f64).sin() + 0.1)
+                        .collect();
+                    let want = reference_apply(level, &x);
+                    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                    let mut first: Option<Vec<f64>> = None;
+                    for threads in [1, 2] {
+                        let pool = rayon::ThreadPoolBuilder::new()
+                            .num_threads(threads)
+                            .build()
+                            .unwrap();
+                        for simd in [true, false] {
+                            let mut y = vec![f64::NAN; x.len()];
+                            pool.install(|| level.apply_with(&x, &mut y, simd));
+                            let err = y
+                                .iter()
+                                .zip(&want)
+                                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                            assert!(
+                                err <= 1e-12 * scale,
+                                "level {l}, {threads} threads, simd {simd}, {variant}: \
+                                 error {err:e} of {scale:e}"
+                            );
+                            if simd {
+                                // Same chunks in the same order on any number of threads.
+                                match &first {
+                                    None => first = Some(y),
+                                    Some(f) => assert_eq!(f, &y, "level {l} thread-dependent"),
+                                }
+                            }
+                        }
+                    }
                 }
             }
         }
