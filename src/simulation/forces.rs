@@ -16,11 +16,10 @@
 //! mesh's element colouring. The schedule depends only on the mesh, and chunks run in the same
 //! order on any number of threads, so results are bit-for-bit independent of the thread count.
 
-use std::ops::{Add, Div, Mul, Neg, Sub};
-
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
+use super::lanes::{add3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
 use crate::model::HexMesh;
 
@@ -94,93 +93,7 @@ impl ElementKernel {
     }
 }
 
-/// Elements evaluated together, one per SIMD lane (4 × f64 fills an AVX2 register).
-pub const LANES: usize = 4;
-
-/// One f64 per lane; plain arrays so that LLVM vectorises every operation.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[repr(align(32))]
-struct Lanes([f64; LANES]);
-
-impl Lanes {
-    const ZERO: Lanes = Lanes([0.0; LANES]);
-
-    #[inline(always)]
-    fn splat(v: f64) -> Self {
-        Lanes([v; LANES])
-    }
-
-    #[inline(always)]
-    fn sqrt(self) -> Self {
-        let mut r = self;
-        for v in &mut r.0 {
-            *v = v.sqrt();
-        }
-        r
-    }
-}
-
-macro_rules! lane_op {
-    ($trait:ident, $method:ident, $op:tt) => {
-        impl $trait for Lanes {
-            type Output = Lanes;
-            #[inline(always)]
-            fn $method(self, rhs: Lanes) -> Lanes {
-                let mut r = self;
-                for i in 0..LANES {
-                    r.0[i] = self.0[i] $op rhs.0[i];
-                }
-                r
-            }
-        }
-    };
-}
-lane_op!(Add, add, +);
-lane_op!(Sub, sub, -);
-lane_op!(Mul, mul, *);
-lane_op!(Div, div, /);
-
-impl Neg for Lanes {
-    type Output = Lanes;
-    #[inline(always)]
-    fn neg(self) -> Lanes {
-        let mut r = self;
-        for v in &mut r.0 {
-            *v = -*v;
-        }
-        r
-    }
-}
-
-/// A 3-vector per lane.
-type LaneV3 = [Lanes; 3];
-
-#[inline(always)]
-fn sub3(a: &LaneV3, b: &LaneV3) -> LaneV3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline(always)]
-fn add3(a: &LaneV3, b: &LaneV3) -> LaneV3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-#[inline(always)]
-fn scale3(a: &LaneV3, s: Lanes) -> LaneV3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-#[inline(always)]
-fn dot3(a: &LaneV3, b: &LaneV3) -> Lanes {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// `a / |a|` as nalgebra's `normalize` computes it (norm, then one division per component).
-#[inline(always)]
-fn normalize3(a: &LaneV3) -> LaneV3 {
-    let n = dot3(a, a).sqrt();
-    [a[0] / n, a[1] / n, a[2] / n]
-}
+pub use super::lanes::LANES;
 
 /// An [`ElementKernel`] replicated across lanes (or gathered, for batches mixing classes).
 #[derive(Debug, Clone)]
@@ -387,44 +300,6 @@ fn run_elements<const DAMP: bool, E: ElementSource, S: Sink>(
                 sink.add(c, V3::new(f[n][0].0[l], f[n][1].0[l], f[n][2].0[l]));
             }
         }
-    }
-}
-
-/// A source of element indices handed out [`LANES`] at a time.
-trait ElementSource {
-    /// Fills `ids` with the next batch (the last one padded by repeating its last element)
-    /// and returns how many are real, or `None` when exhausted.
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize>;
-}
-
-impl ElementSource for std::ops::Range<u32> {
-    #[inline(always)]
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
-        if self.start >= self.end {
-            return None;
-        }
-        let count = ((self.end - self.start) as usize).min(LANES);
-        for (l, id) in ids.iter_mut().enumerate() {
-            *id = self.start + l.min(count - 1) as u32;
-        }
-        self.start += count as u32;
-        Some(count)
-    }
-}
-
-impl ElementSource for std::slice::Iter<'_, u32> {
-    #[inline(always)]
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
-        let rest = self.as_slice();
-        if rest.is_empty() {
-            return None;
-        }
-        let count = rest.len().min(LANES);
-        for (l, id) in ids.iter_mut().enumerate() {
-            *id = rest[l.min(count - 1)];
-        }
-        *self = rest[count..].iter();
-        Some(count)
     }
 }
 

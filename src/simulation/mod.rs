@@ -2,6 +2,7 @@
 
 pub mod explicit;
 pub mod forces;
+mod lanes;
 pub mod linalg;
 pub mod multigrid;
 pub mod quasistatic;

@@ -24,12 +24,12 @@
 //! neighbouring cells may have different matrices.
 
 use std::collections::HashMap;
-use std::ops::{Add, Mul, Sub};
 
 use nalgebra::{DMatrix, Matrix3, SMatrix, Vector3};
 use rayon::prelude::*;
 
 use super::forces::{ChunkSchedule, PARALLEL_MIN_ELEMENTS};
+use super::lanes::{ElementSource, LaneV3, Lanes, LANES};
 use super::linalg::{nodes, nodes_mut};
 use crate::model::element::CORNER_SIGNS;
 use crate::model::HexMesh;
@@ -144,45 +144,6 @@ struct Level {
 /// `slot` of an unconstrained node.
 const FREE: u32 = u32::MAX;
 
-/// Elements evaluated together, one per SIMD lane (4 × f64 fills an AVX2 register).
-const LANES: usize = 4;
-
-/// One f64 per lane; plain arrays so that LLVM vectorises every operation.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[repr(C, align(32))]
-struct Lanes([f64; LANES]);
-
-impl Lanes {
-    const ZERO: Lanes = Lanes([0.0; LANES]);
-
-    #[inline(always)]
-    fn splat(v: f64) -> Self {
-        Lanes([v; LANES])
-    }
-}
-
-macro_rules! lane_op {
-    ($trait:ident, $method:ident, $op:tt) => {
-        impl $trait for Lanes {
-            type Output = Lanes;
-            #[inline(always)]
-            fn $method(self, rhs: Lanes) -> Lanes {
-                let mut r = self;
-                for i in 0..LANES {
-                    r.0[i] = self.0[i] $op rhs.0[i];
-                }
-                r
-            }
-        }
-    };
-}
-lane_op!(Add, add, +);
-lane_op!(Sub, sub, -);
-lane_op!(Mul, mul, *);
-
-/// A 3-vector per lane.
-type LaneV3 = [Lanes; 3];
-
 /// Row-major 3 × 3 matrix times a lane vector, summed left to right like nalgebra's product.
 #[inline(always)]
 fn mat_vec(m: &[Lanes; 9], v: &LaneV3) -> LaneV3 {
@@ -231,44 +192,6 @@ impl Sink for Shared {
         // SAFETY: in bounds (checked above); no other thread touches this node while the
         // colour is processed (the element colouring guarantees it).
         unsafe { &mut *(self.0.add(b) as *mut [f64; 3]) }
-    }
-}
-
-/// A source of element indices handed out [`LANES`] at a time.
-trait ElementSource {
-    /// Fills `ids` with the next batch (the last one padded by repeating its last element)
-    /// and returns how many are real, or `None` when exhausted.
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize>;
-}
-
-impl ElementSource for std::ops::Range<u32> {
-    #[inline(always)]
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
-        if self.start >= self.end {
-            return None;
-        }
-        let count = ((self.end - self.start) as usize).min(LANES);
-        for (l, id) in ids.iter_mut().enumerate() {
-            *id = self.start + l.min(count - 1) as u32;
-        }
-        self.start += count as u32;
-        Some(count)
-    }
-}
-
-impl ElementSource for std::slice::Iter<'_, u32> {
-    #[inline(always)]
-    fn next_batch(&mut self, ids: &mut [u32; LANES]) -> Option<usize> {
-        let rest = self.as_slice();
-        if rest.is_empty() {
-            return None;
-        }
-        let count = rest.len().min(LANES);
-        for (l, id) in ids.iter_mut().enumerate() {
-            *id = rest[l.min(count - 1)];
-        }
-        *self = rest[count..].iter();
-        Some(count)
     }
 }
 
@@ -360,7 +283,8 @@ fn dense_lanes(k: impl Fn(usize) -> Lanes, u: &[LaneV3; 8], f: &mut [LaneV3; 8])
 /// AVX2 forms of the batch gather and scatter (node triples ↔ lane vectors by shuffles).
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::{LaneV3, Lanes, Sink, LANES};
+    use super::super::lanes::{LaneV3, Lanes, LANES};
+    use super::Sink;
     use std::arch::x86_64::*;
 
     #[inline(always)]
