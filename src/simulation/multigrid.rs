@@ -1214,23 +1214,16 @@ struct LinearSprings {
     correction_map: Matrix3<f64>,
 }
 
-/// Edge springs (a, b, axis) and diagonals (a, b) of the element, as in `element::SPRINGS`.
-#[cfg(test)]
-const EDGES: [(usize, usize, usize); 12] = [
-    (0, 1, 0),
-    (3, 2, 0),
-    (4, 5, 0),
-    (7, 6, 0),
-    (0, 3, 1),
-    (1, 2, 1),
-    (4, 7, 1),
-    (5, 6, 1),
-    (0, 4, 2),
-    (1, 5, 2),
-    (2, 6, 2),
-    (3, 7, 2),
-];
-const DIAGONALS: [(usize, usize); 4] = [(0, 6), (1, 7), (2, 4), (3, 5)];
+/// Body diagonals (a, b) of the element: the last four of `element::SPRINGS`.
+const DIAGONALS: [(usize, usize); 4] = {
+    let s = &crate::model::element::SPRINGS;
+    [
+        (s[12].0, s[12].1),
+        (s[13].0, s[13].1),
+        (s[14].0, s[14].1),
+        (s[15].0, s[15].1),
+    ]
+};
 
 impl LinearSprings {
     fn new(c: &crate::model::BrickCoefficients, axes: &Matrix3<f64>) -> Self {
@@ -1259,7 +1252,10 @@ impl LinearSprings {
         };
         // Spring forces of displacement u, lattice frame.
         let mut f = [V3::zeros(); 8];
-        for &(a, b, i) in &EDGES {
+        for &(a, b, kind) in &crate::model::element::SPRINGS {
+            let crate::model::element::SpringKind::Edge(i) = kind else {
+                continue;
+            };
             let t = self.edge_k[i] * (u[b][i] - u[a][i]);
             f[a][i] += t;
             f[b][i] -= t;
@@ -1334,7 +1330,7 @@ impl LaneSprings {
                 *v = mat_vec(r, v);
             }
         }
-        // The `EDGES` table spelled out with constant indices (a loop over the table indexes
+        // `element::SPRINGS`' edges spelled out with constant indices (a loop over the table indexes
         // memory). Every corner has exactly one edge along each axis, so the edges initialise
         // all of `f` (0 + t and 0 − t, as the accumulating form computes them).
         macro_rules! edge {
