@@ -203,6 +203,24 @@ impl ConstraintSet {
                 rest_positions_m.len()
             )));
         }
+        for (node, c) in &self.entries {
+            if let NodeConstraint::Surface { field } = c {
+                let f = &self.fields[*field as usize];
+                let p = rest_positions_m[*node as usize];
+                let outside = (0..3).any(|a| {
+                    let extent = f.spacing_m[a] * (f.samples[a] - 1) as f64;
+                    let t = p[a] - f.origin_m[a];
+                    t < -1e-9 * extent || t > extent * (1.0 + 1e-9)
+                });
+                if outside {
+                    return Err(Error::InvalidModel(format!(
+                        "node {node} slides on surface {field}, but its rest position \
+                         ({:.4}, {:.4}, {:.4}) m lies outside that field's sampled box",
+                        p.x, p.y, p.z
+                    )));
+                }
+            }
+        }
         Ok(())
     }
 }
@@ -250,6 +268,25 @@ mod tests {
         let f = vec![Vector3::zeros(), Vector3::new(1.0, 1.0, 5.0)];
         let r = cs.reactions(&p, &f);
         assert_eq!(r, vec![(1, Vector3::new(0.0, 0.0, -5.0))]);
+    }
+
+    #[test]
+    fn refuses_a_sliding_node_outside_its_field() {
+        let field =
+            SignedDistanceField::from_fn(Vector3::zeros(), Vector3::repeat(1.0), 0.5, |p| {
+                p.z - 0.5
+            })
+            .unwrap();
+        let mut cs = ConstraintSet::new(2);
+        let s = cs.add_surface(field);
+        cs.set(0, NodeConstraint::Surface { field: s }).unwrap();
+        cs.set(1, NodeConstraint::Surface { field: s }).unwrap();
+        let inside = Vector3::new(0.5, 0.5, 0.5);
+        assert!(cs.validate(&[inside, inside]).is_ok());
+        let err = cs
+            .validate(&[inside, Vector3::new(2.0, 0.5, 0.5)])
+            .unwrap_err();
+        assert!(err.to_string().contains("node 1"), "{err}");
     }
 
     #[test]
