@@ -164,7 +164,7 @@ impl<'s> ExplicitIntegrator<'s> {
             time_s: 0.0,
             steps: 0,
         };
-        it.update_accelerations(None);
+        it.update_accelerations(false);
         it
     }
 
@@ -181,12 +181,12 @@ impl<'s> ExplicitIntegrator<'s> {
         let mut it = Self::new(scene);
         it.positions.copy_from_slice(positions_m);
         scene.constraints.project_positions(&mut it.positions);
-        it.update_accelerations(None);
+        it.update_accelerations(false);
         Ok(it)
     }
 
-    fn update_accelerations(&mut self, v: Option<()>) {
-        let vel = v.map(|_| &self.velocities[..]);
+    fn update_accelerations(&mut self, with_velocities: bool) {
+        let vel = with_velocities.then_some(&self.velocities[..]);
         self.scene
             .total_forces(&self.positions, vel, &mut self.force);
         self.scene
@@ -219,7 +219,7 @@ impl<'s> ExplicitIntegrator<'s> {
         self.scene
             .constraints
             .project_field(&self.positions, &mut self.velocities);
-        self.update_accelerations(Some(()));
+        self.update_accelerations(true);
         for (v, a) in self.velocities.iter_mut().zip(&self.accelerations) {
             *v += a * (0.5 * h);
         }
@@ -267,7 +267,7 @@ impl<'s> ExplicitIntegrator<'s> {
             if residual <= settings.residual_tolerance
                 && ke <= settings.kinetic_energy_fraction * peak_ke.max(f64::MIN_POSITIVE)
             {
-                self.update_accelerations(Some(()));
+                self.update_accelerations(true);
                 return Ok(ExplicitReport {
                     steps: self.steps,
                     step_s: h,
@@ -277,7 +277,7 @@ impl<'s> ExplicitIntegrator<'s> {
                     converged: true,
                 });
             }
-            self.update_accelerations(Some(()));
+            self.update_accelerations(true);
         }
         Ok(ExplicitReport {
             steps: self.steps,
