@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use lungmotion::bench::{run_bench, BenchOptions};
@@ -76,12 +77,21 @@ fn main() -> ExitCode {
     }
 }
 
+/// Creates the report directory before any work, so a bad `--out` fails at once, by name.
+fn prepare_out(out: &std::path::Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create the output directory {}", out.display()))
+}
+
 fn validate(out: PathBuf, quick: bool, calculix: bool) -> anyhow::Result<()> {
+    prepare_out(&out)?;
     let options = ValidateOptions { quick, calculix };
     let report = run_validation(&options, &mut |step| {
         eprintln!("lungmotion: running {step}")
     })?;
-    report.write(&out)?;
+    report
+        .write(&out)
+        .with_context(|| format!("writing the reports into {}", out.display()))?;
     println!("{}", report.to_markdown());
     eprintln!(
         "lungmotion: wrote {} and {}",
@@ -97,6 +107,7 @@ fn bench(
     calculix_cells: Vec<usize>,
     nlgeom: bool,
 ) -> anyhow::Result<()> {
+    prepare_out(&out)?;
     let mut options = if quick {
         BenchOptions::quick()
     } else {
