@@ -1,11 +1,11 @@
-//! Errors of the mechanical core: each names the offending input or the failing step.
+//! Errors of the crate: each names the offending input or the failing step.
 
 use thiserror::Error;
 
 /// Result type of the crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
-/// Everything the mechanical core can refuse or detect.
+/// Everything lungmotion can refuse or detect.
 #[derive(Debug, Error)]
 pub enum Error {
     /// A material parameter is outside its physical range.
@@ -40,6 +40,19 @@ pub enum Error {
         /// Relative residual required.
         tolerance: f64,
     },
+
+    /// A scan (DICOM series, NIfTI, NRRD, zip) is unreadable, inconsistent or implausible;
+    /// the message names the file and the problem.
+    #[error("invalid scan: {0}")]
+    InvalidScan(String),
+
+    /// A breathing trace, configuration or other user input is unusable; the message says why.
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+
+    /// Lung segmentation or model building could not produce a usable result.
+    #[error("ingest failed: {0}")]
+    Ingest(String),
 
     /// An external tool (CalculiX) failed or its output could not be read.
     #[error("external tool: {0}")]

@@ -2,10 +2,15 @@
 //!
 //! The crate is organised as a pipeline, each stage a module:
 //!
+//! * [`volume`] and [`formats`]: CT and label volumes in DICOM patient space (LPS mm), read
+//!   from DICOM series, NIfTI and NRRD, written as NIfTI, DICOM and VTK.
+//! * [`ingest`]: lung segmentation, cubic elements and anatomical constraint groups.
+//! * [`phantom`]: the procedural thorax phantom behind `sample-volumes/`.
 //! * [`model`]: the mechanical model: materials, Baudet's parameterised hexahedral
 //!   mass–spring element, index-based meshes, constraints and loads.
 //! * [`simulation`]: force evaluation, the explicit velocity-Verlet integrator with its
 //!   automatic time step, the quasi-static solver, and blow-up detection.
+//! * [`outputs`]: quick-look images and the files planning tools load.
 //! * [`validation`]: measured accuracy against closed forms, the thesis's published
 //!   results and CalculiX.
 //!
@@ -38,8 +43,13 @@
 
 pub mod bench;
 pub mod error;
+pub mod formats;
+pub mod ingest;
 pub mod model;
+pub mod outputs;
+pub mod phantom;
 pub mod simulation;
 pub mod validation;
+pub mod volume;
 
 pub use error::{Error, Result};

@@ -6,6 +6,8 @@
 //! taken in the same run, interleaved where possible, never from numbers of different runs.
 //! Nothing here asserts a speed: the report states the targets and whether they were met.
 
+pub mod ingest;
+
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use nalgebra::Vector3;

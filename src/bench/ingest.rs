@@ -1,0 +1,1 @@
+//! Ingest benchmarks: segmentation time and memory (to be written).

@@ -1,0 +1,1 @@
+//! Safe zip extraction (to be written).

@@ -1,0 +1,1 @@
+//! DICOM series reader and writer (to be written).

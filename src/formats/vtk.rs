@@ -1,0 +1,1 @@
+//! VTK XML writers (to be written).

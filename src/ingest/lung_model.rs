@@ -1,0 +1,1 @@
+//! Cubic elements and constraint groups from a lung mask (to be written).

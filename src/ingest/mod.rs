@@ -1,0 +1,5 @@
+//! Ingest: from a clinical CT to the mechanical model: lung segmentation, cubic elements and
+//! anatomical constraint groups.
+
+pub mod lung_model;
+pub mod segmentation;

@@ -1,0 +1,1 @@
+//! Lung segmentation (to be written).

@@ -1,0 +1,3 @@
+//! Outputs a physicist looks at or loads into planning tools.
+
+pub mod quicklook;

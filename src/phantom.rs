@@ -1,0 +1,1 @@
+//! Procedural thorax phantom (to be written).
