@@ -42,6 +42,7 @@
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
 pub mod bench;
+pub mod datasets;
 pub mod error;
 pub mod formats;
 pub mod ingest;
