@@ -6,6 +6,7 @@
 //!   from DICOM series, NIfTI and NRRD, written as NIfTI, DICOM and VTK.
 //! * [`ingest`]: lung segmentation, cubic elements and anatomical constraint groups.
 //! * [`phantom`]: the procedural thorax phantom behind `sample-volumes/`.
+//! * [`breathing`]: breathing traces (CSV/JSON), standard test curves, output instants.
 //! * [`model`]: the mechanical model: materials, Baudet's parameterised hexahedral
 //!   mass–spring element, index-based meshes, constraints and loads.
 //! * [`simulation`]: force evaluation, the explicit velocity-Verlet integrator with its
@@ -42,6 +43,7 @@
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
 pub mod bench;
+pub mod breathing;
 pub mod datasets;
 pub mod error;
 pub mod formats;

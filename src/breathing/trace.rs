@@ -1,0 +1,421 @@
+//! A breathing trace: lung volume over time, as a spirometer records it.
+//!
+//! Convention: the trace holds, at strictly increasing times in seconds, the lung volume
+//! **change from the scanned state** in millilitres (positive = more air than in the CT).
+//! The scanned state is the mechanical reference (zero transpulmonary pressure change).
+//!
+//! File formats:
+//! * CSV (default, what scripts rely on): a header line `time_s,volume_ml`, then one row per
+//!   sample. Other units through the header (`time_ms`, `volume_l`) or [`TraceOptions`];
+//!   absolute volumes through [`VolumeReference::Absolute`] with the scanned lung volume.
+//!   Blank lines and lines starting with `#` are ignored; a UTF-8 BOM and CRLF are accepted.
+//! * JSON: `{"time_s": [...], "volume_ml": [...]}` (same meaning and options).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Error, Result};
+
+/// Largest volume increase over the scanned state accepted, mL (total lung capacity is ≈ 6 L).
+pub const MAX_VOLUME_GAIN_ML: f64 = 5000.0;
+/// Largest volume decrease below the scanned state accepted, mL (residual volume is ≈ 1.2 L).
+pub const MAX_VOLUME_LOSS_ML: f64 = 3000.0;
+/// Largest flow accepted, mL/s (peak expiratory flow of a healthy adult is ≈ 10 L/s).
+pub const MAX_FLOW_ML_PER_S: f64 = 15_000.0;
+/// Most samples a trace may hold (a day at 100 Hz is 8.6 million).
+pub const MAX_SAMPLES: usize = 10_000_000;
+
+/// Lung volume change from the scanned state over time.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BreathingTrace {
+    /// Sample times in seconds, strictly increasing.
+    pub time_s: Vec<f64>,
+    /// Volume change from the scanned state at each time, mL.
+    pub volume_change_ml: Vec<f64>,
+}
+
+/// How the volume column relates to the scanned lung.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VolumeReference {
+    /// The column is already the change from the scanned state.
+    #[default]
+    ChangeFromScan,
+    /// The column is the absolute lung volume; the scanned lung holds `scanned_volume_ml`.
+    Absolute {
+        /// Lung volume at the instant of the CT, mL.
+        scanned_volume_ml: f64,
+    },
+}
+
+/// File format of a trace.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TraceFormat {
+    /// From the file's first non-blank character: `{` is JSON, anything else CSV.
+    #[default]
+    Detect,
+    /// Comma-separated, header `time_s,volume_ml`.
+    Csv,
+    /// `{"time_s": [...], "volume_ml": [...]}`.
+    Json,
+}
+
+/// How to read a trace file.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct TraceOptions {
+    /// File format.
+    pub format: TraceFormat,
+    /// Change from the scan (default) or absolute volumes.
+    pub reference: VolumeReference,
+    /// Multiplies the time column to get seconds; `None` reads the unit from the header.
+    pub seconds_per_time_unit: Option<f64>,
+    /// Multiplies the volume column to get mL; `None` reads the unit from the header.
+    pub ml_per_volume_unit: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JsonTrace {
+    #[serde(alias = "time_ms")]
+    time_s: Vec<f64>,
+    #[serde(alias = "volume_l")]
+    volume_ml: Vec<f64>,
+}
+
+impl BreathingTrace {
+    /// Builds a trace from samples, checking everything [`BreathingTrace::validate`] checks.
+    pub fn new(time_s: Vec<f64>, volume_change_ml: Vec<f64>) -> Result<Self> {
+        let trace = BreathingTrace {
+            time_s,
+            volume_change_ml,
+        };
+        trace.validate()?;
+        Ok(trace)
+    }
+
+    /// Reads a CSV or JSON trace file; errors name the file, the row and the problem.
+    pub fn read(path: &Path, options: &TraceOptions) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            Error::InvalidInput(format!(
+                "breathing trace {}: cannot read: {e}",
+                path.display()
+            ))
+        })?;
+        Self::parse(&text, options)
+            .map_err(|e| Error::InvalidInput(format!("breathing trace {}: {e}", path.display())))
+    }
+
+    /// Parses trace text; the error message says which row and what is wrong.
+    pub fn parse(text: &str, options: &TraceOptions) -> std::result::Result<Self, String> {
+        let text = text.trim_start_matches('\u{feff}');
+        let format = match options.format {
+            TraceFormat::Detect if text.trim_start().starts_with('{') => TraceFormat::Json,
+            TraceFormat::Detect => TraceFormat::Csv,
+            f => f,
+        };
+        let (times, volumes, header_units) = match format {
+            TraceFormat::Json => parse_json(text)?,
+            _ => parse_csv(text)?,
+        };
+        let seconds = options.seconds_per_time_unit.unwrap_or(header_units.0);
+        let ml = options.ml_per_volume_unit.unwrap_or(header_units.1);
+        let offset = match options.reference {
+            VolumeReference::ChangeFromScan => 0.0,
+            VolumeReference::Absolute { scanned_volume_ml } => {
+                if !(scanned_volume_ml.is_finite() && scanned_volume_ml > 0.0) {
+                    return Err(format!(
+                        "the scanned lung volume must be a positive number of mL, got {scanned_volume_ml}"
+                    ));
+                }
+                scanned_volume_ml
+            }
+        };
+        let trace = BreathingTrace {
+            time_s: times.iter().map(|t| t * seconds).collect(),
+            volume_change_ml: volumes.iter().map(|v| v * ml - offset).collect(),
+        };
+        trace.check().map_err(|e| {
+            if options.reference == VolumeReference::ChangeFromScan
+                && trace.volume_change_ml.iter().all(|&v| v > 1000.0)
+            {
+                format!(
+                    "{e} (every volume is above 1000 mL: if these are absolute lung volumes, \
+                     give the scanned lung volume so they can be turned into changes)"
+                )
+            } else {
+                e
+            }
+        })?;
+        Ok(trace)
+    }
+
+    /// Checks finiteness, strictly increasing times, plausible volumes and flows.
+    pub fn validate(&self) -> Result<()> {
+        self.check()
+            .map_err(|e| Error::InvalidInput(format!("breathing trace: {e}")))
+    }
+
+    fn check(&self) -> std::result::Result<(), String> {
+        let n = self.time_s.len();
+        if n != self.volume_change_ml.len() {
+            return Err(format!(
+                "{n} times but {} volumes",
+                self.volume_change_ml.len()
+            ));
+        }
+        if n < 2 {
+            return Err(format!("{n} samples; a breathing curve needs at least 2"));
+        }
+        if n > MAX_SAMPLES {
+            return Err(format!("{n} samples; at most {MAX_SAMPLES} are accepted"));
+        }
+        for (i, (&t, &v)) in self.time_s.iter().zip(&self.volume_change_ml).enumerate() {
+            if !t.is_finite() {
+                return Err(format!("sample {}: time is {t}", i + 1));
+            }
+            if !v.is_finite() {
+                return Err(format!("sample {} (t = {t} s): volume is {v}", i + 1));
+            }
+            if !(-MAX_VOLUME_LOSS_ML..=MAX_VOLUME_GAIN_ML).contains(&v) {
+                return Err(format!(
+                    "sample {} (t = {t} s): volume change {v:.1} mL is implausible: lungs hold \
+                     between {MAX_VOLUME_LOSS_ML} mL less and {MAX_VOLUME_GAIN_ML} mL more than \
+                     at the scan",
+                    i + 1
+                ));
+            }
+            if i > 0 {
+                let (t0, v0) = (self.time_s[i - 1], self.volume_change_ml[i - 1]);
+                if t <= t0 {
+                    return Err(format!(
+                        "sample {}: time {t} s is not after the previous sample's {t0} s \
+                         (times must strictly increase: sort the rows, remove duplicates)",
+                        i + 1
+                    ));
+                }
+                let flow = (v - v0) / (t - t0);
+                if flow.abs() > MAX_FLOW_ML_PER_S {
+                    return Err(format!(
+                        "samples {} to {} (t = {t0} … {t} s): flow {:.0} mL/s is implausible \
+                         (more than {MAX_FLOW_ML_PER_S} mL/s; wrong units?)",
+                        i,
+                        i + 1,
+                        flow
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Duration from the first to the last sample, s.
+    pub fn duration_s(&self) -> f64 {
+        self.time_s[self.time_s.len() - 1] - self.time_s[0]
+    }
+
+    /// Volume change at time `t_s` by linear interpolation, clamped to the end samples.
+    pub fn volume_at(&self, t_s: f64) -> f64 {
+        let t = &self.time_s;
+        let v = &self.volume_change_ml;
+        if t_s <= t[0] {
+            return v[0];
+        }
+        if t_s >= t[t.len() - 1] {
+            return v[v.len() - 1];
+        }
+        let i = t.partition_point(|&x| x <= t_s) - 1;
+        let w = (t_s - t[i]) / (t[i + 1] - t[i]);
+        v[i] + w * (v[i + 1] - v[i])
+    }
+
+    /// Writes the trace as the default CSV (`time_s,volume_ml`, change from the scan).
+    pub fn to_csv(&self) -> String {
+        let mut s = String::from("time_s,volume_ml\n");
+        for (t, v) in self.time_s.iter().zip(&self.volume_change_ml) {
+            s.push_str(&format!("{t},{v}\n"));
+        }
+        s
+    }
+}
+
+/// Seconds and mL per unit of the columns named in a header.
+type ColumnUnits = (f64, f64);
+
+fn time_unit(name: &str) -> Option<f64> {
+    match name {
+        "time_s" | "t_s" | "time" => Some(1.0),
+        "time_ms" | "t_ms" => Some(1e-3),
+        _ => None,
+    }
+}
+
+fn volume_unit(name: &str) -> Option<f64> {
+    match name {
+        "volume_ml" | "volume_change_ml" | "volume" => Some(1.0),
+        "volume_l" | "volume_change_l" => Some(1e3),
+        _ => None,
+    }
+}
+
+fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), String> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+    let (hline, header) = lines.next().ok_or("the file is empty")?;
+    let names: Vec<String> = header
+        .split(',')
+        .map(|c| c.trim().trim_matches('"').to_ascii_lowercase())
+        .collect();
+    let time_col = names.iter().position(|n| time_unit(n).is_some());
+    let vol_col = names.iter().position(|n| volume_unit(n).is_some());
+    let (Some(tc), Some(vc)) = (time_col, vol_col) else {
+        return Err(format!(
+            "line {hline}: header '{header}' must name a time column (time_s or time_ms) and a \
+             volume column (volume_ml or volume_l), e.g. 'time_s,volume_ml'"
+        ));
+    };
+    let units = (
+        time_unit(&names[tc]).unwrap(),
+        volume_unit(&names[vc]).unwrap(),
+    );
+    let (mut times, mut volumes) = (Vec::new(), Vec::new());
+    for (line, row) in lines {
+        let cells: Vec<&str> = row.split(',').map(str::trim).collect();
+        if cells.len() != names.len() {
+            return Err(format!(
+                "line {line}: {} columns where the header has {}",
+                cells.len(),
+                names.len()
+            ));
+        }
+        let number = |c: usize| {
+            cells[c].parse::<f64>().map_err(|_| {
+                format!(
+                    "line {line}: '{}' in column {} is not a number",
+                    cells[c], names[c]
+                )
+            })
+        };
+        times.push(number(tc)?);
+        volumes.push(number(vc)?);
+        if times.len() > MAX_SAMPLES {
+            return Err(format!("more than {MAX_SAMPLES} samples"));
+        }
+    }
+    Ok((times, volumes, units))
+}
+
+fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), String> {
+    let value: serde_json::Value =
+        serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
+    let units = (
+        if value.get("time_ms").is_some() {
+            1e-3
+        } else {
+            1.0
+        },
+        if value.get("volume_l").is_some() {
+            1e3
+        } else {
+            1.0
+        },
+    );
+    // Non-finite numbers cannot be written in JSON; `null` (what many tools write for NaN)
+    // is reported as such rather than as a type error.
+    for key in ["time_s", "time_ms", "volume_ml", "volume_l"] {
+        if let Some(serde_json::Value::Array(a)) = value.get(key) {
+            if let Some(i) = a.iter().position(|x| x.is_null()) {
+                return Err(format!("{key}[{i}] is null (NaN or a missing value?)"));
+            }
+        }
+    }
+    let trace: JsonTrace = serde_json::from_value(value).map_err(|e| {
+        format!("expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}: {e}")
+    })?;
+    Ok((trace.time_s, trace.volume_ml, units))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> std::result::Result<BreathingTrace, String> {
+        BreathingTrace::parse(text, &TraceOptions::default())
+    }
+
+    #[test]
+    fn default_csv_reads_and_round_trips() {
+        let t = parse(
+            "\u{feff}# spirometer\r\ntime_s,volume_ml\r\n0,0\r\n0.5,120.5\r\n\r\n1.0,250\r\n",
+        )
+        .unwrap();
+        assert_eq!(t.time_s, vec![0.0, 0.5, 1.0]);
+        assert_eq!(t.volume_change_ml, vec![0.0, 120.5, 250.0]);
+        assert_eq!(parse(&t.to_csv()).unwrap(), t);
+        assert!((t.volume_at(0.25) - 60.25).abs() < 1e-12);
+        assert_eq!(t.volume_at(-1.0), 0.0);
+        assert_eq!(t.volume_at(9.0), 250.0);
+    }
+
+    #[test]
+    fn units_come_from_the_header_or_the_options() {
+        let t = parse("time_ms,volume_l\n0,0\n500,0.25\n").unwrap();
+        assert_eq!(t.time_s, vec![0.0, 0.5]);
+        assert!((t.volume_change_ml[1] - 250.0).abs() < 1e-9);
+        let opts = TraceOptions {
+            reference: VolumeReference::Absolute {
+                scanned_volume_ml: 3000.0,
+            },
+            ..TraceOptions::default()
+        };
+        let t = BreathingTrace::parse("time_s,volume_ml\n0,3000\n1,3400\n", &opts).unwrap();
+        assert_eq!(t.volume_change_ml, vec![0.0, 400.0]);
+    }
+
+    #[test]
+    fn json_reads_like_csv() {
+        let t = parse(r#"{"time_s": [0, 1, 2], "volume_ml": [0, 300, 0]}"#).unwrap();
+        assert_eq!(t.volume_change_ml, vec![0.0, 300.0, 0.0]);
+        let e = parse(r#"{"time_s": [0, 1], "volume_ml": [0, null]}"#).unwrap_err();
+        assert!(e.contains("volume_ml[1] is null"), "{e}");
+        let e = parse(r#"{"time_s": [0, 1]}"#).unwrap_err();
+        assert!(e.contains("volume_ml"), "{e}");
+    }
+
+    #[test]
+    fn bad_traces_say_exactly_what_is_wrong() {
+        let cases = [
+            ("", "empty"),
+            ("t,v\n0,0\n", "header"),
+            ("time_s,volume_ml\n0,0\n", "at least 2"),
+            ("time_s,volume_ml\n0,0\n1,abc\n", "line 3: 'abc'"),
+            (
+                "time_s,volume_ml\n0,0\n1,NaN\n",
+                "sample 2 (t = 1 s): volume is NaN",
+            ),
+            ("time_s,volume_ml\n0,0\ninf,1\n", "time is inf"),
+            (
+                "time_s,volume_ml\n0,0\n1,5\n1,6\n",
+                "sample 3: time 1 s is not after",
+            ),
+            ("time_s,volume_ml\n0,0\n2,5\n1,6\n", "strictly increase"),
+            ("time_s,volume_ml\n0,0\n1,9000\n", "implausible"),
+            ("time_s,volume_ml\n0,0\n0.01,400\n", "flow"),
+            ("time_s,volume_ml\n0,0,1\n", "3 columns"),
+            (
+                "time_s,volume_ml\n0,5500\n1,6000\n",
+                "absolute lung volumes",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = parse(text).unwrap_err();
+            assert!(e.contains(want), "{text:?}: {e}");
+        }
+        let e = BreathingTrace::new(vec![0.0, 1.0], vec![0.0]).unwrap_err();
+        assert!(e.to_string().contains("2 times but 1 volumes"), "{e}");
+    }
+}
