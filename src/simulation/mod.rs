@@ -1,5 +1,6 @@
 //! Simulation: force evaluation, explicit dynamics, quasi-static equilibrium, blow-up checks.
 
+pub mod driver;
 pub mod explicit;
 pub mod forces;
 mod lanes;
@@ -8,6 +9,7 @@ pub mod multigrid;
 pub mod quasistatic;
 pub mod scene;
 
+pub use driver::{BreathingDriver, DrivenState};
 pub use explicit::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
 pub use forces::ForceEvaluator;
 pub use quasistatic::{PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, SolveReport};

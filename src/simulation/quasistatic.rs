@@ -161,6 +161,22 @@ impl<'s> QuasiStaticSolver<'s> {
     /// Solves for equilibrium starting from `initial` (or the rest configuration) and returns
     /// node positions in metres.
     pub fn solve(&mut self, initial: Option<&[V3]>) -> Result<(Vec<V3>, SolveReport)> {
+        self.solve_with_load_factor(initial, 1.0)
+    }
+
+    /// Solves for equilibrium under the scene's loads and imposed displacements multiplied by
+    /// `load_factor`: a breathing sequence scales one reference pressure per frame, reusing
+    /// the preconditioner and warm-starting from the previous frame's positions.
+    pub fn solve_with_load_factor(
+        &mut self,
+        initial: Option<&[V3]>,
+        load_factor: f64,
+    ) -> Result<(Vec<V3>, SolveReport)> {
+        if !load_factor.is_finite() {
+            return Err(Error::InvalidModel(format!(
+                "load factor must be finite, got {load_factor}"
+            )));
+        }
         let start = Instant::now();
         let scene = self.scene;
         let n = scene.node_count();
@@ -187,7 +203,7 @@ impl<'s> QuasiStaticSolver<'s> {
         };
         let mut work = Work::new(n);
         for step in 1..=steps {
-            let lambda = step as f64 / steps as f64;
+            let lambda = load_factor * step as f64 / steps as f64;
             let constraints =
                 scaled_constraints(&scene.constraints, &scene.mesh.rest_positions_m, lambda);
             constraints.project_positions(&mut x);
@@ -525,17 +541,27 @@ fn residual(
 }
 
 /// Constraint set with imposed displacements scaled by λ (load stepping).
-fn scaled_constraints(cs: &ConstraintSet, rest: &[V3], lambda: f64) -> ConstraintSet {
+fn scaled_constraints<'c>(
+    cs: &'c ConstraintSet,
+    rest: &[V3],
+    lambda: f64,
+) -> std::borrow::Cow<'c, ConstraintSet> {
+    // Most scenes (a lung with a fixed hilum) impose no displacement: borrow rather than
+    // copy the sliding surfaces' distance fields on every load step and frame.
+    let imposes_motion = cs.entries.iter().any(|(node, c)| {
+        matches!(c, NodeConstraint::Fixed { target_m } if *target_m != rest[*node as usize])
+    });
+    if lambda == 1.0 || !imposes_motion {
+        return std::borrow::Cow::Borrowed(cs);
+    }
     let mut out = cs.clone();
-    if lambda != 1.0 {
-        for (node, c) in out.entries.iter_mut() {
-            if let NodeConstraint::Fixed { target_m } = c {
-                let r = rest[*node as usize];
-                *target_m = r + (*target_m - r) * lambda;
-            }
+    for (node, c) in out.entries.iter_mut() {
+        if let NodeConstraint::Fixed { target_m } = c {
+            let r = rest[*node as usize];
+            *target_m = r + (*target_m - r) * lambda;
         }
     }
-    out
+    std::borrow::Cow::Owned(out)
 }
 
 /// Constraint projector of each node at the rest configuration (None = free).
