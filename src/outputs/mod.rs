@@ -1,3 +1,4 @@
 //! Outputs a physicist looks at or loads into planning tools.
 
+pub mod displacement_field;
 pub mod quicklook;
