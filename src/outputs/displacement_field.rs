@@ -50,6 +50,9 @@ const CORNER_BITS: [[bool; 3]; 8] = [
     [false, true, true],
 ];
 
+/// Element, corner weights, and whether the point lies inside the element.
+type Location = (u32, [f32; 8], bool);
+
 struct Lattice {
     origin_m: V3,
     axes: [V3; 3],
@@ -84,7 +87,7 @@ impl FieldSampler {
         let lattice = lattice_of(mesh, element_lung)?;
         let g = lungs.geometry;
         let [nx, ny, _] = g.dims;
-        let located: Vec<(u32, Option<(u32, [f32; 8], bool)>)> = lungs
+        let located: Vec<(u32, Option<Location>)> = lungs
             .data
             .par_iter()
             .enumerate()
@@ -193,7 +196,7 @@ fn lattice_of(mesh: &HexMesh, element_lung: &[u8]) -> Result<Lattice> {
 
 /// The element of lung `label` containing `p_m` (or the nearest within the search radius),
 /// its corner weights, and whether the point was inside it.
-fn locate(lattice: &Lattice, p_m: V3, label: u8) -> Option<(u32, [f32; 8], bool)> {
+fn locate(lattice: &Lattice, p_m: V3, label: u8) -> Option<Location> {
     let (c, f) = lattice.cell_of(p_m);
     if let Some(&e) = lattice.cells.get(&(c[0], c[1], c[2], label)) {
         let local = f - V3::new(c[0] as f64, c[1] as f64, c[2] as f64);
