@@ -89,6 +89,11 @@ impl<'s> BreathingDriver<'s> {
         })
     }
 
+    /// Rest positions of the scene's nodes, metres.
+    pub fn rest_positions(&self) -> &[V3] {
+        &self.scene.mesh.rest_positions_m
+    }
+
     /// Volume enclosed by the lung surface at rest, mL.
     pub fn rest_volume_ml(&self) -> f64 {
         self.rest_volume_m3 * 1e6

@@ -3,6 +3,7 @@
 pub mod driver;
 pub mod explicit;
 pub mod forces;
+pub mod keyframes;
 mod lanes;
 pub mod linalg;
 pub mod multigrid;
