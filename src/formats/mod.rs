@@ -3,6 +3,7 @@
 
 pub mod archive;
 pub mod dicom;
+pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
 pub mod vtk;
