@@ -149,6 +149,93 @@ impl FieldSampler {
     }
 }
 
+/// Interpolation from mesh nodes to user-given points (e.g. a tumour centre), for trajectories.
+#[derive(Debug, Clone)]
+pub struct PointSampler {
+    element: Vec<u32>,
+    weights: Vec<[f32; 8]>,
+}
+
+impl PointSampler {
+    /// Locates each LPS point (mm) in the element containing it, in either lung, or the
+    /// nearest element within two cells; a point farther from the mesh is an error naming it.
+    pub fn new(points_lps_mm: &[[f64; 3]], mesh: &HexMesh, element_lung: &[u8]) -> Result<Self> {
+        let lattice = lattice_of(mesh, element_lung)?;
+        let mut labels: Vec<u8> = element_lung.to_vec();
+        labels.sort_unstable();
+        labels.dedup();
+        let mut sampler = PointSampler {
+            element: Vec::with_capacity(points_lps_mm.len()),
+            weights: Vec::with_capacity(points_lps_mm.len()),
+        };
+        for (i, p) in points_lps_mm.iter().enumerate() {
+            if p.iter().any(|v| !v.is_finite()) {
+                return Err(Error::InvalidInput(format!(
+                    "point {} is not finite: {p:?}",
+                    i + 1
+                )));
+            }
+            let p_m = V3::from(*p) * 1e-3;
+            let inside = labels
+                .iter()
+                .find_map(|&l| locate(&lattice, p_m, l).filter(|h| h.2));
+            let hit = inside.or_else(|| {
+                labels
+                    .iter()
+                    .filter_map(|&l| locate(&lattice, p_m, l))
+                    .min_by(|a, b| {
+                        let da = distance_outside(&lattice, mesh, a.0, p_m);
+                        let db = distance_outside(&lattice, mesh, b.0, p_m);
+                        da.total_cmp(&db)
+                    })
+            });
+            let Some((e, w, _)) = hit else {
+                return Err(Error::InvalidInput(format!(
+                    "point {} at LPS ({:.1}, {:.1}, {:.1}) mm is outside the lungs' mesh",
+                    i + 1,
+                    p[0],
+                    p[1],
+                    p[2]
+                )));
+            };
+            sampler.element.push(e);
+            sampler.weights.push(w);
+        }
+        Ok(sampler)
+    }
+
+    /// Displacement of each point in mm (LPS components).
+    pub fn displacements_mm(&self, mesh: &HexMesh, positions_m: &[V3]) -> Vec<[f64; 3]> {
+        let rest = &mesh.rest_positions_m;
+        self.element
+            .iter()
+            .zip(&self.weights)
+            .map(|(&e, w)| {
+                let mut u = V3::zeros();
+                for (c, &n) in mesh.elements[e as usize].iter().enumerate() {
+                    let n = n as usize;
+                    u += (positions_m[n] - rest[n]) * f64::from(w[c]);
+                }
+                (u * 1e3).into()
+            })
+            .collect()
+    }
+}
+
+/// Distance from `p_m` to the box of element `e`, metres.
+fn distance_outside(lattice: &Lattice, mesh: &HexMesh, e: u32, p_m: V3) -> f64 {
+    let x0 = mesh.rest_positions_m[mesh.elements[e as usize][0] as usize];
+    let d = p_m - x0;
+    (0..3)
+        .map(|a| {
+            let t = d.dot(&lattice.axes[a]);
+            let out = (t.clamp(0.0, lattice.edge_m) - t).abs();
+            out * out
+        })
+        .sum::<f64>()
+        .sqrt()
+}
+
 /// Recovers the common cube lattice of the mesh's elements.
 fn lattice_of(mesh: &HexMesh, element_lung: &[u8]) -> Result<Lattice> {
     let first = mesh
@@ -295,6 +382,30 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn tracked_points_follow_the_mesh_and_far_points_are_refused() {
+        let gm = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros())
+            .to_mesh(Material::LUNG)
+            .unwrap();
+        let mesh = gm.mesh;
+        let lungs = vec![1u8; mesh.elements.len()];
+        let points = [[5.0, 5.0, 5.0], [12.5, 17.5, 3.0], [21.0, 10.0, 10.0]];
+        let sampler = PointSampler::new(&points, &mesh, &lungs).unwrap();
+        let moved: Vec<V3> = mesh
+            .rest_positions_m
+            .iter()
+            .map(|x| x + V3::new(0.0, 0.0, -0.1 * x.y))
+            .collect();
+        let u = sampler.displacements_mm(&mesh, &moved);
+        assert!((u[0][2] + 0.5).abs() < 1e-6, "{u:?}");
+        assert!((u[1][2] + 1.75).abs() < 1e-6, "{u:?}");
+        // 1 mm outside the block: the nearest point of the mesh (y = 10 mm).
+        assert!((u[2][2] + 1.0).abs() < 1e-6, "{u:?}");
+        let e = PointSampler::new(&[[200.0, 0.0, 0.0]], &mesh, &lungs).unwrap_err();
+        assert!(e.to_string().contains("point 1 at LPS (200.0"), "{e}");
+        assert!(PointSampler::new(&[[f64::NAN, 0.0, 0.0]], &mesh, &lungs).is_err());
     }
 
     #[test]
