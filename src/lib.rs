@@ -49,6 +49,7 @@ pub mod error;
 pub mod formats;
 pub mod ingest;
 pub mod model;
+pub mod motion;
 pub mod outputs;
 pub mod phantom;
 pub mod simulation;

@@ -532,12 +532,29 @@ fn residual(
     let (ni, ne) = total_force(scene, lambda, x, &mut w.f, &mut w.ext);
     w.r.copy_from_slice(&w.f);
     constraints.project_field(x, &mut w.r);
-    let scale = ni.max(ne);
-    if scale == 0.0 {
-        0.0
-    } else {
-        super::scene::norm(&w.r) / scale
-    }
+    let scale = ni.max(ne).max(force_floor_n(scene));
+    super::scene::norm(&w.r) / scale
+}
+
+/// A force too small to matter: an element strained by 1e-6 (the floor is then 1e-12 strain
+/// at the default tolerance). Without it the residual of an
+/// unloaded scene (a breathing frame at the scanned volume) would be round-off over round-off.
+fn force_floor_n(scene: &Scene) -> f64 {
+    scene
+        .mesh
+        .classes
+        .iter()
+        .map(|c| {
+            let h = c
+                .shape
+                .edges_m
+                .iter()
+                .cloned()
+                .fold(f64::INFINITY, f64::min);
+            1e-6 * c.material.youngs_modulus_pa * h * h
+        })
+        .fold(f64::INFINITY, f64::min)
+        .min(1.0)
 }
 
 /// Constraint set with imposed displacements scaled by λ (load stepping).
