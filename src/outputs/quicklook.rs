@@ -1,1 +1,518 @@
-//! PNG quick looks (to be written).
+//! PNG quick looks: CT slices with label overlays (lung mask, constraint groups) that a
+//! medical physicist checks at a glance after an ingest.
+//!
+//! Convention: slices are planes of DICOM patient space (LPS mm), not of the voxel grid.
+//! Each output pixel's LPS position is mapped into the CT through
+//! [`VolumeGeometry::lps_mm_to_voxel`](crate::volume::VolumeGeometry::lps_mm_to_voxel), so
+//! flipped and oblique scans display the same anatomy the same way. Images use the
+//! **radiological display convention**:
+//!
+//! | plane | image left | image top | fixed coordinate |
+//! | --- | --- | --- | --- |
+//! | axial | patient right (−x) | anterior (−y) | z (superior) |
+//! | coronal | patient right (−x) | superior (+z) | y (posterior) |
+//! | sagittal | anterior (−y) | superior (+z) | x (left) |
+//!
+//! Pixels are square, of the CT's smallest spacing (the overview may use a finer pixel so a
+//! coarse scan is legible); the image covers the LPS bounding box of the scan, outside the
+//! scan is black. The CT is sampled trilinearly, labels by nearest voxel. Grey levels map
+//! `level − width/2` to 0 and `level + width/2` to 255 (lung window: W 1500, L −600 HU).
+//! PNG files are 8-bit RGB, rows top to bottom.
+
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use crate::validation::report::write_atomic;
+use crate::volume::{Volume, VolumeGeometry};
+use crate::{Error, Result};
+
+/// Largest image side in pixels (refused beyond: a sign of a wrong spacing or pixel size).
+pub const MAX_IMAGE_SIDE: usize = 8192;
+
+/// Smallest side in pixels the overview aims for, refining the pixel when the CT is coarse.
+const OVERVIEW_MIN_SIDE: usize = 384;
+
+/// A label volume drawn in colour over the CT.
+#[derive(Debug, Clone, Copy)]
+pub struct Overlay<'a> {
+    /// Label codes (0 is usually background); may lie on another grid than the CT.
+    pub labels: &'a Volume<u8>,
+    /// Colour of each drawn label code; codes not listed are not drawn.
+    pub palette: &'a [(u8, [u8; 3])],
+    /// Blend weight of the colour, 0 (invisible) to 1 (opaque).
+    pub opacity: f32,
+    /// Draw only the label boundaries (pixels with a differently labelled 4-neighbour).
+    pub outline_only: bool,
+}
+
+/// The patient plane a slice lies in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SlicePlane {
+    /// Constant z (superior), seen from the feet.
+    Axial,
+    /// Constant y (posterior), seen from the front.
+    Coronal,
+    /// Constant x (left), seen from the patient's left.
+    Sagittal,
+}
+
+impl SlicePlane {
+    /// The three planes in overview order.
+    pub const ALL: [SlicePlane; 3] = [SlicePlane::Axial, SlicePlane::Coronal, SlicePlane::Sagittal];
+
+    /// Lower-case name used in file names.
+    pub fn name(self) -> &'static str {
+        match self {
+            SlicePlane::Axial => "axial",
+            SlicePlane::Coronal => "coronal",
+            SlicePlane::Sagittal => "sagittal",
+        }
+    }
+
+    /// LPS unit vectors of the image's rightward column axis, downward row axis and the
+    /// plane normal (whose coordinate is the slice position).
+    fn frame(self) -> [Vector3<f64>; 3] {
+        let (x, y, z) = (Vector3::x(), Vector3::y(), Vector3::z());
+        match self {
+            SlicePlane::Axial => [x, y, z],
+            SlicePlane::Coronal => [x, -z, y],
+            SlicePlane::Sagittal => [y, -z, x],
+        }
+    }
+}
+
+/// A grey-level window over Hounsfield units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HuWindow {
+    /// Range of HU spread over the 256 grey levels.
+    pub width_hu: f32,
+    /// HU shown mid-grey.
+    pub level_hu: f32,
+}
+
+impl HuWindow {
+    /// Lung window: W 1500, L −600 HU (−1350 HU black, 150 HU white).
+    pub const LUNG: HuWindow = HuWindow {
+        width_hu: 1500.0,
+        level_hu: -600.0,
+    };
+
+    /// Soft-tissue (mediastinum) window: W 400, L 40 HU.
+    pub const MEDIASTINUM: HuWindow = HuWindow {
+        width_hu: 400.0,
+        level_hu: 40.0,
+    };
+
+    /// Grey level of a CT number.
+    #[inline]
+    pub fn grey(&self, hu: f32) -> u8 {
+        let t = (hu - (self.level_hu - 0.5 * self.width_hu)) / self.width_hu;
+        (t.clamp(0.0, 1.0) * 255.0).round() as u8
+    }
+}
+
+impl Default for HuWindow {
+    fn default() -> Self {
+        HuWindow::LUNG
+    }
+}
+
+/// An 8-bit RGB image, rows top to bottom.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RgbImage {
+    /// Pixels per row.
+    pub width: usize,
+    /// Number of rows.
+    pub height: usize,
+    /// `3·width·height` bytes, R G B per pixel, row-major from the top-left.
+    pub pixels: Vec<u8>,
+}
+
+impl RgbImage {
+    /// Colour of the pixel in column `col`, row `row` (from the top-left).
+    pub fn pixel(&self, col: usize, row: usize) -> [u8; 3] {
+        let o = 3 * (row * self.width + col);
+        [self.pixels[o], self.pixels[o + 1], self.pixels[o + 2]]
+    }
+}
+
+/// Renders the slice of `plane` at `position_lps_mm` (its fixed coordinate: z for axial, y
+/// for coronal, x for sagittal) with square pixels of the CT's smallest spacing.
+pub fn render_slice(
+    ct: &Volume<f32>,
+    overlays: &[Overlay],
+    plane: SlicePlane,
+    position_lps_mm: f64,
+    window: HuWindow,
+) -> Result<RgbImage> {
+    let pixel_mm = ct
+        .geometry
+        .spacing_mm
+        .iter()
+        .cloned()
+        .fold(f64::MAX, f64::min);
+    render_slice_with_pixel(ct, overlays, plane, position_lps_mm, window, pixel_mm)
+}
+
+/// Writes `<stem>-axial.png`, `<stem>-coronal.png` and `<stem>-sagittal.png` through
+/// `centre_lps_mm` into `out_dir` (created if missing), in the lung window; coarse CTs are
+/// sampled on a finer pixel so each image is at least a few hundred pixels wide.
+pub fn write_overview(
+    ct: &Volume<f32>,
+    overlays: &[Overlay],
+    centre_lps_mm: [f64; 3],
+    out_dir: &Path,
+    stem: &str,
+) -> Result<Vec<PathBuf>> {
+    if stem.is_empty() || stem.contains(['/', '\\']) {
+        return Err(Error::InvalidInput(format!(
+            "quick-look file stem {stem:?} must be a plain non-empty name"
+        )));
+    }
+    std::fs::create_dir_all(out_dir).map_err(|e| {
+        Error::InvalidInput(format!(
+            "{}: cannot create directory: {e}",
+            out_dir.display()
+        ))
+    })?;
+    let spacing = ct
+        .geometry
+        .spacing_mm
+        .iter()
+        .cloned()
+        .fold(f64::MAX, f64::min);
+    let extent_px = ct
+        .geometry
+        .dims
+        .iter()
+        .zip(&ct.geometry.spacing_mm)
+        .map(|(&n, &s)| n as f64 * s / spacing)
+        .fold(1.0, f64::max);
+    let refine = (OVERVIEW_MIN_SIDE as f64 / extent_px)
+        .ceil()
+        .clamp(1.0, 8.0);
+    let mut paths = Vec::with_capacity(3);
+    for plane in SlicePlane::ALL {
+        let axis = match plane {
+            SlicePlane::Axial => 2,
+            SlicePlane::Coronal => 1,
+            SlicePlane::Sagittal => 0,
+        };
+        let image = render_slice_with_pixel(
+            ct,
+            overlays,
+            plane,
+            centre_lps_mm[axis],
+            HuWindow::LUNG,
+            spacing / refine,
+        )?;
+        let path = out_dir.join(format!("{stem}-{}.png", plane.name()));
+        write_png(&path, &image)?;
+        paths.push(path);
+    }
+    Ok(paths)
+}
+
+/// Writes an 8-bit RGB PNG atomically.
+pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
+    let bad = |m: String| Error::InvalidInput(format!("{}: {m}", path.display()));
+    if image.width == 0 || image.height == 0 {
+        return Err(bad(format!("empty image {}×{}", image.width, image.height)));
+    }
+    if image.width > MAX_IMAGE_SIDE || image.height > MAX_IMAGE_SIDE {
+        return Err(bad(format!(
+            "image {}×{} exceeds {MAX_IMAGE_SIDE} pixels per side",
+            image.width, image.height
+        )));
+    }
+    if image.pixels.len() != 3 * image.width * image.height {
+        return Err(bad(format!(
+            "{} bytes for a {}×{} RGB image",
+            image.pixels.len(),
+            image.width,
+            image.height
+        )));
+    }
+    let mut bytes = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut bytes, image.width as u32, image.height as u32);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder
+            .write_header()
+            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
+        writer
+            .write_image_data(&image.pixels)
+            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
+        writer
+            .finish()
+            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
+    }
+    write_atomic(path, &bytes)
+}
+
+/// Reads a PNG as 8-bit RGB (grey and alpha channels are converted; 16-bit is reduced).
+pub fn read_png(path: &Path) -> Result<RgbImage> {
+    let bad = |m: String| Error::InvalidInput(format!("{}: {m}", path.display()));
+    let bytes = std::fs::read(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+    let mut decoder = png::Decoder::new(Cursor::new(bytes));
+    decoder.set_transformations(png::Transformations::normalize_to_color8());
+    let mut reader = decoder
+        .read_info()
+        .map_err(|e| bad(format!("not a readable PNG: {e}")))?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| bad("PNG too large".into()))?;
+    let mut buf = vec![0u8; size];
+    let info = reader
+        .next_frame(&mut buf)
+        .map_err(|e| bad(format!("corrupt PNG data: {e}")))?;
+    let (width, height) = (info.width as usize, info.height as usize);
+    let channels = match info.color_type {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::GrayscaleAlpha => 2,
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        png::ColorType::Indexed => return Err(bad("palette PNG was not expanded".into())),
+    };
+    let mut pixels = Vec::with_capacity(3 * width * height);
+    for row in buf.chunks_exact(info.line_size).take(height) {
+        for px in row[..width * channels].chunks_exact(channels) {
+            if channels < 3 {
+                pixels.extend_from_slice(&[px[0]; 3]);
+            } else {
+                pixels.extend_from_slice(&px[..3]);
+            }
+        }
+    }
+    Ok(RgbImage {
+        width,
+        height,
+        pixels,
+    })
+}
+
+/// Linear map from output pixel (column, row) to continuous voxel index of one grid.
+struct PixelToVoxel {
+    first: Vector3<f64>,
+    per_col: Vector3<f64>,
+    per_row: Vector3<f64>,
+}
+
+impl PixelToVoxel {
+    fn new(
+        g: &VolumeGeometry,
+        first_lps_mm: Vector3<f64>,
+        col_mm: Vector3<f64>,
+        row_mm: Vector3<f64>,
+    ) -> Self {
+        let first = g.lps_mm_to_voxel(first_lps_mm);
+        PixelToVoxel {
+            first,
+            per_col: g.lps_mm_to_voxel(first_lps_mm + col_mm) - first,
+            per_row: g.lps_mm_to_voxel(first_lps_mm + row_mm) - first,
+        }
+    }
+
+    #[inline]
+    fn at(&self, col: usize, row: usize) -> Vector3<f64> {
+        self.first + self.per_col * col as f64 + self.per_row * row as f64
+    }
+}
+
+fn check_volume<T>(v: &Volume<T>, what: &str) -> Result<()> {
+    v.geometry.validate(what)?;
+    if v.data.len() != v.geometry.voxel_count() {
+        return Err(Error::InvalidInput(format!(
+            "{what}: {} voxels for a grid of {:?}",
+            v.data.len(),
+            v.geometry.dims
+        )));
+    }
+    Ok(())
+}
+
+fn render_slice_with_pixel(
+    ct: &Volume<f32>,
+    overlays: &[Overlay],
+    plane: SlicePlane,
+    position_lps_mm: f64,
+    window: HuWindow,
+    pixel_mm: f64,
+) -> Result<RgbImage> {
+    check_volume(ct, "quick-look CT")?;
+    for (n, o) in overlays.iter().enumerate() {
+        check_volume(o.labels, &format!("quick-look overlay {n}"))?;
+        if !(0.0..=1.0).contains(&o.opacity) {
+            return Err(Error::InvalidInput(format!(
+                "overlay {n} opacity {} is outside 0–1",
+                o.opacity
+            )));
+        }
+    }
+    if !(window.width_hu.is_finite() && window.width_hu > 0.0 && window.level_hu.is_finite()) {
+        return Err(Error::InvalidInput(format!(
+            "HU window {window:?} needs a positive finite width and a finite level"
+        )));
+    }
+    let [col_dir, row_dir, normal] = plane.frame();
+    // LPS bounding box of the scan: its 8 outer voxel corners projected on the frame axes.
+    let g = &ct.geometry;
+    let mut lo = [f64::MAX; 3];
+    let mut hi = [f64::MIN; 3];
+    for corner in 0..8 {
+        let ijk = Vector3::from_fn(|a, _| {
+            if (corner >> a) & 1 == 1 {
+                g.dims[a] as f64 - 0.5
+            } else {
+                -0.5
+            }
+        });
+        let p = g.voxel_to_lps_mm(ijk);
+        for (a, axis) in [col_dir, row_dir, normal].iter().enumerate() {
+            lo[a] = lo[a].min(axis.dot(&p));
+            hi[a] = hi[a].max(axis.dot(&p));
+        }
+    }
+    if !position_lps_mm.is_finite() || position_lps_mm < lo[2] || position_lps_mm > hi[2] {
+        return Err(Error::InvalidInput(format!(
+            "{} slice at {position_lps_mm} mm is outside the scan ({:.1} to {:.1} mm)",
+            plane.name(),
+            lo[2],
+            hi[2]
+        )));
+    }
+    let side = |a: usize| ((hi[a] - lo[a]) / pixel_mm - 1e-6).ceil().max(1.0) as usize;
+    let (width, height) = (side(0), side(1));
+    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+        return Err(Error::InvalidInput(format!(
+            "{} slice would be {width}×{height} pixels (more than {MAX_IMAGE_SIDE} per side)",
+            plane.name()
+        )));
+    }
+    // Centre of pixel (0, 0); the image is centred on the scan's box.
+    let margin = |a: usize, n: usize| 0.5 * ((hi[a] - lo[a]) - n as f64 * pixel_mm);
+    let first = col_dir * (lo[0] + margin(0, width) + 0.5 * pixel_mm)
+        + row_dir * (lo[1] + margin(1, height) + 0.5 * pixel_mm)
+        + normal * position_lps_mm;
+    let (col_mm, row_mm) = (col_dir * pixel_mm, row_dir * pixel_mm);
+
+    let ct_map = PixelToVoxel::new(g, first, col_mm, row_mm);
+    let mut pixels = vec![0u8; 3 * width * height];
+    pixels
+        .par_chunks_mut(3 * width)
+        .enumerate()
+        .for_each(|(row, line)| {
+            for (col, px) in line.chunks_exact_mut(3).enumerate() {
+                if let Some(hu) = sample_trilinear(ct, ct_map.at(col, row)) {
+                    px.fill(window.grey(hu));
+                }
+            }
+        });
+
+    let mut labels = vec![0u8; width * height];
+    for o in overlays {
+        let map = PixelToVoxel::new(&o.labels.geometry, first, col_mm, row_mm);
+        labels
+            .par_chunks_mut(width)
+            .enumerate()
+            .for_each(|(row, line)| {
+                for (col, l) in line.iter_mut().enumerate() {
+                    *l = sample_nearest(o.labels, map.at(col, row));
+                }
+            });
+        let mut colour_of = [None::<[u8; 3]>; 256];
+        for &(code, rgb) in o.palette {
+            colour_of[code as usize] = Some(rgb);
+        }
+        let labels = &labels;
+        pixels
+            .par_chunks_mut(3 * width)
+            .enumerate()
+            .for_each(|(row, line)| {
+                for (col, px) in line.chunks_exact_mut(3).enumerate() {
+                    let l = labels[row * width + col];
+                    let Some(rgb) = colour_of[l as usize] else {
+                        continue;
+                    };
+                    if o.outline_only {
+                        let differs = |c: usize, r: usize| labels[r * width + c] != l;
+                        let edge = (col > 0 && differs(col - 1, row))
+                            || (col + 1 < width && differs(col + 1, row))
+                            || (row > 0 && differs(col, row - 1))
+                            || (row + 1 < height && differs(col, row + 1));
+                        if !edge {
+                            continue;
+                        }
+                    }
+                    for (p, c) in px.iter_mut().zip(rgb) {
+                        *p = (*p as f32 * (1.0 - o.opacity) + c as f32 * o.opacity).round() as u8;
+                    }
+                }
+            });
+    }
+    Ok(RgbImage {
+        width,
+        height,
+        pixels,
+    })
+}
+
+/// Trilinear CT value at a continuous voxel index; `None` outside the scan (beyond the
+/// outer voxels' half-width).
+#[inline]
+fn sample_trilinear(v: &Volume<f32>, ijk: Vector3<f64>) -> Option<f32> {
+    let d = v.geometry.dims;
+    let mut base = [0usize; 3];
+    let mut frac = [0f32; 3];
+    for a in 0..3 {
+        let x = ijk[a];
+        let n = d[a] as f64;
+        if !(-0.5..=n - 0.5).contains(&x) {
+            return None;
+        }
+        // Half a voxel of edge padding repeats the outer voxel.
+        let x = x.clamp(0.0, n - 1.0);
+        let i0 = (x.floor() as usize).min(d[a].saturating_sub(2));
+        base[a] = i0;
+        frac[a] = (x - i0 as f64) as f32;
+    }
+    let step = [
+        usize::from(d[0] > 1),
+        usize::from(d[1] > 1) * d[0],
+        usize::from(d[2] > 1) * d[0] * d[1],
+    ];
+    let i = v.geometry.index(base[0], base[1], base[2]);
+    let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+    let x00 = lerp(v.data[i], v.data[i + step[0]], frac[0]);
+    let x10 = lerp(v.data[i + step[1]], v.data[i + step[1] + step[0]], frac[0]);
+    let x01 = lerp(v.data[i + step[2]], v.data[i + step[2] + step[0]], frac[0]);
+    let x11 = lerp(
+        v.data[i + step[2] + step[1]],
+        v.data[i + step[2] + step[1] + step[0]],
+        frac[0],
+    );
+    Some(lerp(
+        lerp(x00, x10, frac[1]),
+        lerp(x01, x11, frac[1]),
+        frac[2],
+    ))
+}
+
+/// Label of the voxel nearest a continuous voxel index; 0 outside the grid.
+#[inline]
+fn sample_nearest(v: &Volume<u8>, ijk: Vector3<f64>) -> u8 {
+    let d = v.geometry.dims;
+    let mut idx = [0usize; 3];
+    for a in 0..3 {
+        let r = ijk[a].round();
+        if !(0.0..d[a] as f64).contains(&r) {
+            return 0;
+        }
+        idx[a] = r as usize;
+    }
+    v.get(idx[0], idx[1], idx[2])
+}
