@@ -1,1 +1,0 @@
-//! DICOM series reader and writer (to be written).

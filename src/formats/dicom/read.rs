@@ -1,0 +1,887 @@
+//! Reading a CT series: gather files, group by series, check geometry, decode in parallel.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use dicom_core::Tag;
+use dicom_dictionary_std::{tags, uids};
+use dicom_object::{DefaultDicomObject, OpenFileOptions};
+use dicom_pixeldata::PixelDecoder;
+use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use super::{DicomReadOptions, DicomSeries, SeriesInfo};
+use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
+use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
+use crate::{Error, Result};
+
+/// Two slices closer than this along the normal are at the same position.
+const DUPLICATE_TOLERANCE_MM: f64 = 0.01;
+/// Absolute part of the slice-gap tolerance.
+const GAP_TOLERANCE_MM: f64 = 0.01;
+/// Relative part of the slice-gap tolerance.
+const GAP_TOLERANCE_FRACTION: f64 = 0.01;
+/// Slice positions may leave the normal by this much (absolute part), DS rounding included.
+const TILT_TOLERANCE_MM: f64 = 0.01;
+/// Slice positions may leave the normal by this fraction of their distance along it (0.06°).
+const TILT_TOLERANCE_SLOPE: f64 = 1e-3;
+/// Tolerance on direction cosines and pixel spacing between slices of one series.
+const CONSISTENCY_TOLERANCE: f64 = 1e-4;
+
+/// Reads the single CT series in `input`: a directory (searched recursively), a zip file or
+/// one DICOM file.
+pub fn read_dicom_series(input: &Path) -> Result<DicomSeries> {
+    read_dicom_series_with(input, &DicomReadOptions::default())
+}
+
+/// Reads a CT series from `input` with explicit options (series choice, zip limits).
+pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Result<DicomSeries> {
+    let what = input.display().to_string();
+    let sources = gather_sources(input, options)?;
+    if sources.is_empty() {
+        return Err(Error::InvalidScan(format!("{what}: no files found")));
+    }
+    let parsed: Vec<std::result::Result<Option<ParsedFile>, String>> =
+        sources.into_par_iter().map(parse_source).collect();
+    let mut warnings = Vec::new();
+    let mut files = Vec::new();
+    for p in parsed {
+        match p {
+            Ok(Some(f)) => files.push(f),
+            Ok(None) => {}
+            Err(w) => {
+                tracing::warn!("{w}");
+                warnings.push(w);
+            }
+        }
+    }
+    if files.is_empty() {
+        return Err(Error::InvalidScan(format!(
+            "{what}: no readable DICOM file ({} skipped: {})",
+            warnings.len(),
+            summarize(&warnings, 3)
+        )));
+    }
+    let series = select_series(&what, files, options)?;
+    build_volume(&what, series, warnings)
+}
+
+/// A file to parse: on disk or already in memory (from a zip).
+enum Source {
+    File(PathBuf),
+    Entry { zip: String, entry: ArchiveEntry },
+}
+
+fn gather_sources(input: &Path, options: &DicomReadOptions) -> Result<Vec<Source>> {
+    let meta = std::fs::metadata(input)
+        .map_err(|e| Error::InvalidScan(format!("{}: cannot access: {e}", input.display())))?;
+    if meta.is_dir() {
+        let mut paths = Vec::new();
+        collect_files(input, &mut paths)?;
+        paths.sort();
+        Ok(paths.into_iter().map(Source::File).collect())
+    } else if looks_like_zip(input) {
+        let zip = input.display().to_string();
+        let entries = read_zip_file(input, &options.archive_limits)?;
+        Ok(entries
+            .into_iter()
+            .filter(|e| !is_dicomdir_name(&e.name))
+            .map(|entry| Source::Entry {
+                zip: zip.clone(),
+                entry,
+            })
+            .collect())
+    } else {
+        Ok(vec![Source::File(input.to_path_buf())])
+    }
+}
+
+fn collect_files(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+    let listing = std::fs::read_dir(dir)
+        .map_err(|e| Error::InvalidScan(format!("{}: cannot list: {e}", dir.display())))?;
+    for entry in listing {
+        let entry = entry
+            .map_err(|e| Error::InvalidScan(format!("{}: cannot list: {e}", dir.display())))?;
+        let path = entry.path();
+        // Follows symlinked files but not symlinked directories, which could loop.
+        let kind = entry
+            .file_type()
+            .map_err(|e| Error::InvalidScan(format!("{}: cannot inspect: {e}", path.display())))?;
+        if kind.is_dir() {
+            collect_files(&path, out)?;
+        } else if (kind.is_file() || path.is_file())
+            && !is_dicomdir_name(&entry.file_name().to_string_lossy())
+        {
+            out.push(path);
+        }
+    }
+    Ok(())
+}
+
+fn is_dicomdir_name(name: &str) -> bool {
+    name.rsplit(['/', '\\'])
+        .next()
+        .is_some_and(|base| base.eq_ignore_ascii_case("DICOMDIR"))
+}
+
+/// One parsed DICOM file with the attributes needed to group it.
+struct ParsedFile {
+    name: String,
+    object: DefaultDicomObject,
+    series_uid: String,
+    modality: String,
+    description: Option<String>,
+}
+
+/// Parses one source; `Ok(None)` for files deliberately ignored (DICOMDIR), `Err` for a
+/// warning about a skipped file.
+fn parse_source(source: Source) -> std::result::Result<Option<ParsedFile>, String> {
+    let (name, bytes) = match source {
+        Source::File(path) => {
+            let name = path.display().to_string();
+            match std::fs::read(&path) {
+                Ok(b) => (name, b),
+                Err(e) => return Err(format!("{name}: skipped, cannot read: {e}")),
+            }
+        }
+        Source::Entry { zip, entry } => (format!("{zip}:{}", entry.name), entry.data),
+    };
+    let object = OpenFileOptions::new()
+        .from_reader(&bytes[..])
+        .map_err(|e| format!("{name}: skipped, not a readable DICOM file ({e})"))?;
+    drop(bytes);
+    if object.meta().media_storage_sop_class_uid() == uids::MEDIA_STORAGE_DIRECTORY_STORAGE {
+        return Ok(None);
+    }
+    check_image_complete(&object).map_err(|why| format!("{name}: skipped, {why}"))?;
+    let series_uid = text(&object, tags::SERIES_INSTANCE_UID)
+        .unwrap_or_else(|| "(no SeriesInstanceUID)".to_string());
+    let modality = text(&object, tags::MODALITY).unwrap_or_else(|| "(no Modality)".to_string());
+    let description = text(&object, tags::SERIES_DESCRIPTION);
+    Ok(Some(ParsedFile {
+        name,
+        object,
+        series_uid,
+        modality,
+        description,
+    }))
+}
+
+/// Refuses objects without an image and native pixel data shorter than its header
+/// announces: the parser accepts a file that ends early at an element boundary.
+fn check_image_complete(object: &DefaultDicomObject) -> std::result::Result<(), String> {
+    let Some(pixel_data) = object.get(tags::PIXEL_DATA) else {
+        return Err("no pixel data (truncated file or not an image)".into());
+    };
+    let Some(bytes) = pixel_data
+        .value()
+        .primitive()
+        .map(|v| v.calculate_byte_len())
+    else {
+        // Encapsulated fragments: their decoder reports truncation.
+        return Ok(());
+    };
+    let number = |tag: Tag| {
+        object
+            .get(tag)
+            .and_then(|e| e.to_int::<u32>().ok())
+            .map(|v| v as usize)
+    };
+    let (Some(rows), Some(columns)) = (number(tags::ROWS), number(tags::COLUMNS)) else {
+        return Ok(());
+    };
+    if rows > MAX_DIM || columns > MAX_DIM {
+        // Left for the geometry check, which names the absurd size.
+        return Ok(());
+    }
+    let bits = number(tags::BITS_ALLOCATED).unwrap_or(16);
+    let samples = number(tags::SAMPLES_PER_PIXEL).unwrap_or(1);
+    let frames = number(tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
+    let expected = rows * columns * samples * frames * bits.div_ceil(8);
+    if bytes < expected {
+        return Err(format!(
+            "pixel data holds {bytes} bytes where {rows}×{columns}×{frames} pixels of {bits} \
+             bits need {expected} (truncated file?)"
+        ));
+    }
+    Ok(())
+}
+
+fn text(object: &DefaultDicomObject, tag: Tag) -> Option<String> {
+    let value = object.get(tag)?.to_str().ok()?;
+    let trimmed = value.trim_matches(|c: char| c.is_whitespace() || c == '\0');
+    (!trimmed.is_empty()).then(|| trimmed.to_string())
+}
+
+/// Files of one series, in no particular order.
+struct SeriesFiles {
+    uid: String,
+    files: Vec<ParsedFile>,
+}
+
+impl SeriesFiles {
+    fn modality(&self) -> &str {
+        &self.files[0].modality
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "{} ({}, \"{}\", {} file{})",
+            self.uid,
+            self.modality(),
+            self.files[0].description.as_deref().unwrap_or(""),
+            self.files.len(),
+            if self.files.len() == 1 { "" } else { "s" }
+        )
+    }
+
+    fn is_ct_image(&self) -> bool {
+        self.modality() == "CT"
+            && self
+                .files
+                .iter()
+                .any(|f| f.object.get(tags::ROWS).is_some())
+    }
+}
+
+fn select_series(
+    what: &str,
+    files: Vec<ParsedFile>,
+    options: &DicomReadOptions,
+) -> Result<SeriesFiles> {
+    let mut groups: BTreeMap<String, Vec<ParsedFile>> = BTreeMap::new();
+    for f in files {
+        groups.entry(f.series_uid.clone()).or_default().push(f);
+    }
+    let mut all: Vec<SeriesFiles> = groups
+        .into_iter()
+        .map(|(uid, files)| SeriesFiles { uid, files })
+        .collect();
+    let listing = |list: &[SeriesFiles]| {
+        list.iter()
+            .map(SeriesFiles::describe)
+            .collect::<Vec<_>>()
+            .join("; ")
+    };
+    if let Some(wanted) = &options.series_uid {
+        let found = all.iter().position(|s| &s.uid == wanted);
+        return match found {
+            Some(i) if all[i].is_ct_image() => Ok(all.swap_remove(i)),
+            Some(i) => Err(Error::InvalidScan(format!(
+                "{what}: series {wanted} is not a CT image series: {}",
+                all[i].describe()
+            ))),
+            None => Err(Error::InvalidScan(format!(
+                "{what}: no series {wanted}; found {}",
+                listing(&all)
+            ))),
+        };
+    }
+    let ct_count = all.iter().filter(|s| s.is_ct_image()).count();
+    match ct_count {
+        0 => Err(Error::InvalidScan(format!(
+            "{what}: no CT image series; found modality {}: {}",
+            all.iter()
+                .map(|s| s.modality().to_string())
+                .collect::<Vec<_>>()
+                .join(", "),
+            listing(&all)
+        ))),
+        1 => Ok(all
+            .into_iter()
+            .find(SeriesFiles::is_ct_image)
+            .unwrap_or_else(|| unreachable!("one CT series was counted"))),
+        _ => {
+            let ct: Vec<SeriesFiles> = all.into_iter().filter(|s| s.is_ct_image()).collect();
+            Err(Error::InvalidScan(format!(
+                "{what}: {} CT series found, choose one by SeriesInstanceUID: {}",
+                ct.len(),
+                listing(&ct)
+            )))
+        }
+    }
+}
+
+/// Per-slice attributes after checking.
+struct Slice {
+    file: ParsedFile,
+    position_lps_mm: Vector3<f64>,
+    rescale_slope: f64,
+    rescale_intercept: f64,
+}
+
+/// Geometry every slice of the series must share.
+struct FrameLayout {
+    rows: usize,
+    columns: usize,
+    row_direction: Vector3<f64>,
+    column_direction: Vector3<f64>,
+    /// PixelSpacing as stored: row spacing (between rows), then column spacing.
+    pixel_spacing_mm: [f64; 2],
+}
+
+fn floats(file: &ParsedFile, tag: Tag, tag_name: &str, count: usize) -> Result<Vec<f64>> {
+    let bad = |m: String| {
+        Error::InvalidScan(format!(
+            "{}: {tag_name} ({:04X},{:04X}) {m}",
+            file.name, tag.0, tag.1
+        ))
+    };
+    let element = file
+        .object
+        .get(tag)
+        .ok_or_else(|| bad("is missing".into()))?;
+    let values = element
+        .to_multi_float64()
+        .map_err(|e| bad(format!("is not numeric ({e})")))?;
+    if values.len() != count {
+        return Err(bad(format!(
+            "has {} values, {count} expected",
+            values.len()
+        )));
+    }
+    if values.iter().any(|v| !v.is_finite()) {
+        return Err(bad(format!("is not finite: {values:?}")));
+    }
+    Ok(values)
+}
+
+fn unsigned(file: &ParsedFile, tag: Tag, tag_name: &str) -> Result<usize> {
+    let bad = |m: &str| {
+        Error::InvalidScan(format!(
+            "{}: {tag_name} ({:04X},{:04X}) {m}",
+            file.name, tag.0, tag.1
+        ))
+    };
+    let element = file.object.get(tag).ok_or_else(|| bad("is missing"))?;
+    element
+        .to_int::<u32>()
+        .map(|v| v as usize)
+        .map_err(|_| bad("is not an unsigned integer"))
+}
+
+fn frame_layout(file: &ParsedFile) -> Result<FrameLayout> {
+    let bad = |m: String| Error::InvalidScan(format!("{}: {m}", file.name));
+    let rows = unsigned(file, tags::ROWS, "Rows")?;
+    let columns = unsigned(file, tags::COLUMNS, "Columns")?;
+    if rows == 0 || columns == 0 {
+        return Err(bad(format!(
+            "empty image ({rows} rows × {columns} columns)"
+        )));
+    }
+    let iop = floats(
+        file,
+        tags::IMAGE_ORIENTATION_PATIENT,
+        "ImageOrientationPatient",
+        6,
+    )?;
+    let row_direction = Vector3::new(iop[0], iop[1], iop[2]);
+    let column_direction = Vector3::new(iop[3], iop[4], iop[5]);
+    let orthonormal = (row_direction.norm() - 1.0).abs() < 1e-3
+        && (column_direction.norm() - 1.0).abs() < 1e-3
+        && row_direction.dot(&column_direction).abs() < 1e-3;
+    if !orthonormal {
+        return Err(bad(format!(
+            "ImageOrientationPatient {iop:?} is not two orthogonal unit vectors"
+        )));
+    }
+    let spacing = floats(file, tags::PIXEL_SPACING, "PixelSpacing", 2)?;
+    if spacing.iter().any(|&s| s <= 0.0) {
+        return Err(bad(format!(
+            "PixelSpacing {spacing:?} mm: spacings must be positive"
+        )));
+    }
+    Ok(FrameLayout {
+        rows,
+        columns,
+        row_direction: row_direction.normalize(),
+        column_direction: column_direction.normalize(),
+        pixel_spacing_mm: [spacing[0], spacing[1]],
+    })
+}
+
+fn check_same_layout(
+    reference: &FrameLayout,
+    name_ref: &str,
+    other: &FrameLayout,
+    name: &str,
+) -> Result<()> {
+    let bad = |m: String| {
+        Err(Error::InvalidScan(format!(
+            "{name}: {m} differs from {name_ref} in the same series"
+        )))
+    };
+    if (other.rows, other.columns) != (reference.rows, reference.columns) {
+        return bad(format!(
+            "image size {}×{} (rows×columns) vs {}×{}",
+            other.rows, other.columns, reference.rows, reference.columns
+        ));
+    }
+    let direction_change = (other.row_direction - reference.row_direction)
+        .abs()
+        .max()
+        .max(
+            (other.column_direction - reference.column_direction)
+                .abs()
+                .max(),
+        );
+    if direction_change > CONSISTENCY_TOLERANCE {
+        return bad("ImageOrientationPatient".into());
+    }
+    let close = |a: f64, b: f64| (a - b).abs() <= CONSISTENCY_TOLERANCE * a.abs().max(1.0);
+    if !close(other.pixel_spacing_mm[0], reference.pixel_spacing_mm[0])
+        || !close(other.pixel_spacing_mm[1], reference.pixel_spacing_mm[1])
+    {
+        return bad(format!(
+            "PixelSpacing {:?} vs {:?}",
+            other.pixel_spacing_mm, reference.pixel_spacing_mm
+        ));
+    }
+    Ok(())
+}
+
+fn rescale(file: &ParsedFile, tag: Tag, tag_name: &str, default: f64) -> Result<Option<f64>> {
+    if file.object.get(tag).is_none() {
+        return Ok(None);
+    }
+    let v = floats(file, tag, tag_name, 1)?[0];
+    Ok(Some(if v.is_finite() { v } else { default }))
+}
+
+fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> Result<DicomSeries> {
+    let SeriesFiles { uid, files } = series;
+    let bad = |m: String| Error::InvalidScan(format!("{what}: series {uid}: {m}"));
+    for f in &files {
+        let frames = match f.object.get(tags::NUMBER_OF_FRAMES) {
+            Some(e) => e.to_int::<u32>().unwrap_or(1),
+            None => 1,
+        };
+        let sop_class = text(&f.object, tags::SOP_CLASS_UID).unwrap_or_default();
+        let enhanced = sop_class == uids::ENHANCED_CT_IMAGE_STORAGE
+            || sop_class == uids::LEGACY_CONVERTED_ENHANCED_CT_IMAGE_STORAGE;
+        if frames > 1 || enhanced {
+            return Err(bad(format!(
+                "{} holds {frames} frames: multi-frame (Enhanced CT) images are not supported; \
+                 export the series as single-frame CT images",
+                f.name
+            )));
+        }
+    }
+    if files.len() < 2 {
+        return Err(bad(format!(
+            "only {} slice ({}): a volume needs at least 2",
+            files.len(),
+            files[0].name
+        )));
+    }
+
+    let layout = frame_layout(&files[0])?;
+    let mut slices = Vec::with_capacity(files.len());
+    let mut missing_rescale = 0usize;
+    for file in files {
+        let this = frame_layout(&file)?;
+        if !slices.is_empty() {
+            let first: &Slice = &slices[0];
+            check_same_layout(&layout, &first.file.name, &this, &file.name)?;
+        }
+        let ipp = floats(
+            &file,
+            tags::IMAGE_POSITION_PATIENT,
+            "ImagePositionPatient",
+            3,
+        )?;
+        let slope = rescale(&file, tags::RESCALE_SLOPE, "RescaleSlope", 1.0)?;
+        let intercept = rescale(&file, tags::RESCALE_INTERCEPT, "RescaleIntercept", 0.0)?;
+        if slope.is_none() || intercept.is_none() {
+            missing_rescale += 1;
+        }
+        let slope = slope.unwrap_or(1.0);
+        if slope == 0.0 {
+            return Err(bad(format!("{}: RescaleSlope is 0", file.name)));
+        }
+        slices.push(Slice {
+            file,
+            position_lps_mm: Vector3::new(ipp[0], ipp[1], ipp[2]),
+            rescale_slope: slope,
+            rescale_intercept: intercept.unwrap_or(0.0),
+        });
+    }
+    if missing_rescale > 0 {
+        let w = format!(
+            "{what}: {missing_rescale} slice(s) lack RescaleSlope/RescaleIntercept; stored \
+             values taken as HU (slope 1, intercept 0)"
+        );
+        tracing::warn!("{w}");
+        warnings.push(w);
+    }
+
+    // Order along the slice normal.
+    let normal = layout
+        .row_direction
+        .cross(&layout.column_direction)
+        .normalize();
+    let along = |s: &Slice| s.position_lps_mm.dot(&normal);
+    slices.sort_by(|a, b| along(a).total_cmp(&along(b)));
+
+    // Duplicates: identical pixels and rescale are dropped, anything else is refused.
+    let mut kept: Vec<Slice> = Vec::with_capacity(slices.len());
+    for slice in slices {
+        if let Some(previous) = kept.last() {
+            if (along(&slice) - along(previous)).abs() < DUPLICATE_TOLERANCE_MM {
+                let same_pixels = previous
+                    .file
+                    .object
+                    .get(tags::PIXEL_DATA)
+                    .map(|e| e.value())
+                    == slice.file.object.get(tags::PIXEL_DATA).map(|e| e.value());
+                let same_rescale = previous.rescale_slope == slice.rescale_slope
+                    && previous.rescale_intercept == slice.rescale_intercept;
+                if same_pixels && same_rescale {
+                    let w = format!(
+                        "{}: dropped, an exact duplicate of {} (same position {:.3} mm along the \
+                         slice normal, same pixels)",
+                        slice.file.name,
+                        previous.file.name,
+                        along(&slice)
+                    );
+                    tracing::warn!("{w}");
+                    warnings.push(w);
+                    continue;
+                }
+                return Err(bad(format!(
+                    "{} and {} are both at {:.3} mm along the slice normal but hold different \
+                     images (duplicate slice position)",
+                    previous.file.name,
+                    slice.file.name,
+                    along(&slice)
+                )));
+            }
+        }
+        kept.push(slice);
+    }
+    let slices = kept;
+    let n = slices.len();
+    if n < 2 {
+        return Err(bad(
+            "only 1 distinct slice position: a volume needs at least 2".into(),
+        ));
+    }
+
+    // Gantry tilt: positions must move along the normal only.
+    let first_position = slices[0].position_lps_mm;
+    let mut worst: Option<(f64, f64, usize)> = None;
+    for (k, s) in slices.iter().enumerate().skip(1) {
+        let step = s.position_lps_mm - first_position;
+        let along_mm = step.dot(&normal);
+        let lateral_mm = (step - normal * along_mm).norm();
+        if lateral_mm > TILT_TOLERANCE_MM + TILT_TOLERANCE_SLOPE * along_mm.abs()
+            && worst.is_none_or(|(l, _, _)| lateral_mm > l)
+        {
+            worst = Some((lateral_mm, along_mm, k));
+        }
+    }
+    if let Some((lateral_mm, along_mm, k)) = worst {
+        let tilt_deg = lateral_mm.atan2(along_mm.abs()).to_degrees();
+        let declared = text(&slices[k].file.object, tags::GANTRY_DETECTOR_TILT)
+            .map(|t| format!(" (GantryDetectorTilt says {t}°)"))
+            .unwrap_or_default();
+        return Err(bad(format!(
+            "slice positions leave the slice normal by {lateral_mm:.2} mm over {along_mm:.2} mm \
+             ({} vs {}): gantry tilt of about {tilt_deg:.2}°{declared}; sheared volumes are not \
+             supported, resample the series first",
+            slices[k].file.name, slices[0].file.name
+        )));
+    }
+
+    // Uniform spacing.
+    let gaps: Vec<f64> = slices
+        .windows(2)
+        .map(|w| along(&w[1]) - along(&w[0]))
+        .collect();
+    let mut sorted_gaps = gaps.clone();
+    sorted_gaps.sort_by(f64::total_cmp);
+    let typical_gap = sorted_gaps[sorted_gaps.len() / 2];
+    let tolerance = GAP_TOLERANCE_MM.max(GAP_TOLERANCE_FRACTION * typical_gap);
+    let irregular: Vec<String> = gaps
+        .iter()
+        .enumerate()
+        .filter(|(_, g)| (*g - typical_gap).abs() > tolerance)
+        .map(|(k, g)| {
+            format!(
+                "{g:.3} mm between {} and {}",
+                slices[k].file.name,
+                slices[k + 1].file.name
+            )
+        })
+        .collect();
+    if !irregular.is_empty() {
+        return Err(bad(format!(
+            "non-uniform slice spacing (typical {typical_gap:.3} mm; missing slice?): {} gap(s) \
+             differ: {}",
+            irregular.len(),
+            summarize(&irregular, 8)
+        )));
+    }
+    let slice_spacing_mm = (along(&slices[n - 1]) - along(&slices[0])) / (n - 1) as f64;
+
+    let geometry = VolumeGeometry {
+        dims: [layout.columns, layout.rows, n],
+        spacing_mm: [
+            layout.pixel_spacing_mm[1],
+            layout.pixel_spacing_mm[0],
+            slice_spacing_mm,
+        ],
+        origin_lps_mm: first_position.into(),
+        direction_lps: [
+            layout.row_direction.into(),
+            layout.column_direction.into(),
+            normal.into(),
+        ],
+    };
+    geometry.validate(&format!("{what}: series {uid}"))?;
+
+    let frame_len = layout.columns * layout.rows;
+    let mut data = vec![0f32; geometry.voxel_count()];
+    data.par_chunks_mut(frame_len)
+        .zip(slices.par_iter())
+        .try_for_each(|(out, slice)| decode_slice(slice, &layout, out))?;
+
+    let first = &slices[0].file;
+    let transfer_syntax_uid = first
+        .object
+        .meta()
+        .transfer_syntax()
+        .trim_end_matches('\0')
+        .to_string();
+    let syntax_of = |s: &Slice| {
+        s.file
+            .object
+            .meta()
+            .transfer_syntax()
+            .trim_end_matches('\0')
+            .to_string()
+    };
+    if let Some(other) = slices.iter().find(|s| syntax_of(s) != transfer_syntax_uid) {
+        let w = format!(
+            "{what}: the series mixes transfer syntaxes ({} in {}, {} in {})",
+            transfer_syntax_uid,
+            first.name,
+            syntax_of(other),
+            other.file.name
+        );
+        tracing::warn!("{w}");
+        warnings.push(w);
+    }
+    let transfer_syntax_name = TransferSyntaxRegistry
+        .get(&transfer_syntax_uid)
+        .map(|ts| ts.name().to_string())
+        .unwrap_or_else(|| "unknown transfer syntax".into());
+    let info = SeriesInfo {
+        series_instance_uid: uid.clone(),
+        modality: first.modality.clone(),
+        series_description: first.description.clone(),
+        manufacturer: text(&first.object, tags::MANUFACTURER),
+        transfer_syntax_uid,
+        transfer_syntax_name,
+        slice_count: n,
+        rows: layout.rows,
+        columns: layout.columns,
+        patient_position: text(&first.object, tags::PATIENT_POSITION),
+    };
+    let volume = Volume::from_data(geometry, data)?;
+    Ok(DicomSeries {
+        volume,
+        info,
+        warnings,
+    })
+}
+
+/// How stored pixel values are laid out (PS3.3 C.7.6.3.1).
+#[derive(Debug, Clone, Copy)]
+struct PixelFormat {
+    bits_allocated: u16,
+    bits_stored: u16,
+    high_bit: u16,
+    signed: bool,
+}
+
+impl PixelFormat {
+    fn check(self, name: &str) -> Result<Self> {
+        let PixelFormat {
+            bits_allocated,
+            bits_stored,
+            high_bit,
+            ..
+        } = self;
+        if !matches!(bits_allocated, 8 | 16 | 32) {
+            return Err(Error::InvalidScan(format!(
+                "{name}: BitsAllocated {bits_allocated} is not supported (8, 16 or 32)"
+            )));
+        }
+        if bits_stored == 0
+            || bits_stored > bits_allocated
+            || high_bit + 1 < bits_stored
+            || high_bit >= bits_allocated
+        {
+            return Err(Error::InvalidScan(format!(
+                "{name}: inconsistent BitsAllocated {bits_allocated}, BitsStored \
+                 {bits_stored}, HighBit {high_bit}"
+            )));
+        }
+        Ok(self)
+    }
+
+    /// Converts raw samples to HU; `out.len()` samples are taken from `raw`.
+    fn fill_hu(self, raw: impl Iterator<Item = u32>, slope: f64, intercept: f64, out: &mut [f32]) {
+        let shift = u32::from(self.high_bit + 1 - self.bits_stored);
+        let mask: u64 = (1u64 << self.bits_stored) - 1;
+        let sign_bit: u64 = 1u64 << (self.bits_stored - 1);
+        let wrap: i64 = 1i64 << self.bits_stored;
+        let signed = self.signed;
+        for (o, stored) in out.iter_mut().zip(raw) {
+            let bits = (u64::from(stored) >> shift) & mask;
+            let value = if signed && bits & sign_bit != 0 {
+                bits as i64 - wrap
+            } else {
+                bits as i64
+            };
+            *o = (value as f64 * slope + intercept) as f32;
+        }
+    }
+}
+
+/// Decodes one slice into `out` (rows × columns HU values, i fastest).
+fn decode_slice(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
+    let name = &slice.file.name;
+    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
+    let (slope, intercept) = (slice.rescale_slope, slice.rescale_intercept);
+    let object = &slice.file.object;
+    let tag_u16 = |tag: Tag| object.get(tag).and_then(|e| e.to_int::<u16>().ok());
+    if let Some(samples) = tag_u16(tags::SAMPLES_PER_PIXEL) {
+        if samples != 1 {
+            return Err(bad(format!(
+                "{samples} samples per pixel: a CT image has 1"
+            )));
+        }
+    }
+
+    // Native pixel data is converted straight from the parsed values: decoding through
+    // dicom-pixeldata would copy every slice twice.
+    let native = object
+        .get(tags::PIXEL_DATA)
+        .and_then(|e| e.value().primitive());
+    if let Some(values) = native {
+        let format = PixelFormat {
+            bits_allocated: tag_u16(tags::BITS_ALLOCATED)
+                .ok_or_else(|| bad("BitsAllocated (0028,0100) is missing".into()))?,
+            bits_stored: tag_u16(tags::BITS_STORED)
+                .ok_or_else(|| bad("BitsStored (0028,0101) is missing".into()))?,
+            high_bit: tag_u16(tags::HIGH_BIT)
+                .ok_or_else(|| bad("HighBit (0028,0102) is missing".into()))?,
+            signed: tag_u16(tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
+        }
+        .check(name)?;
+        let short = |have: usize| {
+            bad(format!(
+                "pixel data holds {have} samples, {} expected (truncated?)",
+                out.len()
+            ))
+        };
+        use dicom_core::PrimitiveValue as V;
+        let n = out.len();
+        match (values, format.bits_allocated) {
+            (V::U16(v), 16) if v.len() < n => return Err(short(v.len())),
+            (V::I16(v), 16) if v.len() < n => return Err(short(v.len())),
+            (V::U8(v), 8) if v.len() < n => return Err(short(v.len())),
+            (V::U16(v), 16) => {
+                format.fill_hu(v.iter().map(|&x| u32::from(x)), slope, intercept, out)
+            }
+            (V::I16(v), 16) => format.fill_hu(
+                v.iter().map(|&x| u32::from(x as u16)),
+                slope,
+                intercept,
+                out,
+            ),
+            (V::U8(v), 8) => format.fill_hu(v.iter().map(|&x| u32::from(x)), slope, intercept, out),
+            _ => return decode_with_pixeldata(slice, layout, out),
+        }
+        return Ok(());
+    }
+    decode_with_pixeldata(slice, layout, out)
+}
+
+/// Decodes through dicom-pixeldata (every encapsulated syntax, unusual native layouts).
+fn decode_with_pixeldata(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
+    let name = &slice.file.name;
+    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
+    let pixels = slice
+        .file
+        .object
+        .decode_pixel_data()
+        .map_err(|e| bad(format!("cannot decode pixel data ({e})")))?;
+    if pixels.rows() as usize != layout.rows || pixels.columns() as usize != layout.columns {
+        return Err(bad(format!(
+            "decoded image is {}×{}, header says {}×{}",
+            pixels.rows(),
+            pixels.columns(),
+            layout.rows,
+            layout.columns
+        )));
+    }
+    if pixels.samples_per_pixel() != 1 {
+        return Err(bad(format!(
+            "{} samples per pixel: a CT image has 1",
+            pixels.samples_per_pixel()
+        )));
+    }
+    let format = PixelFormat {
+        bits_allocated: pixels.bits_allocated(),
+        bits_stored: pixels.bits_stored(),
+        high_bit: pixels.high_bit(),
+        signed: pixels.pixel_representation() == dicom_pixeldata::PixelRepresentation::Signed,
+    }
+    .check(name)?;
+    let bytes_per_sample = usize::from(format.bits_allocated / 8);
+    let raw = pixels.data();
+    let needed = out.len() * bytes_per_sample;
+    if raw.len() < needed {
+        return Err(bad(format!(
+            "pixel data holds {} bytes, {needed} expected (truncated?)",
+            raw.len()
+        )));
+    }
+    let (slope, intercept) = (slice.rescale_slope, slice.rescale_intercept);
+    // Decoded samples are in the machine's byte order.
+    match bytes_per_sample {
+        1 => format.fill_hu(raw.iter().map(|&b| u32::from(b)), slope, intercept, out),
+        2 => format.fill_hu(
+            raw.chunks_exact(2)
+                .map(|b| u32::from(u16::from_ne_bytes([b[0], b[1]]))),
+            slope,
+            intercept,
+            out,
+        ),
+        _ => format.fill_hu(
+            raw.chunks_exact(4)
+                .map(|b| u32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
+            slope,
+            intercept,
+            out,
+        ),
+    }
+    Ok(())
+}
+
+fn summarize(items: &[String], max: usize) -> String {
+    let mut s = items
+        .iter()
+        .take(max)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join("; ");
+    if items.len() > max {
+        s.push_str(&format!("; … {} more", items.len() - max));
+    }
+    s
+}

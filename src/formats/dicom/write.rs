@@ -1,0 +1,295 @@
+//! Writing a volume as a CT Image Storage series (one file per k-slice).
+
+use std::path::{Path, PathBuf};
+
+use dicom_core::smallvec::SmallVec;
+use dicom_core::{DataElement, PrimitiveValue, Tag, VR};
+use dicom_dictionary_std::{tags, uids};
+use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use super::CtSeriesMetadata;
+use crate::validation::report::write_atomic;
+use crate::volume::Volume;
+use crate::{Error, Result};
+
+/// Writes `volume` (HU) into `dir` as `IMG0001.dcm`, … one file per k-slice: CT Image
+/// Storage, Explicit VR Little Endian, signed 16-bit pixels holding the rounded HU minus a
+/// RescaleIntercept shared by all slices (0 whenever the values fit in int16). Each file is
+/// written to a temporary sibling and renamed. Returns the paths in k order.
+pub fn write_ct_series(
+    volume: &Volume<f32>,
+    dir: &Path,
+    meta: &CtSeriesMetadata,
+) -> Result<Vec<PathBuf>> {
+    let what = dir.display().to_string();
+    let bad = |m: String| Error::InvalidInput(format!("DICOM series {what}: {m}"));
+    let g = volume.geometry;
+    g.validate(&format!("DICOM series {what}"))?;
+    if volume.data.len() != g.voxel_count() {
+        return Err(bad(format!(
+            "volume holds {} voxels, its grid {:?} needs {}",
+            volume.data.len(),
+            g.dims,
+            g.voxel_count()
+        )));
+    }
+    if g.dims[0] > u16::MAX as usize || g.dims[1] > u16::MAX as usize {
+        return Err(bad(format!(
+            "slices of {:?} exceed DICOM's 65535 rows/columns",
+            g.dims
+        )));
+    }
+    let (min_hu, max_hu) = volume
+        .data
+        .par_iter()
+        .try_fold(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |(lo, hi), &v| v.is_finite().then(|| (lo.min(v), hi.max(v))),
+        )
+        .try_reduce(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |a, b| Some((a.0.min(b.0), a.1.max(b.1))),
+        )
+        .ok_or_else(|| bad("the volume holds non-finite values".into()))?;
+    let (min_hu, max_hu) = (min_hu.round() as f64, max_hu.round() as f64);
+    if max_hu - min_hu > 65_535.0 {
+        return Err(bad(format!(
+            "values span {min_hu}…{max_hu} HU, more than 16 bits can hold"
+        )));
+    }
+    let intercept = if min_hu >= i16::MIN as f64 && max_hu <= i16::MAX as f64 {
+        0.0
+    } else {
+        min_hu - i16::MIN as f64
+    };
+
+    std::fs::create_dir_all(dir).map_err(|e| bad(format!("cannot create the directory: {e}")))?;
+
+    let direction = g.direction();
+    let row_direction: Vector3<f64> = direction.column(0).into();
+    let column_direction: Vector3<f64> = direction.column(1).into();
+    let k_axis: Vector3<f64> = direction.column(2).into();
+    let normal = row_direction.cross(&column_direction);
+    let uid_root = UidRoot::new(meta.uid_seed, volume);
+    let study_uid = uid_root.uid(1, 0);
+    let series_uid = uid_root.uid(2, 0);
+    let frame_of_reference_uid = uid_root.uid(3, 0);
+    let width = g.dims[2].to_string().len().max(4);
+    let frame_len = g.dims[0] * g.dims[1];
+
+    (0..g.dims[2])
+        .into_par_iter()
+        .map(|k| {
+            let position = g.origin() + k_axis * (k as f64 * g.spacing_mm[2]);
+            let pixels: Vec<u16> = volume.data[k * frame_len..(k + 1) * frame_len]
+                .iter()
+                .map(|&hu| ((hu.round() as f64 - intercept) as i16) as u16)
+                .collect();
+            let mut obj = InMemDicomObject::new_empty();
+            let mut put = |tag: Tag, vr: VR, value: String| {
+                obj.put(DataElement::new(tag, vr, PrimitiveValue::from(value)));
+            };
+            let sop_uid = uid_root.uid(4, k as u64 + 1);
+            put(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 100".into());
+            put(tags::IMAGE_TYPE, VR::CS, "DERIVED\\SECONDARY\\AXIAL".into());
+            put(tags::SOP_CLASS_UID, VR::UI, uids::CT_IMAGE_STORAGE.into());
+            put(tags::SOP_INSTANCE_UID, VR::UI, sop_uid.clone());
+            put(tags::STUDY_DATE, VR::DA, String::new());
+            put(tags::STUDY_TIME, VR::TM, String::new());
+            put(tags::ACCESSION_NUMBER, VR::SH, String::new());
+            put(tags::MODALITY, VR::CS, "CT".into());
+            put(tags::MANUFACTURER, VR::LO, meta.manufacturer.clone());
+            put(tags::REFERRING_PHYSICIAN_NAME, VR::PN, String::new());
+            put(
+                tags::STUDY_DESCRIPTION,
+                VR::LO,
+                meta.study_description.clone(),
+            );
+            put(
+                tags::SERIES_DESCRIPTION,
+                VR::LO,
+                meta.series_description.clone(),
+            );
+            put(tags::PATIENT_NAME, VR::PN, meta.patient_name.clone());
+            put(tags::PATIENT_ID, VR::LO, meta.patient_id.clone());
+            put(tags::PATIENT_BIRTH_DATE, VR::DA, String::new());
+            put(tags::PATIENT_SEX, VR::CS, "O".into());
+            put(tags::KVP, VR::DS, String::new());
+            put(tags::SLICE_THICKNESS, VR::DS, ds(g.spacing_mm[2]));
+            put(
+                tags::PATIENT_POSITION,
+                VR::CS,
+                meta.patient_position.clone(),
+            );
+            put(tags::STUDY_INSTANCE_UID, VR::UI, study_uid.clone());
+            put(tags::SERIES_INSTANCE_UID, VR::UI, series_uid.clone());
+            put(tags::STUDY_ID, VR::SH, "1".into());
+            put(tags::SERIES_NUMBER, VR::IS, meta.series_number.to_string());
+            put(tags::ACQUISITION_NUMBER, VR::IS, "1".into());
+            put(tags::INSTANCE_NUMBER, VR::IS, (k + 1).to_string());
+            put(
+                tags::IMAGE_POSITION_PATIENT,
+                VR::DS,
+                ds_list(position.as_slice()),
+            );
+            put(
+                tags::IMAGE_ORIENTATION_PATIENT,
+                VR::DS,
+                ds_list(&[
+                    row_direction.x,
+                    row_direction.y,
+                    row_direction.z,
+                    column_direction.x,
+                    column_direction.y,
+                    column_direction.z,
+                ]),
+            );
+            put(
+                tags::FRAME_OF_REFERENCE_UID,
+                VR::UI,
+                frame_of_reference_uid.clone(),
+            );
+            put(tags::POSITION_REFERENCE_INDICATOR, VR::LO, String::new());
+            put(tags::SLICE_LOCATION, VR::DS, ds(position.dot(&normal)));
+            put(
+                tags::PHOTOMETRIC_INTERPRETATION,
+                VR::CS,
+                "MONOCHROME2".into(),
+            );
+            put(
+                tags::PIXEL_SPACING,
+                VR::DS,
+                ds_list(&[g.spacing_mm[1], g.spacing_mm[0]]),
+            );
+            put(tags::RESCALE_INTERCEPT, VR::DS, ds(intercept));
+            put(tags::RESCALE_SLOPE, VR::DS, "1".into());
+            put(tags::RESCALE_TYPE, VR::LO, "HU".into());
+            put(tags::WINDOW_CENTER, VR::DS, "-600".into());
+            put(tags::WINDOW_WIDTH, VR::DS, "1500".into());
+            let mut put_us = |tag: Tag, v: u16| {
+                obj.put(DataElement::new(tag, VR::US, PrimitiveValue::from(v)));
+            };
+            put_us(tags::SAMPLES_PER_PIXEL, 1);
+            put_us(tags::ROWS, g.dims[1] as u16);
+            put_us(tags::COLUMNS, g.dims[0] as u16);
+            put_us(tags::BITS_ALLOCATED, 16);
+            put_us(tags::BITS_STORED, 16);
+            put_us(tags::HIGH_BIT, 15);
+            put_us(tags::PIXEL_REPRESENTATION, 1);
+            obj.put(DataElement::new(
+                tags::PIXEL_DATA,
+                VR::OW,
+                PrimitiveValue::U16(SmallVec::from_vec(pixels)),
+            ));
+            let file = obj
+                .with_meta(
+                    FileMetaTableBuilder::new()
+                        .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
+                        .implementation_class_uid(IMPLEMENTATION_CLASS_UID)
+                        .implementation_version_name("LUNGMOTION"),
+                )
+                .map_err(|e| bad(format!("slice {k}: cannot build the file meta group ({e})")))?;
+            let mut bytes = Vec::with_capacity(frame_len * 2 + 4096);
+            file.write_all(&mut bytes)
+                .map_err(|e| bad(format!("slice {k}: cannot encode ({e})")))?;
+            let path = dir.join(format!("IMG{:0width$}.dcm", k + 1));
+            write_atomic(&path, &bytes)?;
+            Ok(path)
+        })
+        .collect()
+}
+
+/// Implementation Class UID of files written by lungmotion (under the UUID-derived 2.25 root).
+const IMPLEMENTATION_CLASS_UID: &str = "2.25.240518131208190432779384431735391361291";
+
+/// Deterministic UID generator: 2.25 arc followed by a 128-bit number mixed from the seed,
+/// the grid and the voxel values.
+struct UidRoot {
+    key: u64,
+}
+
+impl UidRoot {
+    fn new(seed: u64, volume: &Volume<f32>) -> Self {
+        // FNV-1a over the voxel bits: identical volumes share UIDs, different ones do not.
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325 ^ seed;
+        let mut mix = |x: u64| {
+            h ^= x;
+            h = h.wrapping_mul(0x0000_0100_0000_01b3);
+        };
+        let g = &volume.geometry;
+        g.dims.iter().for_each(|&d| mix(d as u64));
+        g.spacing_mm
+            .iter()
+            .chain(&g.origin_lps_mm)
+            .chain(g.direction_lps.iter().flatten())
+            .for_each(|v| mix(v.to_bits()));
+        volume.data.iter().for_each(|v| mix(u64::from(v.to_bits())));
+        UidRoot { key: h }
+    }
+
+    fn uid(&self, kind: u64, index: u64) -> String {
+        let a = splitmix64(self.key ^ splitmix64(kind.wrapping_mul(0x9e37_79b9) ^ index));
+        let b = splitmix64(a ^ index.rotate_left(17) ^ kind);
+        let n = (u128::from(a) << 64 | u128::from(b)).max(1);
+        format!("2.25.{n}")
+    }
+}
+
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// A decimal string (DS) of at most 16 characters with as many digits as fit.
+fn ds(v: f64) -> String {
+    for decimals in (0..=12).rev() {
+        let s = format!("{v:.decimals$}");
+        let s = if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
+        };
+        let s = if s == "-0" { "0".to_string() } else { s };
+        if s.len() <= 16 {
+            return s;
+        }
+    }
+    format!("{v:.6e}")
+}
+
+fn ds_list(values: &[f64]) -> String {
+    values.iter().map(|&v| ds(v)).collect::<Vec<_>>().join("\\")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ds;
+
+    #[test]
+    fn decimal_strings_fit_16_characters_and_keep_precision() {
+        for v in [
+            0.0,
+            -0.0,
+            1.0,
+            -128.414,
+            0.866_025_403_784_438_6,
+            -360.256_123_456_789,
+            123_456.789_012_345,
+            1e-9,
+        ] {
+            let s = ds(v);
+            assert!(s.len() <= 16, "{v} -> {s}");
+            let back: f64 = s.parse().unwrap();
+            assert!(
+                (back - v).abs() <= 1e-9_f64.max(v.abs() * 1e-10),
+                "{v} -> {s}"
+            );
+        }
+        assert_eq!(ds(-0.0), "0");
+        assert_eq!(ds(3.0), "3");
+    }
+}
