@@ -20,6 +20,19 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Write the procedural thorax phantom (CT as NIfTI and as a DICOM series, its exact
+    /// tissue labels and a description) that the README's main job and the tests run on.
+    Phantom {
+        /// Directory for the phantom files.
+        #[arg(long, default_value = "sample-volumes")]
+        out: PathBuf,
+        /// Random seed of the noise (same seed, same bytes).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Leave the tumour out.
+        #[arg(long)]
+        no_tumour: bool,
+    },
     /// Measure the model's accuracy: patch tests against closed forms and composite cases
     /// against CalculiX; writes validation.json and validation.md.
     Validate {
@@ -55,7 +68,13 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    init_logging();
     let result = match cli.command {
+        Command::Phantom {
+            out,
+            seed,
+            no_tumour,
+        } => phantom(out, seed, no_tumour),
         Command::Validate {
             out,
             quick,
@@ -75,6 +94,32 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Logs go to stderr; `LUNGMOTION_LOG` (e.g. `debug`, `lungmotion=trace`) sets the level.
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("LUNGMOTION_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+}
+
+fn phantom(out: PathBuf, seed: Option<u64>, no_tumour: bool) -> anyhow::Result<()> {
+    use lungmotion::phantom::{write_phantom_files, PhantomSettings};
+    prepare_out(&out)?;
+    let mut settings = PhantomSettings::default();
+    if let Some(seed) = seed {
+        settings.seed = seed;
+    }
+    if no_tumour {
+        settings.tumour = None;
+    }
+    for p in write_phantom_files(&settings, &out)? {
+        eprintln!("lungmotion: wrote {}", p.display());
+    }
+    Ok(())
 }
 
 /// Creates the report directory before any work, so a bad `--out` fails at once, by name.

@@ -21,6 +21,8 @@
 //! * Noise: a hash of (seed, voxel index), approximately Gaussian with standard deviation
 //!   `noise_hu`; the same settings give bit-identical volumes on any number of threads.
 
+use std::path::{Path, PathBuf};
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -869,6 +871,40 @@ fn dot(a: P3, b: P3) -> f64 {
 #[inline]
 fn norm(a: P3) -> f64 {
     dot(a, a).sqrt()
+}
+
+/// Writes the phantom as `phantom-ct.nii.gz` (HU), `phantom-dicom/` (the same CT as a DICOM
+/// series), `phantom-truth.nii.gz` (exact tissue labels) and `phantom.json` (settings,
+/// volumes, landmarks) into `out_dir`; returns the paths written.
+pub fn write_phantom_files(settings: &PhantomSettings, out_dir: &Path) -> Result<Vec<PathBuf>> {
+    use crate::formats::{dicom, nifti};
+    let phantom = generate_thorax_phantom(settings)?;
+    let ct_path = out_dir.join("phantom-ct.nii.gz");
+    let truth_path = out_dir.join("phantom-truth.nii.gz");
+    let json_path = out_dir.join("phantom.json");
+    let dicom_dir = out_dir.join("phantom-dicom");
+    nifti::write_nifti_ct(&ct_path, &phantom.ct)?;
+    nifti::write_nifti_labels(&truth_path, &phantom.truth)?;
+    // A fresh series replaces the old one whole, so slices of two versions never mix.
+    let staging = out_dir.join("phantom-dicom.tmp");
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging)?;
+    }
+    std::fs::create_dir_all(&staging)?;
+    let meta = dicom::CtSeriesMetadata {
+        uid_seed: settings.seed,
+        series_description: "lungmotion thorax phantom".to_string(),
+        ..dicom::CtSeriesMetadata::default()
+    };
+    dicom::write_ct_series(&phantom.ct, &staging, &meta)?;
+    if dicom_dir.exists() {
+        std::fs::remove_dir_all(&dicom_dir)?;
+    }
+    std::fs::rename(&staging, &dicom_dir)?;
+    let json = serde_json::to_string_pretty(&phantom.description)
+        .map_err(|e| Error::InvalidInput(format!("cannot serialise phantom.json: {e}")))?;
+    crate::validation::report::write_atomic(&json_path, json.as_bytes())?;
+    Ok(vec![ct_path, dicom_dir, truth_path, json_path])
 }
 
 #[cfg(test)]

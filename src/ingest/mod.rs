@@ -2,4 +2,7 @@
 //! anatomical constraint groups.
 
 pub mod lung_model;
+pub mod scan;
 pub mod segmentation;
+
+pub use scan::{load_ct, LoadedScan, ScanFormat};

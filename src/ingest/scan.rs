@@ -1,0 +1,210 @@
+//! Loading a CT from whatever the user hands us: a DICOM directory, a zip of a DICOM series,
+//! a single DICOM file, a NIfTI (`.nii`, `.nii.gz`) or a NRRD file, told apart by content,
+//! never by file name alone.
+
+use std::io::Read;
+use std::path::Path;
+
+use serde::Serialize;
+
+use crate::formats::{dicom, nifti, nrrd};
+use crate::volume::Volume;
+use crate::{Error, Result};
+
+/// The container a scan arrived in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ScanFormat {
+    /// A directory of DICOM files (searched recursively).
+    DicomDirectory,
+    /// A zip archive holding a DICOM series.
+    DicomZip,
+    /// One DICOM file (a multi-slice series needs the others: pass the directory).
+    DicomFile,
+    /// NIfTI-1 or NIfTI-2, plain or gzip-compressed.
+    Nifti,
+    /// NRRD with attached data.
+    Nrrd,
+}
+
+/// A CT in Hounsfield units on its own grid, with where it came from.
+#[derive(Debug, Clone)]
+pub struct LoadedScan {
+    /// The CT in HU, LPS geometry.
+    pub ct: Volume<f32>,
+    /// What the input was.
+    pub format: ScanFormat,
+    /// The DICOM series' non-identifying description, when the input was DICOM.
+    pub series: Option<dicom::SeriesInfo>,
+    /// Files skipped and other things the user should know.
+    pub warnings: Vec<String>,
+}
+
+/// Tells the format of `path` from its content (magic numbers, header sizes).
+pub fn detect_scan_format(path: &Path) -> Result<ScanFormat> {
+    let meta = std::fs::metadata(path)
+        .map_err(|e| Error::InvalidScan(format!("{}: cannot open: {e}", path.display())))?;
+    if meta.is_dir() {
+        return Ok(ScanFormat::DicomDirectory);
+    }
+    let mut head = Vec::with_capacity(544);
+    std::fs::File::open(path)
+        .and_then(|f| f.take(544).read_to_end(&mut head))
+        .map_err(|e| Error::InvalidScan(format!("{}: cannot read: {e}", path.display())))?;
+    classify_header(&head).ok_or_else(|| {
+        Error::InvalidScan(format!(
+            "{}: not a DICOM directory, zip, DICOM, NIfTI or NRRD file (first bytes {:02x?})",
+            path.display(),
+            &head[..head.len().min(8)]
+        ))
+    })
+}
+
+/// Recognises a format from the first bytes of a file.
+pub fn classify_header(head: &[u8]) -> Option<ScanFormat> {
+    let nifti_size = |b: &[u8]| {
+        b.len() >= 4 && {
+            let le = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            let be = i32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+            [348, 540].contains(&le) || [348, 540].contains(&be)
+        }
+    };
+    if head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06") {
+        Some(ScanFormat::DicomZip)
+    } else if head.starts_with(&[0x1f, 0x8b]) {
+        // Gzip: we only read gzip-compressed NIfTI (a gzip NRRD would start with "NRRD").
+        Some(ScanFormat::Nifti)
+    } else if head.starts_with(b"NRRD000") {
+        Some(ScanFormat::Nrrd)
+    } else if head.len() >= 132 && &head[128..132] == b"DICM" {
+        Some(ScanFormat::DicomFile)
+    } else if nifti_size(head) {
+        Some(ScanFormat::Nifti)
+    } else {
+        None
+    }
+}
+
+/// Reads a CT from a DICOM directory, zip or file, a NIfTI or a NRRD file.
+pub fn load_ct(path: &Path) -> Result<LoadedScan> {
+    let format = detect_scan_format(path)?;
+    let (ct, series, warnings) = match format {
+        ScanFormat::DicomDirectory | ScanFormat::DicomZip | ScanFormat::DicomFile => {
+            let s = dicom::read_dicom_series(path)?;
+            (s.volume, Some(s.info), s.warnings)
+        }
+        ScanFormat::Nifti => (nifti::read_nifti(path)?, None, Vec::new()),
+        ScanFormat::Nrrd => (nrrd::read_nrrd(path)?, None, Vec::new()),
+    };
+    let mut warnings = warnings;
+    warnings.extend(check_hounsfield(&ct, path)?);
+    Ok(LoadedScan {
+        ct,
+        format,
+        series,
+        warnings,
+    })
+}
+
+/// Refuses volumes that cannot be a CT in Hounsfield units (non-finite values, no air at all)
+/// and warns about unusual ranges, so a mislabelled MR or a raw-count image fails here, by name.
+pub fn check_hounsfield(ct: &Volume<f32>, path: &Path) -> Result<Vec<String>> {
+    use rayon::prelude::*;
+    let (non_finite, below_air, min, max) = ct
+        .data
+        .par_iter()
+        .fold(
+            || (0usize, 0usize, f32::INFINITY, f32::NEG_INFINITY),
+            |(n, b, lo, hi), &v| {
+                if !v.is_finite() {
+                    (n + 1, b, lo, hi)
+                } else {
+                    (n, b + usize::from(v < AIR_LIKE_HU), lo.min(v), hi.max(v))
+                }
+            },
+        )
+        .reduce(
+            || (0, 0, f32::INFINITY, f32::NEG_INFINITY),
+            |a, b| (a.0 + b.0, a.1 + b.1, a.2.min(b.2), a.3.max(b.3)),
+        );
+    let name = path.display();
+    if non_finite > 0 {
+        return Err(Error::InvalidScan(format!(
+            "{name}: {non_finite} voxels are NaN or infinite"
+        )));
+    }
+    let fraction = below_air as f64 / ct.data.len() as f64;
+    if fraction < MIN_AIR_FRACTION {
+        return Err(Error::InvalidScan(format!(
+            "{name}: not a chest CT in Hounsfield units: only {:.2} % of voxels are below \
+             {AIR_LIKE_HU} HU (values {min} … {max}); lungs and outside air should be near −1000 \
+             HU (an MR, or raw detector counts without the rescale?)",
+            100.0 * fraction
+        )));
+    }
+    let mut warnings = Vec::new();
+    if max > 5000.0 {
+        warnings.push(format!(
+            "{name}: maximum {max} HU is far above bone (≈ 1000–2000 HU): metal, or an unusual rescale"
+        ));
+    }
+    Ok(warnings)
+}
+
+/// Below this, a voxel holds air or lung (lung parenchyma is ≈ −850 HU).
+const AIR_LIKE_HU: f32 = -500.0;
+/// A chest CT is at least this fraction air or lung; a few percent would already be a small lung.
+const MIN_AIR_FRACTION: f64 = 0.01;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_are_told_apart_by_content() {
+        let mut dicom = vec![0u8; 132];
+        dicom[128..132].copy_from_slice(b"DICM");
+        assert_eq!(classify_header(&dicom), Some(ScanFormat::DicomFile));
+        assert_eq!(
+            classify_header(b"PK\x03\x04rest"),
+            Some(ScanFormat::DicomZip)
+        );
+        assert_eq!(
+            classify_header(&[0x1f, 0x8b, 8, 0]),
+            Some(ScanFormat::Nifti)
+        );
+        assert_eq!(classify_header(b"NRRD0004\n"), Some(ScanFormat::Nrrd));
+        assert_eq!(
+            classify_header(&348i32.to_le_bytes()),
+            Some(ScanFormat::Nifti)
+        );
+        assert_eq!(
+            classify_header(&540i32.to_be_bytes()),
+            Some(ScanFormat::Nifti)
+        );
+        assert_eq!(classify_header(b"hello world"), None);
+        assert_eq!(classify_header(b""), None);
+    }
+
+    #[test]
+    fn images_that_are_not_ct_in_hu_are_refused() {
+        use crate::volume::VolumeGeometry;
+        let g = VolumeGeometry::axis_aligned([8, 8, 8], [2.0; 3], [0.0; 3]);
+        let mut ct = Volume::filled(g, 40.0f32).unwrap();
+        let e = check_hounsfield(&ct, Path::new("mr.nii"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("mr.nii") && e.contains("Hounsfield"), "{e}");
+        for v in ct.data.iter_mut().take(100) {
+            *v = -1000.0;
+        }
+        assert!(check_hounsfield(&ct, Path::new("ct.nii"))
+            .unwrap()
+            .is_empty());
+        ct.data[200] = f32::NAN;
+        let e = check_hounsfield(&ct, Path::new("ct.nii"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("NaN"), "{e}");
+    }
+}

@@ -1,1 +1,0 @@
-//! Lung segmentation (to be written).

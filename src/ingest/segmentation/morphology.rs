@@ -1,0 +1,381 @@
+//! Morphology on voxel masks in physical units: exact Euclidean distance transforms in
+//! millimetres (so erosion, dilation and closing use balls of a radius in mm whatever the
+//! spacing) and slice-wise hole filling.
+//!
+//! The distance transform is Felzenszwalb & Huttenlocher's separable lower envelope of
+//! parabolas: one exact 1-D pass per axis, each line independent, so every pass runs on all
+//! cores. Lines along j and k are reached by grouping the rows (contiguous i-runs) they cross,
+//! which splits the volume into disjoint mutable borrows without copying it.
+
+use rayon::prelude::*;
+
+/// The voxel axis closest to the patient's z (cranio-caudal) axis, and whether LPS z grows
+/// with the index along it (superior = higher index).
+pub(crate) fn axial_axis(direction_lps: &[[f64; 3]; 3]) -> (usize, bool) {
+    let axis = (0..3)
+        .max_by(|&a, &b| {
+            direction_lps[a][2]
+                .abs()
+                .total_cmp(&direction_lps[b][2].abs())
+        })
+        .unwrap_or(2);
+    (axis, direction_lps[axis][2] >= 0.0)
+}
+
+/// Groups the rows of a volume into the lines or planes along axis 1 (one group per k slice)
+/// or axis 2 (one group per j), each group's rows ordered along that axis.
+fn row_groups<T>(data: &mut [T], dims: [usize; 3], axis: usize) -> Vec<Vec<&mut [T]>> {
+    let [nx, ny, nz] = dims;
+    let (groups, per_group) = if axis == 1 { (nz, ny) } else { (ny, nz) };
+    let mut out: Vec<Vec<&mut [T]>> = (0..groups).map(|_| Vec::with_capacity(per_group)).collect();
+    for (row, slice) in data.chunks_mut(nx).enumerate() {
+        let g = if axis == 1 { row / ny } else { row % ny };
+        out[g].push(slice);
+    }
+    out
+}
+
+/// Applies `f(line, scratch)` to every line of `data` along `axis`; the line is a contiguous
+/// copy written back afterwards.
+fn for_each_line<T, S, I, F>(data: &mut [T], dims: [usize; 3], axis: usize, init: I, f: F)
+where
+    T: Copy + Send + Sync + Default,
+    S: Send,
+    I: Fn() -> S + Sync + Send,
+    F: Fn(&mut [T], &mut S) + Sync + Send,
+{
+    let nx = dims[0];
+    if axis == 0 {
+        data.par_chunks_mut(nx)
+            .for_each_init(&init, |s, row| f(row, s));
+        return;
+    }
+    let n = dims[axis];
+    let mut groups = row_groups(data, dims, axis);
+    groups.par_iter_mut().for_each_init(
+        || (vec![T::default(); n], init()),
+        |(line, s), rows| {
+            for i in 0..nx {
+                for (m, row) in rows.iter().enumerate() {
+                    line[m] = row[i];
+                }
+                f(line, s);
+                for (m, row) in rows.iter_mut().enumerate() {
+                    row[i] = line[m];
+                }
+            }
+        },
+    );
+}
+
+/// Scratch of the 1-D distance transform.
+#[derive(Default)]
+struct EnvelopeScratch {
+    input: Vec<f32>,
+    vertices: Vec<usize>,
+    bounds: Vec<f32>,
+}
+
+/// Exact 1-D squared distance transform in place: `line[q] ← min_p (line[p] + ((q − p)·s)²)`,
+/// infinite entries being no source.
+fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) {
+    s.input.clear();
+    s.input.extend_from_slice(line);
+    s.vertices.clear();
+    s.bounds.clear();
+    let f = &s.input;
+    for (q, &fq) in f.iter().enumerate() {
+        if !fq.is_finite() {
+            continue;
+        }
+        let pq = q as f32 * spacing;
+        loop {
+            let Some(&p) = s.vertices.last() else {
+                s.vertices.push(q);
+                s.bounds.push(f32::NEG_INFINITY);
+                break;
+            };
+            let pp = p as f32 * spacing;
+            let cross = ((fq + pq * pq) - (f[p] + pp * pp)) / (2.0 * (pq - pp));
+            if cross <= s.bounds[s.bounds.len() - 1] {
+                s.vertices.pop();
+                s.bounds.pop();
+            } else {
+                s.vertices.push(q);
+                s.bounds.push(cross);
+                break;
+            }
+        }
+    }
+    if s.vertices.is_empty() {
+        line.fill(f32::INFINITY);
+        return;
+    }
+    let mut v = 0;
+    for (q, out) in line.iter_mut().enumerate() {
+        let x = q as f32 * spacing;
+        while v + 1 < s.vertices.len() && s.bounds[v + 1] < x {
+            v += 1;
+        }
+        let p = s.vertices[v];
+        let d = x - p as f32 * spacing;
+        *out = d * d + f[p];
+    }
+}
+
+/// Squared Euclidean distance in mm² from each voxel to the nearest feature voxel, a feature
+/// being a voxel whose `(mask != 0) == feature_is_set`; infinite when there is none. With
+/// `in_slices_across = Some(axis)` distances are measured within each slice across `axis`
+/// (2-D transform, one pass fewer).
+pub(crate) fn squared_distance_mm2(
+    mask: &[u8],
+    dims: [usize; 3],
+    spacing_mm: [f64; 3],
+    feature_is_set: bool,
+    in_slices_across: Option<usize>,
+) -> Vec<f32> {
+    let mut d: Vec<f32> = mask
+        .par_iter()
+        .map(|&m| {
+            if (m != 0) == feature_is_set {
+                0.0
+            } else {
+                f32::INFINITY
+            }
+        })
+        .collect();
+    // Along i the input is binary: two sweeps give the distance to the nearest feature in
+    // the row, cheaper than the parabola envelope.
+    let sx = spacing_mm[0] as f32;
+    let wanted = |axis: usize| in_slices_across != Some(axis);
+    d.par_chunks_mut(dims[0])
+        .filter(|_| wanted(0))
+        .for_each(|row| {
+            let mut last = None;
+            for (i, v) in row.iter_mut().enumerate() {
+                if *v == 0.0 {
+                    last = Some(i);
+                } else if let Some(l) = last {
+                    *v = (i - l) as f32 * sx;
+                }
+            }
+            last = None;
+            for (i, v) in row.iter_mut().enumerate().rev() {
+                if *v == 0.0 {
+                    last = Some(i);
+                } else {
+                    let back = last.map_or(f32::INFINITY, |l| (l - i) as f32 * sx);
+                    let d = v.min(back);
+                    *v = d * d;
+                }
+            }
+        });
+    // Without the i pass the values are still squared distances: 0 or ∞.
+    for (axis, &spacing) in spacing_mm.iter().enumerate().skip(1) {
+        if dims[axis] > 1 && wanted(axis) {
+            for_each_line(&mut d, dims, axis, EnvelopeScratch::default, |line, s| {
+                envelope_line(line, spacing as f32, s)
+            });
+        }
+    }
+    d
+}
+
+/// Fills, in every slice across `axis`, the background regions not connected (4-neighbour)
+/// to the slice border: the holes of a mask as a radiologist sees them on axial images.
+pub(crate) fn fill_holes_2d(mask: &mut [u8], dims: [usize; 3], axis: usize) {
+    let [nx, ny, nz] = dims;
+    match axis {
+        2 => mask
+            .par_chunks_mut(nx * ny)
+            .for_each_init(Vec::new, |stack, s| fill_holes_slice(s, nx, ny, stack)),
+        1 => {
+            let mut groups = row_groups(mask, dims, 2);
+            groups.par_iter_mut().for_each_init(
+                || (vec![0u8; nx * nz], Vec::new()),
+                |(buf, stack), rows| {
+                    for (k, row) in rows.iter().enumerate() {
+                        buf[k * nx..(k + 1) * nx].copy_from_slice(row);
+                    }
+                    fill_holes_slice(buf, nx, nz, stack);
+                    for (k, row) in rows.iter_mut().enumerate() {
+                        row.copy_from_slice(&buf[k * nx..(k + 1) * nx]);
+                    }
+                },
+            );
+        }
+        _ => {
+            // Sagittal storage is rare: transpose so each i-slice is contiguous.
+            let plane = ny * nz;
+            let mut t = vec![0u8; mask.len()];
+            for (row, src) in mask.chunks(nx).enumerate() {
+                for (i, &v) in src.iter().enumerate() {
+                    t[i * plane + row] = v;
+                }
+            }
+            t.par_chunks_mut(plane)
+                .for_each_init(Vec::new, |stack, s| fill_holes_slice(s, ny, nz, stack));
+            for (row, dst) in mask.chunks_mut(nx).enumerate() {
+                for (i, v) in dst.iter_mut().enumerate() {
+                    *v = t[i * plane + row];
+                }
+            }
+        }
+    }
+}
+
+/// Hole filling of one 2-D slice (`nu` fastest): flood the background from the border, then
+/// everything not reached is inside.
+fn fill_holes_slice(s: &mut [u8], nu: usize, nv: usize, stack: &mut Vec<u32>) {
+    const OUTSIDE: u8 = 2;
+    stack.clear();
+    let seed = |s: &mut [u8], idx: usize, stack: &mut Vec<u32>| {
+        if s[idx] == 0 {
+            s[idx] = OUTSIDE;
+            stack.push(idx as u32);
+        }
+    };
+    for u in 0..nu {
+        seed(s, u, stack);
+        seed(s, u + nu * (nv - 1), stack);
+    }
+    for v in 0..nv {
+        seed(s, nu * v, stack);
+        seed(s, nu - 1 + nu * v, stack);
+    }
+    while let Some(idx) = stack.pop() {
+        let idx = idx as usize;
+        let (u, v) = (idx % nu, idx / nu);
+        if u > 0 {
+            seed(s, idx - 1, stack);
+        }
+        if u + 1 < nu {
+            seed(s, idx + 1, stack);
+        }
+        if v > 0 {
+            seed(s, idx - nu, stack);
+        }
+        if v + 1 < nv {
+            seed(s, idx + nu, stack);
+        }
+    }
+    for x in s.iter_mut() {
+        *x = (*x != OUTSIDE) as u8;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Brute-force squared distance to the nearest feature voxel.
+    fn brute(mask: &[u8], dims: [usize; 3], sp: [f64; 3]) -> Vec<f32> {
+        let [nx, ny, nz] = dims;
+        let mut out = vec![f32::INFINITY; mask.len()];
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    let mut best = f64::INFINITY;
+                    for (f, &m) in mask.iter().enumerate() {
+                        if m != 0 {
+                            let (fi, fj, fk) = (f % nx, (f / nx) % ny, f / (nx * ny));
+                            let d = ((fi as f64 - i as f64) * sp[0]).powi(2)
+                                + ((fj as f64 - j as f64) * sp[1]).powi(2)
+                                + ((fk as f64 - k as f64) * sp[2]).powi(2);
+                            best = best.min(d);
+                        }
+                    }
+                    out[i + nx * (j + ny * k)] = best as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn distance_transform_matches_brute_force_on_an_anisotropic_grid() {
+        let dims = [9, 7, 6];
+        let sp = [0.7, 1.3, 2.5];
+        let n = dims.iter().product();
+        // A pseudo-random sparse set of features.
+        let mask: Vec<u8> = (0..n)
+            .map(|x: usize| (x.wrapping_mul(2_654_435_761) % 97 < 4) as u8)
+            .collect();
+        assert!(mask.iter().any(|&m| m != 0));
+        let fast = squared_distance_mm2(&mask, dims, sp, true, None);
+        let slow = brute(&mask, dims, sp);
+        for (a, b) in fast.iter().zip(&slow) {
+            assert!((a - b).abs() <= 1e-3 * b.max(1.0), "{a} vs {b}");
+        }
+        // In-slice distances: brute force slice by slice along each axis.
+        for axis in 0..3 {
+            let fast = squared_distance_mm2(&mask, dims, sp, true, Some(axis));
+            for s in 0..dims[axis] {
+                let mut sub_dims = dims;
+                sub_dims[axis] = 1;
+                let mut sub = Vec::new();
+                let mut where_ = Vec::new();
+                for (idx, &m) in mask.iter().enumerate() {
+                    let ijk = [idx % 9, (idx / 9) % 7, idx / 63];
+                    if ijk[axis] == s {
+                        sub.push(m);
+                        where_.push(idx);
+                    }
+                }
+                let slow = brute(&sub, sub_dims, sp);
+                for (b, &idx) in slow.iter().zip(&where_) {
+                    let a = fast[idx];
+                    assert!(
+                        (a == *b) || (a - b).abs() <= 1e-3 * b.max(1.0),
+                        "axis {axis}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+        let none = squared_distance_mm2(&vec![0u8; n], dims, sp, true, None);
+        assert!(none.iter().all(|d| d.is_infinite()));
+    }
+
+    #[test]
+    fn holes_are_filled_in_each_slice_along_every_axis() {
+        // A hollow 5×5 square ring in each plane across `axis`, open nowhere.
+        for axis in 0..3 {
+            let dims = [6, 6, 6];
+            let mut mask = vec![0u8; 216];
+            let mut hole = 0;
+            for a in 0..6 {
+                for b in 0..5 {
+                    for c in 0..5 {
+                        let ring = b == 0 || b == 4 || c == 0 || c == 4;
+                        let mut ijk = [0; 3];
+                        let others: Vec<usize> = (0..3).filter(|&x| x != axis).collect();
+                        ijk[axis] = a;
+                        ijk[others[0]] = b;
+                        ijk[others[1]] = c;
+                        let idx = ijk[0] + 6 * (ijk[1] + 6 * ijk[2]);
+                        if ring {
+                            mask[idx] = 1;
+                        } else if a == 0 {
+                            hole = idx;
+                        }
+                    }
+                }
+            }
+            let before = mask.iter().filter(|&&m| m != 0).count();
+            fill_holes_2d(&mut mask, dims, axis);
+            let after = mask.iter().filter(|&&m| m != 0).count();
+            assert_eq!(after - before, 6 * 9, "axis {axis}");
+            assert_eq!(mask[hole], 1);
+            // The background touching the border stays background.
+            assert_eq!(mask[5 + 6 * (5 + 6 * 5)], 0);
+        }
+    }
+
+    #[test]
+    fn axial_axis_is_found_on_reordered_and_flipped_grids() {
+        let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        assert_eq!(axial_axis(&id), (2, true));
+        let coronal = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]];
+        assert_eq!(axial_axis(&coronal), (1, false));
+    }
+}
