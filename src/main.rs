@@ -18,6 +18,14 @@ struct Cli {
     command: Command,
 }
 
+/// Benchmark groups.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum BenchSuite {
+    Core,
+    Ingest,
+    All,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Write the procedural thorax phantom (CT as NIfTI and as a DICOM series, its exact
@@ -63,6 +71,10 @@ enum Command {
         /// Also run CalculiX with NLGEOM (our physics class; about 1 min at 20³, 10 min at 30³).
         #[arg(long)]
         nlgeom: bool,
+        /// Which benchmarks: `core` (mechanics), `ingest` (segmentation of the CIP case and of
+        /// a 512×512×300 CT) or `all`.
+        #[arg(long, value_enum, default_value_t = BenchSuite::All)]
+        suite: BenchSuite,
     },
 }
 
@@ -85,7 +97,8 @@ fn main() -> ExitCode {
             quick,
             calculix_cells,
             nlgeom,
-        } => bench(out, quick, calculix_cells, nlgeom),
+            suite,
+        } => bench(out, quick, calculix_cells, nlgeom, suite),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -151,27 +164,48 @@ fn bench(
     quick: bool,
     calculix_cells: Vec<usize>,
     nlgeom: bool,
+    suite: BenchSuite,
 ) -> anyhow::Result<()> {
     prepare_out(&out)?;
-    let mut options = if quick {
-        BenchOptions::quick()
-    } else {
-        BenchOptions::default()
-    };
-    if !quick {
-        options.calculix_block_cells = calculix_cells;
-    }
-    options.calculix_nlgeom = nlgeom;
     eprintln!("lungmotion: benchmarking (medians of repeated runs; keep the machine quiet)");
-    let report = run_bench(&options)?;
-    std::fs::create_dir_all(&out)?;
-    write_atomic(
-        &out.join("bench.json"),
-        serde_json::to_string_pretty(&report)?.as_bytes(),
-    )?;
-    let md = report.to_markdown();
-    write_atomic(&out.join("bench.md"), md.as_bytes())?;
-    println!("{md}");
-    eprintln!("lungmotion: wrote {}", out.join("bench.json").display());
+    if suite != BenchSuite::Ingest {
+        let mut options = if quick {
+            BenchOptions::quick()
+        } else {
+            BenchOptions::default()
+        };
+        if !quick {
+            options.calculix_block_cells = calculix_cells;
+        }
+        options.calculix_nlgeom = nlgeom;
+        let report = run_bench(&options)?;
+        write_atomic(
+            &out.join("bench.json"),
+            serde_json::to_string_pretty(&report)?.as_bytes(),
+        )?;
+        let md = report.to_markdown();
+        write_atomic(&out.join("bench.md"), md.as_bytes())?;
+        println!("{md}");
+        eprintln!("lungmotion: wrote {}", out.join("bench.json").display());
+    }
+    if suite != BenchSuite::Core {
+        use lungmotion::bench::ingest::{run_ingest_bench, IngestBenchOptions};
+        let options = IngestBenchOptions {
+            quick,
+            ..IngestBenchOptions::default()
+        };
+        let report = run_ingest_bench(&options)?;
+        write_atomic(
+            &out.join("bench-ingest.json"),
+            serde_json::to_string_pretty(&report)?.as_bytes(),
+        )?;
+        let md = report.to_markdown();
+        write_atomic(&out.join("bench-ingest.md"), md.as_bytes())?;
+        println!("{md}");
+        eprintln!(
+            "lungmotion: wrote {}",
+            out.join("bench-ingest.json").display()
+        );
+    }
     Ok(())
 }
