@@ -55,4 +55,26 @@ fn phantom_lungs_are_segmented_as_its_truth_says() {
         dice(&seg.lungs, 1, &truth, 2).unwrap() < 0.01,
         "left and right swapped"
     );
+    // The trachea above the carina is airway, not lung: a lung mask that kept it would put
+    // the trachea into the mechanical model. (Bronchi inside the lungs belong to the lung
+    // mask, as in the expert CIP map.)
+    let airway = Tissue::Airway.code();
+    let carina_z = phantom.description.landmarks.carina_lps_mm[2];
+    let g = phantom.truth.geometry;
+    let (mut trachea, mut in_lungs) = (0, 0);
+    for (idx, (&t, &l)) in phantom.truth.data.iter().zip(&seg.lungs.data).enumerate() {
+        let k = idx / (g.dims[0] * g.dims[1]);
+        let z = g
+            .voxel_to_lps_mm(nalgebra::Vector3::new(0.0, 0.0, k as f64))
+            .z;
+        if t == airway && z > carina_z + 10.0 {
+            trachea += 1;
+            in_lungs += usize::from(l != 0);
+        }
+    }
+    println!("trachea voxels in the lung mask: {in_lungs} of {trachea}");
+    assert!(
+        trachea > 50 && in_lungs * 20 < trachea,
+        "{in_lungs} of {trachea}"
+    );
 }

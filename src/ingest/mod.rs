@@ -2,7 +2,9 @@
 //! anatomical constraint groups.
 
 pub mod lung_model;
+pub mod pipeline;
 pub mod scan;
 pub mod segmentation;
 
+pub use pipeline::{ingest_scan, IngestOutcome, IngestSettings, IngestSummary};
 pub use scan::{load_ct, LoadedScan, ScanFormat};

@@ -113,8 +113,9 @@ pub struct SegmentationSettings {
     /// Airway volume that signals a leak whatever the growth rate, mL (trachea and main
     /// bronchi hold ≈ 30–80 mL).
     pub airway_max_ml: f64,
-    /// Airway volume below which growth ratios are not trusted yet, mL (the first few voxels
-    /// always grow fast).
+    /// Airway volume below which growth ratios are not trusted yet, mL: the first voxels
+    /// always grow fast, and in a noisy scan the trachea's own voxels spread over ±50 HU, so
+    /// the volume can double per step until most of the trachea (≈ 20–40 mL) is in.
     pub airway_min_ml: f64,
     /// Fraction of a component on its minority side above which it holds both lungs.
     pub bilateral_fraction: f64,
@@ -141,7 +142,7 @@ impl Default for SegmentationSettings {
             airway_step_hu: 10.0,
             airway_leak_ratio: 1.5,
             airway_max_ml: 250.0,
-            airway_min_ml: 5.0,
+            airway_min_ml: 15.0,
             bilateral_fraction: 0.15,
             separation_max_depth_mm: 40.0,
             closing_radius_mm: 5.0,
