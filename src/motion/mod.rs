@@ -199,24 +199,14 @@ pub fn run_motion(
                         .expect("keyframes hold at least one state");
                     (keys.pressure_at(target), 0, 0, 0, nearest.residual, true)
                 }
-                (None, DriverKind::Volume) => {
-                    let s = driver
-                        .solve_volume(target, volume_tolerance_ml)
-                        .map_err(context)?;
-                    positions.copy_from_slice(&s.positions_m);
-                    (
-                        s.pressure_pa,
-                        s.solves,
-                        s.newton_iterations,
-                        s.linear_iterations,
-                        s.residual,
-                        false,
-                    )
-                }
-                (None, DriverKind::Compliance { .. }) => {
-                    let s = driver
-                        .solve_pressure(-target / compliance)
-                        .map_err(context)?;
+                (None, kind) => {
+                    let s = match kind {
+                        DriverKind::Volume => driver.solve_volume(target, volume_tolerance_ml),
+                        DriverKind::Compliance { .. } => {
+                            driver.solve_pressure(-target / compliance)
+                        }
+                    }
+                    .map_err(context)?;
                     positions.copy_from_slice(&s.positions_m);
                     (
                         s.pressure_pa,
