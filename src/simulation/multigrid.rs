@@ -50,7 +50,8 @@ pub struct Lattice {
 
 impl Lattice {
     /// Recovers the lattice from geometry, or `None` if the elements are not equal bricks
-    /// aligned on one grid (the solver then falls back to block Jacobi).
+    /// aligned on one grid, or two nodes share a lattice point (the solver then falls back to
+    /// block Jacobi).
     pub fn infer(mesh: &HexMesh) -> Option<Lattice> {
         let shape = mesh.classes.first()?.shape;
         if mesh.classes.iter().any(|c| c.shape != shape) {
@@ -93,6 +94,13 @@ impl Lattice {
                 }
             }
             cell.push(base);
+        }
+        // Coarse levels identify nodes by lattice point: two bodies touching on the lattice
+        // (the two lungs, meshed without shared nodes) would be glued there. Such meshes take
+        // the block-Jacobi preconditioner instead.
+        let mut seen = std::collections::HashSet::with_capacity(node.len());
+        if !node.iter().all(|c| seen.insert(*c)) {
+            return None;
         }
         Some(Lattice {
             node,
