@@ -900,6 +900,27 @@ impl Crop {
             });
         out
     }
+
+    /// Visits, in parallel, each row of the box inside `full`: `f` gets the row's `cx` voxels
+    /// of the full grid and the index of the row's first voxel in the cropped box.
+    fn for_each_row_mut<F: Fn(&mut [u8], usize) + Sync>(
+        &self,
+        full: &mut [u8],
+        grid: [usize; 3],
+        f: F,
+    ) {
+        let [cx, cy, cz] = self.dims;
+        full.par_chunks_mut(grid[0] * grid[1])
+            .enumerate()
+            .filter(|(k, _)| (self.lo[2]..self.lo[2] + cz).contains(k))
+            .for_each(|(k, slice)| {
+                let kc = k - self.lo[2];
+                for j in 0..cy {
+                    let base = self.lo[0] + grid[0] * (self.lo[1] + j);
+                    f(&mut slice[base..base + cx], cx * (j + cy * kc));
+                }
+            });
+    }
 }
 
 /// Splits the component holding both lungs at their junction; returns full-grid labels and
@@ -982,19 +1003,9 @@ fn split_touching_lungs(
     steps.mark("left/right: erosion until two cores");
     watershed_from_seeds(&mut labels_crop, &depth2, cd, step_mm * 0.5);
     let mut labels = vec![0u8; g.voxel_count()];
-    let [cx, cy, cz] = cd;
-    labels
-        .par_chunks_mut(dims[0] * dims[1])
-        .enumerate()
-        .filter(|(k, _)| (crop.lo[2]..crop.lo[2] + cz).contains(k))
-        .for_each(|(k, slice)| {
-            let kc = k - crop.lo[2];
-            for j in 0..cy {
-                let src = &labels_crop[cx * (j + cy * kc)..cx * (j + 1 + cy * kc)];
-                let base = crop.lo[0] + dims[0] * (crop.lo[1] + j);
-                slice[base..base + cx].copy_from_slice(src);
-            }
-        });
+    crop.for_each_row_mut(&mut labels, dims, |row, start| {
+        row.copy_from_slice(&labels_crop[start..start + row.len()]);
+    });
     Ok((labels, r))
 }
 
@@ -1090,25 +1101,15 @@ fn refine_lung(
     let removed: usize = lab.components.iter().skip(1).map(|c| c.voxels).sum();
     let removed_count = lab.components.len().saturating_sub(1);
     let kept = lab.paint(|c| (c == 0) as u8);
-    let [cx, cy, cz] = cd;
-    labels
-        .par_chunks_mut(dims[0] * dims[1])
-        .enumerate()
-        .filter(|(k, _)| (crop.lo[2]..crop.lo[2] + cz).contains(k))
-        .for_each(|(k, slice)| {
-            let kc = k - crop.lo[2];
-            for j in 0..cy {
-                let base = crop.lo[0] + dims[0] * (crop.lo[1] + j);
-                for i in 0..cx {
-                    let s = &mut slice[base + i];
-                    if kept[i + cx * (j + cy * kc)] != 0 {
-                        *s = label;
-                    } else if *s == label {
-                        *s = 0;
-                    }
-                }
+    crop.for_each_row_mut(labels, dims, |row, start| {
+        for (i, s) in row.iter_mut().enumerate() {
+            if kept[start + i] != 0 {
+                *s = label;
+            } else if *s == label {
+                *s = 0;
             }
-        });
+        }
+    });
     (removed_count, removed)
 }
 
