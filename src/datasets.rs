@@ -29,3 +29,20 @@ pub fn totalseg_abdomen_ct() -> Option<PathBuf> {
         .map(|d| d.join("totalseg-abdomen-ct"))
         .filter(|d| d.is_dir())
 }
+
+/// Code of the trachea and main bronchi outside the lungs in [`cip_expert_labels`].
+pub const CIP_AIRWAY_LABEL: u8 = 3;
+
+/// Decodes the CIP expert map `lm-64.nrrd` (`region + 256 × type`, see the data's README) into
+/// 1 right lung, 2 left lung, [`CIP_AIRWAY_LABEL`] trachea and main bronchi outside the lungs.
+pub fn cip_expert_labels(lm: &crate::volume::Volume<f32>) -> crate::volume::Volume<u8> {
+    lm.map(|v| {
+        let code = v as u32;
+        match code & 0xFF {
+            12..=14 => 1,
+            9..=11 => 2,
+            _ if code == 512 => CIP_AIRWAY_LABEL,
+            _ => 0,
+        }
+    })
+}

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
+use lungmotion::datasets::CIP_AIRWAY_LABEL;
 use lungmotion::ingest::lung_model::{
     build_lung_model, ConstraintGroup, LungModel, LungModelSettings, LEFT_LUNG, RIGHT_LUNG,
 };
@@ -597,12 +598,9 @@ fn bad_inputs_are_refused_with_the_reason() {
 fn cip_masks() -> Option<(Volume<u8>, Volume<u8>)> {
     let dir = lungmotion::datasets::cip_chest_ct64()?;
     let lm = lungmotion::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).unwrap();
-    let lungs = lm.map(|v| match (v as u32) & 0xFF {
-        9..=11 => LEFT_LUNG,
-        12..=14 => RIGHT_LUNG,
-        _ => 0,
-    });
-    let airways = lm.map(|v| u8::from(v as u32 == 512));
+    let labels = lungmotion::datasets::cip_expert_labels(&lm);
+    let lungs = labels.map(|l| if l == CIP_AIRWAY_LABEL { 0 } else { l });
+    let airways = labels.map(|l| u8::from(l == CIP_AIRWAY_LABEL));
     Some((lungs, airways))
 }
 

@@ -1,7 +1,7 @@
 //! Lung segmentation: accuracy on the real CIP chest CT against its expert label map, and
 //! anatomy-following labels on synthetic thoraxes stored on flipped and oblique grids.
 
-use lungmotion::datasets::cip_chest_ct64;
+use lungmotion::datasets::{cip_chest_ct64, cip_expert_labels, CIP_AIRWAY_LABEL};
 use lungmotion::formats::nrrd::read_nrrd;
 use lungmotion::ingest::segmentation::{
     dice, segment_lungs, SegmentationSettings, ThresholdMethod, LEFT_LUNG, RIGHT_LUNG,
@@ -9,20 +9,6 @@ use lungmotion::ingest::segmentation::{
 use lungmotion::volume::{Volume, VolumeGeometry};
 use lungmotion::Error;
 use nalgebra::Vector3;
-
-/// Expert labels of the CIP case on its grid: 1 right lung, 2 left lung, 3 trachea and main
-/// bronchi outside the lungs.
-fn expert_labels(lm: &Volume<f32>) -> Volume<u8> {
-    lm.map(|v| {
-        let code = v as u32;
-        match code & 0xFF {
-            12..=14 => RIGHT_LUNG,
-            9..=11 => LEFT_LUNG,
-            _ if code == 512 => 3,
-            _ => 0,
-        }
-    })
-}
 
 fn union(v: &Volume<u8>) -> Volume<u8> {
     v.map(|l| (l == RIGHT_LUNG || l == LEFT_LUNG) as u8)
@@ -35,12 +21,12 @@ fn cip_case_matches_the_expert_lung_map() {
         return;
     };
     let ct = read_nrrd(&dir.join("ct-64.nrrd")).unwrap();
-    let expert = expert_labels(&read_nrrd(&dir.join("lm-64.nrrd")).unwrap());
+    let expert = cip_expert_labels(&read_nrrd(&dir.join("lm-64.nrrd")).unwrap());
     let voxel_ml = ct.geometry.voxel_volume_mm3() / 1000.0;
     let count = |v: &Volume<u8>, l: u8| v.data.iter().filter(|&&x| x == l).count() as f64;
     let expert_right_ml = count(&expert, RIGHT_LUNG) * voxel_ml;
     let expert_left_ml = count(&expert, LEFT_LUNG) * voxel_ml;
-    let expert_airway_ml = count(&expert, 3) * voxel_ml;
+    let expert_airway_ml = count(&expert, CIP_AIRWAY_LABEL) * voxel_ml;
 
     for method in [ThresholdMethod::Fixed, ThresholdMethod::Otsu] {
         let settings = SegmentationSettings {
@@ -54,7 +40,7 @@ fn cip_case_matches_the_expert_lung_map() {
         let left = dice(&seg.lungs, LEFT_LUNG, &expert, LEFT_LUNG).unwrap();
         let swapped_right = dice(&seg.lungs, RIGHT_LUNG, &expert, LEFT_LUNG).unwrap();
         let swapped_left = dice(&seg.lungs, LEFT_LUNG, &expert, RIGHT_LUNG).unwrap();
-        let airway = dice(&seg.airways, 1, &expert, 3).unwrap();
+        let airway = dice(&seg.airways, 1, &expert, CIP_AIRWAY_LABEL).unwrap();
         println!(
             "CIP ct-64, {method:?} threshold {:.0} HU: Dice both {both:.4}, right {right:.4}, \
              left {left:.4} (swapped: {swapped_right:.4} / {swapped_left:.4}); airways Dice \

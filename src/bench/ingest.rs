@@ -218,11 +218,7 @@ fn bench_cip(
     settings: &SegmentationSettings,
     repeats: usize,
 ) -> Result<CipSegmentationBench> {
-    let expert = lm.map(|v| match v as u32 & 0xFF {
-        12..=14 => RIGHT_LUNG,
-        9..=11 => LEFT_LUNG,
-        _ => 0,
-    });
+    let expert = crate::datasets::cip_expert_labels(lm);
     let mut times = Vec::with_capacity(repeats);
     let mut last = None;
     for _ in 0..repeats {
@@ -232,7 +228,7 @@ fn bench_cip(
         last = Some(seg);
     }
     let seg = last.ok_or_else(|| Error::InvalidInput("no run".into()))?;
-    let union = |v: &Volume<u8>| v.map(|l| (l != 0) as u8);
+    let union = |v: &Volume<u8>| v.map(|l| (l == RIGHT_LUNG || l == LEFT_LUNG) as u8);
     let voxel_ml = ct.geometry.voxel_volume_mm3() / 1000.0;
     let count = |l: u8| expert.data.iter().filter(|&&x| x == l).count() as f64 * voxel_ml;
     Ok(CipSegmentationBench {
