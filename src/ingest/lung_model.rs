@@ -53,9 +53,14 @@
 //!   apex = surface nodes in the top `apex_height_fraction` of the lung's height → **sliding**
 //!   (the pleural dome encloses it, so sliding already keeps it nearly still; fixing it as
 //!   the thesis did would add a second anchor fighting the hilum);
-//!   diaphragmatic = n_z ≤ −½ below the hilum → **free**: the wall here is the diaphragm,
-//!   which descends in inspiration, so sliding on the rest-state wall would forbid the
-//!   largest motion; the pressure drives the base down instead;
+//!   diaphragmatic = n_z ≤ −0.1 below the hilum (the dome and the costophrenic zone of
+//!   apposition, where the lower costal surface faces the diaphragm) → **moves
+//!   cranio-caudally** ([`DiaphragmMotion`]): the wall here is the diaphragm, which descends
+//!   like a piston in tidal breathing, so sliding on the rest-state wall would forbid the
+//!   largest motion. With n_z ≤ −½ only, sliding nodes on the downward-narrowing recess were
+//!   pushed inward as they slid down and squeezed the lowest elements (signed volume 0.52 of
+//!   rest at 250 mL on the CIP case at 8 mm; Newton failed before 400 mL); with −0.1 the
+//!   worst element keeps 0.79 at 500 mL;
 //!   mediastinal = n·m ≥ ½ on the medial side of the lung → **sliding**;
 //!   costal = every other surface node (lateral, anterior, posterior) → **sliding** on the wall.
 //! * `groups_volume` gives every lung-surface voxel of the CT grid (a lung voxel with a
@@ -116,9 +121,27 @@ pub enum BoundaryCondition {
     Fixed,
     /// Slides on the wall field.
     SlidingOnWall,
-    /// Moves freely, driven by the loads.
+    /// Moves as [`LungModelSettings::diaphragm`] says.
+    FollowsDiaphragm,
+}
+
+/// How the nodes of the diaphragmatic face may move.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum DiaphragmMotion {
+    /// Along LPS z only ([`NodeConstraint::Line`] through the rest position): the dome
+    /// descends like a piston in tidal breathing and the costophrenic recess holds the base
+    /// laterally. The default.
+    #[default]
+    CranioCaudal,
+    /// Free in every direction, driven by the pressure alone (the base bulges; large volumes
+    /// crush the costophrenic elements).
     Free,
 }
+
+/// Wall normals with a z component at or below this (facing down) and below the hilum make
+/// the diaphragmatic group: the dome and the zone of apposition.
+pub const DIAPHRAGM_MAX_NORMAL_Z: f64 = -0.1;
 
 impl ConstraintGroup {
     /// Every group, in code order.
@@ -158,7 +181,7 @@ impl ConstraintGroup {
             ConstraintGroup::Mediastinal => "slides on the wall (pleura against the heart)",
             ConstraintGroup::Costal => "slides on the wall (pleura against the rib cage)",
             ConstraintGroup::Diaphragmatic => {
-                "free: follows the descending diaphragm, driven by the pressure"
+                "follows the diaphragm: moves cranio-caudally, driven by the pressure"
             }
             ConstraintGroup::Apex => "slides on the wall (pleural dome); moves little",
         }
@@ -168,7 +191,7 @@ impl ConstraintGroup {
     pub fn boundary_condition(self) -> BoundaryCondition {
         match self {
             ConstraintGroup::Hilum => BoundaryCondition::Fixed,
-            ConstraintGroup::Diaphragmatic => BoundaryCondition::Free,
+            ConstraintGroup::Diaphragmatic => BoundaryCondition::FollowsDiaphragm,
             _ => BoundaryCondition::SlidingOnWall,
         }
     }
@@ -193,6 +216,8 @@ pub struct LungModelSettings {
     pub apex_height_fraction: f64,
     /// How sliding nodes are held on the wall.
     pub sliding: SlidingMode,
+    /// How the diaphragmatic face moves.
+    pub diaphragm: DiaphragmMotion,
 }
 
 /// How a sliding node (mediastinal, costal, apex) is held on the thoracic wall.
@@ -219,6 +244,7 @@ impl Default for LungModelSettings {
             hilum_radius_mm: 20.0,
             apex_height_fraction: 0.1,
             sliding: SlidingMode::TangentPlane,
+            diaphragm: DiaphragmMotion::CranioCaudal,
         }
     }
 }
@@ -303,6 +329,8 @@ pub struct LungModelReport {
     pub wall_spacing_mm: f64,
     /// How sliding nodes are held ([`SlidingMode`]).
     pub sliding_mode: SlidingMode,
+    /// How the diaphragmatic face moves.
+    pub diaphragm_motion: DiaphragmMotion,
     /// Largest |wall distance| at a sliding node's rest position in mm: the element staircase
     /// against the smooth CT surface (with [`SlidingMode::WallSurface`], how far the solver
     /// moves a node onto the wall before any load).
@@ -535,7 +563,16 @@ pub fn build_lung_model(
                 constraints.set(n, constraint)?;
                 sliding.push(n);
             }
-            BoundaryCondition::Free => {}
+            BoundaryCondition::FollowsDiaphragm => match settings.diaphragm {
+                DiaphragmMotion::CranioCaudal => constraints.set(
+                    n,
+                    NodeConstraint::Line {
+                        point_m: mesh.rest_positions_m[n as usize],
+                        direction: Vector3::z(),
+                    },
+                )?,
+                DiaphragmMotion::Free => {}
+            },
         }
     }
     constraints.validate(&mesh.rest_positions_m)?;
@@ -624,6 +661,7 @@ pub fn build_lung_model(
         wall_samples: wall_build.wall.samples,
         wall_spacing_mm: wall_build.wall.spacing_m[0] * 1e3,
         sliding_mode: settings.sliding,
+        diaphragm_motion: settings.diaphragm,
         wall_rest_offset_max_mm,
         wall_rest_offset_mean_mm,
         wall_min_gradient_norm,
@@ -1386,7 +1424,7 @@ fn classify_lung_surface(
             ConstraintGroup::Hilum
         } else if p.z >= apex_from_z {
             ConstraintGroup::Apex
-        } else if normal.z <= -0.5 && p.z < hilum_centre_mm.z {
+        } else if normal.z <= DIAPHRAGM_MAX_NORMAL_Z && p.z < hilum_centre_mm.z {
             ConstraintGroup::Diaphragmatic
         } else if normal.dot(&medial) >= 0.5 && (p.x - centroid_x) * medial.x > 0.0 {
             ConstraintGroup::Mediastinal

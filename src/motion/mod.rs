@@ -7,6 +7,10 @@
 //! [`crate::simulation::keyframes`]); every frame's simulated volume is still computed from
 //! its own node positions and reported beside the target.
 
+mod lung_scene;
+
+pub use lung_scene::lung_scene;
+
 use std::time::Instant;
 
 use nalgebra::Vector3;
