@@ -58,6 +58,10 @@ pub enum Error {
     #[error("external tool: {0}")]
     External(String),
 
+    /// The run was cancelled by its caller (nothing was published).
+    #[error("cancelled: {0}")]
+    Cancelled(String),
+
     /// File or process I/O failed.
     #[error(transparent)]
     Io(#[from] std::io::Error),

@@ -52,6 +52,7 @@ pub mod model;
 pub mod motion;
 pub mod outputs;
 pub mod phantom;
+pub mod run;
 pub mod simulation;
 pub mod validation;
 pub mod volume;

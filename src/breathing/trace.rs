@@ -64,6 +64,7 @@ pub enum TraceFormat {
 
 /// How to read a trace file.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct TraceOptions {
     /// File format.
     pub format: TraceFormat,

@@ -6,6 +6,7 @@ use crate::{Error, Result};
 
 /// Isotropic material: Young's modulus, Poisson's ratio and density, in SI units.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Material {
     /// Young's modulus E in pascals.
     pub youngs_modulus_pa: f64,
@@ -13,6 +14,13 @@ pub struct Material {
     pub poisson_ratio: f64,
     /// Mass density ρ in kg/m³.
     pub density_kg_per_m3: f64,
+}
+
+impl Default for Material {
+    /// [`Material::LUNG`].
+    fn default() -> Self {
+        Material::LUNG
+    }
 }
 
 impl Material {

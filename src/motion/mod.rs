@@ -7,6 +7,7 @@
 //! [`crate::simulation::keyframes`]); every frame's simulated volume is still computed from
 //! its own node positions and reported beside the target.
 
+pub mod dynamic;
 mod lung_scene;
 
 pub use lung_scene::lung_scene;

@@ -117,6 +117,8 @@ impl FieldSampler {
                 None => sampler.uncovered_voxels += 1,
             }
         }
+        // `sample_mm` finds each grid chunk's voxels by binary search.
+        debug_assert!(sampler.voxels.windows(2).all(|w| w[0] < w[1]));
         Ok(sampler)
     }
 
@@ -126,34 +128,47 @@ impl FieldSampler {
     }
 
     /// Writes the displacement (node positions minus rest positions, metres) as millimetres
-    /// on every voxel of the CT grid: zero outside the lungs. `out` has one entry per voxel.
+    /// on every voxel of the CT grid: zero outside the lungs. `out` has one entry per voxel
+    /// and is reused across frames: nothing is allocated per call.
     pub fn sample_mm(&self, mesh: &HexMesh, positions_m: &[V3], out: &mut [[f32; 3]]) {
         assert_eq!(out.len(), self.voxel_count, "output must cover the CT grid");
-        out.par_iter_mut().for_each(|v| *v = [0.0; 3]);
         let rest = &mesh.rest_positions_m;
-        let values: Vec<[f32; 3]> = (0..self.voxels.len())
-            .into_par_iter()
-            .map(|s| {
-                let nodes = &mesh.elements[self.element[s] as usize];
-                let mut u = V3::zeros();
-                for (c, &n) in nodes.iter().enumerate() {
-                    let n = n as usize;
-                    u += (positions_m[n] - rest[n]) * f64::from(self.weights[s][c]);
+        // Each chunk of the grid zeroes itself and fills its own lung voxels (`voxels` is
+        // sorted), so the grid is written once, in parallel, without a staging buffer.
+        out.par_chunks_mut(SAMPLE_CHUNK_VOXELS)
+            .enumerate()
+            .for_each(|(c, chunk)| {
+                let start = c * SAMPLE_CHUNK_VOXELS;
+                chunk.fill([0.0; 3]);
+                let lo = self.voxels.partition_point(|&v| (v as usize) < start);
+                let hi = self
+                    .voxels
+                    .partition_point(|&v| (v as usize) < start + chunk.len());
+                for s in lo..hi {
+                    let nodes = &mesh.elements[self.element[s] as usize];
+                    let w = &self.weights[s];
+                    let mut u = V3::zeros();
+                    for (corner, &n) in nodes.iter().enumerate() {
+                        let n = n as usize;
+                        u += (positions_m[n] - rest[n]) * f64::from(w[corner]);
+                    }
+                    chunk[self.voxels[s] as usize - start] =
+                        [(u.x * 1e3) as f32, (u.y * 1e3) as f32, (u.z * 1e3) as f32];
                 }
-                [(u.x * 1e3) as f32, (u.y * 1e3) as f32, (u.z * 1e3) as f32]
-            })
-            .collect();
-        for (&idx, v) in self.voxels.iter().zip(values) {
-            out[idx as usize] = v;
-        }
+            });
     }
 }
+
+/// Grid voxels per parallel task of [`FieldSampler::sample_mm`] (cache-sized, and enough
+/// tasks to balance two to a few dozen cores).
+const SAMPLE_CHUNK_VOXELS: usize = 1 << 14;
 
 /// Interpolation from mesh nodes to user-given points (e.g. a tumour centre), for trajectories.
 #[derive(Debug, Clone)]
 pub struct PointSampler {
     element: Vec<u32>,
     weights: Vec<[f32; 8]>,
+    inside: Vec<bool>,
 }
 
 impl PointSampler {
@@ -167,6 +182,7 @@ impl PointSampler {
         let mut sampler = PointSampler {
             element: Vec::with_capacity(points_lps_mm.len()),
             weights: Vec::with_capacity(points_lps_mm.len()),
+            inside: Vec::with_capacity(points_lps_mm.len()),
         };
         for (i, p) in points_lps_mm.iter().enumerate() {
             if p.iter().any(|v| !v.is_finite()) {
@@ -189,7 +205,7 @@ impl PointSampler {
                         da.total_cmp(&db)
                     })
             });
-            let Some((e, w, _)) = hit else {
+            let Some((e, w, inside)) = hit else {
                 return Err(Error::InvalidInput(format!(
                     "point {} at LPS ({:.1}, {:.1}, {:.1}) mm is outside the lungs' mesh",
                     i + 1,
@@ -200,25 +216,41 @@ impl PointSampler {
             };
             sampler.element.push(e);
             sampler.weights.push(w);
+            sampler.inside.push(inside);
         }
         Ok(sampler)
     }
 
+    /// Whether each point lies inside an element (else it follows the nearest element's
+    /// boundary, within two cells of the mesh).
+    pub fn inside_mesh(&self) -> &[bool] {
+        &self.inside
+    }
+
     /// Displacement of each point in mm (LPS components).
     pub fn displacements_mm(&self, mesh: &HexMesh, positions_m: &[V3]) -> Vec<[f64; 3]> {
+        let mut out = vec![[0.0; 3]; self.element.len()];
+        self.displacements_into(mesh, positions_m, &mut out);
+        out
+    }
+
+    /// Displacement of each point in mm (LPS components) into `out`, one entry per point,
+    /// for callers that reuse a buffer across frames.
+    pub fn displacements_into(&self, mesh: &HexMesh, positions_m: &[V3], out: &mut [[f64; 3]]) {
+        assert_eq!(
+            out.len(),
+            self.element.len(),
+            "one output per tracked point"
+        );
         let rest = &mesh.rest_positions_m;
-        self.element
-            .iter()
-            .zip(&self.weights)
-            .map(|(&e, w)| {
-                let mut u = V3::zeros();
-                for (c, &n) in mesh.elements[e as usize].iter().enumerate() {
-                    let n = n as usize;
-                    u += (positions_m[n] - rest[n]) * f64::from(w[c]);
-                }
-                (u * 1e3).into()
-            })
-            .collect()
+        for ((&e, w), o) in self.element.iter().zip(&self.weights).zip(out.iter_mut()) {
+            let mut u = V3::zeros();
+            for (c, &n) in mesh.elements[e as usize].iter().enumerate() {
+                let n = n as usize;
+                u += (positions_m[n] - rest[n]) * f64::from(w[c]);
+            }
+            *o = (u * 1e3).into();
+        }
     }
 }
 
@@ -403,6 +435,7 @@ mod tests {
         assert!((u[1][2] + 1.75).abs() < 1e-6, "{u:?}");
         // 1 mm outside the block: the nearest point of the mesh (y = 10 mm).
         assert!((u[2][2] + 1.0).abs() < 1e-6, "{u:?}");
+        assert_eq!(sampler.inside_mesh(), [true, true, false]);
         let e = PointSampler::new(&[[200.0, 0.0, 0.0]], &mesh, &lungs).unwrap_err();
         assert!(e.to_string().contains("point 1 at LPS (200.0"), "{e}");
         assert!(PointSampler::new(&[[f64::NAN, 0.0, 0.0]], &mesh, &lungs).is_err());

@@ -2,4 +2,7 @@
 
 pub mod displacement_field;
 pub mod ingest_files;
+pub mod plots;
 pub mod quicklook;
+pub mod raster_text;
+pub mod trajectories;

@@ -150,12 +150,31 @@ impl<'s> BreathingDriver<'s> {
         })
     }
 
+    /// Makes `state` the warm start of the next solve, so a sequence can continue from any
+    /// solved state (equilibria of the loaded lung are not always unique: a corner element
+    /// can settle differently after a large load step than along a gradual inflation).
+    pub fn warm_start(&mut self, state: &DrivenState) {
+        self.last = Some((
+            state.pressure_pa / self.reference_pressure_pa,
+            state.positions_m.clone(),
+        ));
+    }
+
     /// Volume change from rest of `positions`, mL.
     pub fn volume_change_ml(&self, positions: &[V3]) -> f64 {
         (self.scene.mesh.enclosed_volume_m3(positions) - self.rest_volume_m3) * 1e6
     }
 
     fn solve_factor(&mut self, lambda: f64) -> Result<(Vec<V3>, SolveReport)> {
+        // Unloaded, the rest state is the equilibrium when every constraint passes through
+        // it; solving would only chase round-off below the residual's floor.
+        if lambda == 0.0 {
+            let x = self.scene.initial_positions();
+            if x == self.scene.mesh.rest_positions_m {
+                self.last = Some((0.0, x.clone()));
+                return Ok((x, SolveReport::default()));
+            }
+        }
         let initial = self.last.as_ref().map(|(_, x)| x.as_slice());
         let (x, report) = self.solver.solve_with_load_factor(initial, lambda)?;
         self.scene.check_finite(&x, report.newton_iterations)?;

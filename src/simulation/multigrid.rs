@@ -9,6 +9,12 @@
 //! Smoothing is Chebyshev-accelerated block Jacobi (parallel); the coarsest level is solved
 //! by dense LU.
 //!
+//! Several bodies may share the lattice without sharing nodes (the two lungs touch along the
+//! mediastinum): cells and nodes of every level are keyed by (body, lattice point), so no
+//! level couples them. Coarse directions without stiffness (a coarse node whose fine nodes
+//! are all fixed, or all slide on one plane) are constrained like the fine level's, since
+//! inverting their round-off diagonal made the smoother diverge on the lungs.
+//!
 //! Cost: the fine level needs no assembled matrix (one shared 24 × 24 block per class), coarse
 //! levels store 4.6 kB per distinct coarse cell matrix (cells with the same children, classes
 //! and constraint projectors share one). Set-up is linear in the element count.
@@ -38,20 +44,26 @@ type M24 = SMatrix<f64, 24, 24>;
 type V3 = Vector3<f64>;
 
 /// Lattice coordinates of a mesh whose elements are equal bricks on one regular grid.
+///
+/// The mesh may hold several bodies (connected components through shared element nodes)
+/// that touch on the lattice without sharing nodes, such as the two lungs: two nodes may then
+/// sit at one lattice point, and every level of the hierarchy keeps the bodies apart.
 #[derive(Debug, Clone)]
 pub struct Lattice {
     /// Lattice point of each node.
     pub node: Vec<[u32; 3]>,
     /// Lattice cell of each element.
     pub cell: Vec<[u32; 3]>,
+    /// Body (connected component, numbered from 0 in node order) of each node.
+    pub body: Vec<u32>,
     /// World directions of the lattice axes, as columns.
     pub axes: Matrix3<f64>,
 }
 
 impl Lattice {
     /// Recovers the lattice from geometry, or `None` if the elements are not equal bricks
-    /// aligned on one grid, or two nodes share a lattice point (the solver then falls back to
-    /// block Jacobi).
+    /// aligned on one grid, or two nodes of one body share a lattice point (the solver then
+    /// falls back to block Jacobi).
     pub fn infer(mesh: &HexMesh) -> Option<Lattice> {
         let shape = mesh.classes.first()?.shape;
         if mesh.classes.iter().any(|c| c.shape != shape) {
@@ -95,19 +107,57 @@ impl Lattice {
             }
             cell.push(base);
         }
-        // Coarse levels identify nodes by lattice point: two bodies touching on the lattice
-        // (the two lungs, meshed without shared nodes) would be glued there. Such meshes take
-        // the block-Jacobi preconditioner instead.
+        // Coarse levels identify nodes by (body, lattice point): two bodies touching on the
+        // lattice (the two lungs, meshed without shared nodes) must not be glued there, where
+        // their sliding surfaces face opposite ways. Within one body a lattice point is one node.
+        let body = node_bodies(mesh);
         let mut seen = std::collections::HashSet::with_capacity(node.len());
-        if !node.iter().all(|c| seen.insert(*c)) {
+        if !node.iter().zip(&body).all(|(c, &b)| seen.insert((*c, b))) {
             return None;
         }
         Some(Lattice {
             node,
             cell,
+            body,
             axes: Matrix3::from_columns(&axes),
         })
     }
+}
+
+/// Connected component of each node through shared element nodes, numbered in order of
+/// first node; a node in no element is a body of its own.
+fn node_bodies(mesh: &HexMesh) -> Vec<u32> {
+    fn root(parent: &mut [u32], mut n: u32) -> u32 {
+        while parent[n as usize] != n {
+            // Path halving keeps the trees shallow without recursion.
+            let up = parent[parent[n as usize] as usize];
+            parent[n as usize] = up;
+            n = up;
+        }
+        n
+    }
+    let mut parent: Vec<u32> = (0..mesh.node_count() as u32).collect();
+    for corners in &mesh.elements {
+        let a = root(&mut parent, corners[0]);
+        for &c in &corners[1..] {
+            let b = root(&mut parent, c);
+            if b != a {
+                parent[b as usize] = a;
+            }
+        }
+    }
+    let mut number = vec![u32::MAX; parent.len()];
+    let mut next = 0;
+    (0..parent.len() as u32)
+        .map(|n| {
+            let r = root(&mut parent, n) as usize;
+            if number[r] == u32::MAX {
+                number[r] = next;
+                next += 1;
+            }
+            number[r]
+        })
+        .collect()
 }
 
 /// One level of the hierarchy.
@@ -886,6 +936,10 @@ pub struct Multigrid {
     scratch: Vec<Vec<Vec<f64>>>,
 }
 
+/// Stiffness below this fraction of a level's largest diagonal block is round-off: the
+/// direction is treated as constrained (see `Level::constrain_null_directions`).
+const NULL_STIFFNESS_FRACTION: f64 = 1e-10;
+
 /// Stop coarsening when a level has at most this many nodes (dense LU below).
 const COARSEST_NODES: usize = 150;
 
@@ -933,8 +987,19 @@ impl Multigrid {
         };
         fine.finish();
         let mut levels = vec![fine];
-        let mut cells = lattice.cell.clone();
-        let mut node_ijk = lattice.node.clone();
+        // Lattice point and body of each cell and node: coarse entities are keyed by both.
+        let mut node_ijk: Vec<[u32; 4]> = lattice
+            .node
+            .iter()
+            .zip(&lattice.body)
+            .map(|(p, &b)| [p[0], p[1], p[2], b])
+            .collect();
+        let mut cells: Vec<[u32; 4]> = lattice
+            .cell
+            .iter()
+            .zip(&mesh.elements)
+            .map(|(p, corners)| [p[0], p[1], p[2], lattice.body[corners[0] as usize]])
+            .collect();
         while levels.last().is_some_and(|l| l.n_nodes > COARSEST_NODES) {
             let fine = levels.last_mut().expect("non-empty");
             let (coarse, c_cells, c_nodes) = coarsen(fine, &cells, &node_ijk);
@@ -1005,6 +1070,12 @@ impl Multigrid {
                 }
             })
             .collect()
+    }
+
+    /// y = A·x with the fine level's operator (projected stiffness plus shift, identity on the
+    /// constrained directions): the operator the V-cycle approximately inverts.
+    pub fn apply_operator(&self, x: &[f64], y: &mut [f64]) {
+        self.levels[0].apply(x, y);
     }
 
     /// z ≈ A⁻¹·r by one V-cycle.
@@ -1107,14 +1178,7 @@ impl Level {
     /// Diagonal blocks, their inverses and the spectral radius of D⁻¹A (power iteration).
     fn finish(&mut self) {
         self.plan();
-        let mut diag = vec![Matrix3::zeros(); self.n_nodes];
-        for (e, corners) in self.elements.iter().enumerate() {
-            let k = &self.matrices[self.matrix_of[e] as usize];
-            for (c, &n) in corners.iter().enumerate() {
-                diag[n as usize] += k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
-            }
-        }
-        self.diag = diag;
+        self.diag = self.diagonal_blocks();
         self.update_diag_inv();
         // Power iteration for λmax(D⁻¹A).
         let n3 = 3 * self.n_nodes;
@@ -1133,6 +1197,54 @@ impl Level {
             std::mem::swap(&mut v, &mut z);
         }
         self.lambda_max = lambda.max(1e-12);
+    }
+
+    /// Diagonal 3 × 3 blocks of the level's stiffness (before shift and projection).
+    fn diagonal_blocks(&self) -> Vec<Matrix3<f64>> {
+        let mut diag = vec![Matrix3::zeros(); self.n_nodes];
+        for (e, corners) in self.elements.iter().enumerate() {
+            let k = &self.matrices[self.matrix_of[e] as usize];
+            for (c, &n) in corners.iter().enumerate() {
+                diag[n as usize] += k.fixed_view::<3, 3>(3 * c, 3 * c).into_owned();
+            }
+        }
+        diag
+    }
+
+    /// Constrains a coarse level's directions of zero stiffness.
+    ///
+    /// A coarse node whose fine nodes are all fixed, or all slide on one plane, has no
+    /// stiffness along the blocked directions: in exact arithmetic its rows there are zero,
+    /// but round-off leaves ~1e-16 of the block, which the inverted diagonal block (and the
+    /// coarsest LU) then amplifies by ~1e16 and the smoother diverges (it did on the lungs,
+    /// where planes with varied normals meet). Such directions are treated as constrained,
+    /// exactly as the fine level treats its fixed and sliding nodes.
+    fn constrain_null_directions(&mut self) {
+        let diag = self.diagonal_blocks();
+        let eigen: Vec<_> = diag.iter().map(|d| d.symmetric_eigen()).collect();
+        let scale = eigen
+            .iter()
+            .map(|e| e.eigenvalues.amax())
+            .fold(0.0, f64::max);
+        // Round-off is ~1e-16 of the largest block; genuine weak couplings (a coarse node
+        // seen through one fine corner at weight 1/8) are ~1e-2 of it.
+        let null = NULL_STIFFNESS_FRACTION * scale;
+        self.projector = eigen
+            .iter()
+            .map(|e| {
+                let mut p = Matrix3::identity();
+                let mut any = false;
+                for (k, &value) in e.eigenvalues.iter().enumerate() {
+                    if value <= null {
+                        let v = e.eigenvectors.column(k);
+                        p -= v * v.transpose();
+                        any = true;
+                    }
+                }
+                any.then_some(p)
+            })
+            .collect();
+        self.constrained = sparse(&self.projector);
     }
 
     /// Inverts the shifted, projected diagonal blocks.
@@ -1431,19 +1543,21 @@ fn child_interpolation(offset: [u32; 3]) -> M24 {
     p
 }
 
+/// The next coarser level of `fine`, whose cells and nodes are given as (lattice i, j, k,
+/// body); returns it with its own cells and nodes in the same form.
 fn coarsen(
     fine: &mut Level,
-    cells: &[[u32; 3]],
-    node_ijk: &[[u32; 3]],
-) -> (Level, Vec<[u32; 3]>, Vec<[u32; 3]>) {
+    cells: &[[u32; 4]],
+    node_ijk: &[[u32; 4]],
+) -> (Level, Vec<[u32; 4]>, Vec<[u32; 4]>) {
     let interp: Vec<M24> = (0..8)
         .map(|o| child_interpolation([o & 1, (o >> 1) & 1, (o >> 2) & 1]))
         .collect();
-    let mut cell_index: HashMap<[u32; 3], u32> = HashMap::new();
-    let mut c_cells: Vec<[u32; 3]> = Vec::new();
+    let mut cell_index: HashMap<[u32; 4], u32> = HashMap::new();
+    let mut c_cells: Vec<[u32; 4]> = Vec::new();
     let mut children: Vec<Vec<(u32, usize)>> = Vec::new();
     for (e, c) in cells.iter().enumerate() {
-        let parent = c.map(|v| v / 2);
+        let parent = [c[0] / 2, c[1] / 2, c[2] / 2, c[3]];
         let o = ((c[0] & 1) | ((c[1] & 1) << 1) | ((c[2] & 1) << 2)) as usize;
         let idx = *cell_index.entry(parent).or_insert_with(|| {
             c_cells.push(parent);
@@ -1452,13 +1566,19 @@ fn coarsen(
         });
         children[idx as usize].push((e as u32, o));
     }
-    let mut node_index: HashMap<[u32; 3], u32> = HashMap::new();
-    let mut c_nodes: Vec<[u32; 3]> = Vec::new();
+    let mut node_index: HashMap<[u32; 4], u32> = HashMap::new();
+    let mut c_nodes: Vec<[u32; 4]> = Vec::new();
     let c_elements: Vec<[u32; 8]> = c_cells
         .iter()
         .map(|c| {
             CORNER_SIGNS.map(|s| {
-                let l: [u32; 3] = std::array::from_fn(|a| c[a] + (s[a] > 0.0) as u32);
+                let l: [u32; 4] = std::array::from_fn(|a| {
+                    if a < 3 {
+                        c[a] + (s[a] > 0.0) as u32
+                    } else {
+                        c[3]
+                    }
+                });
                 *node_index.entry(l).or_insert_with(|| {
                     c_nodes.push(l);
                     (c_nodes.len() - 1) as u32
@@ -1486,7 +1606,7 @@ fn coarsen(
                         let w = wi * wj * wl;
                         if w != 0.0 {
                             let c = node_index
-                                .get(&[i, j, l])
+                                .get(&[i, j, l, p[3]])
                                 .copied()
                                 .expect("every fine node lies in an active coarse cell");
                             row[k] = (c, w);
@@ -1583,6 +1703,7 @@ fn coarsen(
         lambda_max: 0.0,
         prolong: Vec::new(),
     };
+    level.constrain_null_directions();
     level.finish();
     (level, c_cells, c_nodes)
 }

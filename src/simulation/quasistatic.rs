@@ -45,7 +45,8 @@ pub struct QuasiStaticSettings {
 /// Preconditioner of the Krylov solves.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub enum PreconditionerKind {
-    /// Multigrid when the mesh is one voxel lattice, else block Jacobi.
+    /// Multigrid when the mesh lies on one voxel lattice (bodies touching on it, such as the
+    /// two lungs, stay apart on every level), else block Jacobi.
     Auto,
     /// Block Jacobi (3 × 3 nodal blocks) always: for comparison.
     BlockJacobi,

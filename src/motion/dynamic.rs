@@ -1,0 +1,501 @@
+//! Dynamic breathing (optional mode): the lung's equations of motion integrated explicitly
+//! under the pleural pressure of the bellows law P = V/C + R·dV/dt + I·d²V/dt² applied to
+//! the trace's volume, with Voigt dampers on the springs, for users who want inhale/exhale
+//! hysteresis.
+//!
+//! P is the driving (transpulmonary) pressure, positive to inflate; the surface load is −P,
+//! applied by scaling the scene's reference pressure. The whole bellows pressure loads the
+//! lung surface, as in the thesis: the resistive term R·dV/dt makes the simulated lung lead
+//! the trace on inhalation and lag it on exhalation (by about C·R·dV/dt), and the dampers add
+//! a tissue-viscous loop; both are reported per frame beside the trace's volume.
+//!
+//! V' and V'' come from central differences over ±`derivative_half_window_s`: a trace is
+//! piecewise linear in time, so its own derivatives would be steps and impulses.
+//!
+//! C defaults to the scene's secant compliance at the trace's extreme volume (one
+//! quasi-static solve), so with R = I = 0 and a slow trace the frames reproduce the
+//! quasi-static volume driver at that volume.
+
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use super::{elastic_compliance_ml_per_pa, REFERENCE_PRESSURE_PA};
+use crate::breathing::BreathingTrace;
+use crate::simulation::explicit::BlowUpGuard;
+use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene, TimeStepBound};
+use crate::{Error, Result};
+
+type V3 = Vector3<f64>;
+
+/// Settings of a dynamic breathing run.
+#[derive(Debug, Clone, Serialize)]
+pub struct DynamicSettings {
+    /// Lung compliance C, mL/Pa; `None`: the scene's secant compliance at the trace's
+    /// extreme volume.
+    pub compliance_ml_per_pa: Option<f64>,
+    /// Airway resistance R, Pa·s/mL (physiological ≈ 0.2 Pa·s/mL = 2 cmH₂O·s/L).
+    pub resistance_pa_s_per_ml: f64,
+    /// Inertance I, Pa·s²/mL (physiological ≈ 0.001 Pa·s²/mL).
+    pub inertance_pa_s2_per_ml: f64,
+    /// Voigt damper of every spring as a fraction of its critical damping.
+    pub voigt_damping_ratio: f64,
+    /// The pressure the scene's surface load is built with (λ = 1), Pa.
+    pub reference_pressure_pa: f64,
+    /// Fraction of the critical explicit time step used, in (0, 1].
+    pub time_step_safety: f64,
+    /// Half width of the central differences giving V' and V'', s.
+    pub derivative_half_window_s: f64,
+    /// Steps between blow-up checks.
+    pub check_every: usize,
+    /// Give up beyond this many steps.
+    pub max_steps: usize,
+    /// Quasi-static solver for the compliance and the initial equilibrium.
+    pub solver: QuasiStaticSettings,
+}
+
+impl Default for DynamicSettings {
+    fn default() -> Self {
+        DynamicSettings {
+            compliance_ml_per_pa: None,
+            resistance_pa_s_per_ml: 0.0,
+            inertance_pa_s2_per_ml: 0.0,
+            voigt_damping_ratio: 0.1,
+            reference_pressure_pa: REFERENCE_PRESSURE_PA,
+            time_step_safety: 0.9,
+            derivative_half_window_s: 0.05,
+            check_every: 50,
+            max_steps: 10_000_000,
+            solver: QuasiStaticSettings::default(),
+        }
+    }
+}
+
+impl DynamicSettings {
+    /// Refuses non-physical or meaningless values.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::InvalidInput(format!("dynamic breathing: {m}")));
+        if let Some(c) = self.compliance_ml_per_pa {
+            if !(c.is_finite() && c > 0.0) {
+                return bad(format!("compliance {c} mL/Pa must be positive"));
+            }
+        }
+        for (name, v) in [
+            ("resistance (Pa·s/mL)", self.resistance_pa_s_per_ml),
+            ("inertance (Pa·s²/mL)", self.inertance_pa_s2_per_ml),
+            ("Voigt damping ratio", self.voigt_damping_ratio),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(format!("{name} {v} must be finite and non-negative"));
+            }
+        }
+        let p = self.reference_pressure_pa;
+        if !(p.is_finite() && p != 0.0) {
+            return bad(format!(
+                "reference pressure {p} Pa must be finite and non-zero"
+            ));
+        }
+        let s = self.time_step_safety;
+        if !(s.is_finite() && s > 0.0 && s <= 1.0) {
+            return bad(format!("time step safety {s} must be in (0, 1]"));
+        }
+        let w = self.derivative_half_window_s;
+        if !(w.is_finite() && w > 0.0) {
+            return bad(format!("derivative half window {w} s must be positive"));
+        }
+        if self.check_every == 0 || self.max_steps == 0 {
+            return bad("check_every and max_steps must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// The bellows law's terms at one instant.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct BellowsState {
+    /// Trace volume change from the scan, mL.
+    pub volume_ml: f64,
+    /// dV/dt, mL/s (positive on inhalation).
+    pub flow_ml_per_s: f64,
+    /// d²V/dt², mL/s².
+    pub flow_rate_ml_per_s2: f64,
+    /// P = V/C + R·V' + I·V'', Pa (positive inflates; the surface load is −P).
+    pub pressure_pa: f64,
+}
+
+/// The bellows law on `trace` at `t_s` (derivatives over ±`half_window_s`).
+pub fn bellows_state(
+    trace: &BreathingTrace,
+    t_s: f64,
+    compliance_ml_per_pa: f64,
+    resistance_pa_s_per_ml: f64,
+    inertance_pa_s2_per_ml: f64,
+    half_window_s: f64,
+) -> BellowsState {
+    let d = half_window_s;
+    let (before, v, after) = (
+        trace.volume_at(t_s - d),
+        trace.volume_at(t_s),
+        trace.volume_at(t_s + d),
+    );
+    let flow = (after - before) / (2.0 * d);
+    let flow_rate = (after - 2.0 * v + before) / (d * d);
+    BellowsState {
+        volume_ml: v,
+        flow_ml_per_s: flow,
+        flow_rate_ml_per_s2: flow_rate,
+        pressure_pa: v / compliance_ml_per_pa
+            + resistance_pa_s_per_ml * flow
+            + inertance_pa_s2_per_ml * flow_rate,
+    }
+}
+
+/// One output instant of a dynamic run.
+#[derive(Debug, Clone, Serialize)]
+pub struct DynamicFrame {
+    /// Frame index (0-based, in output order).
+    pub index: usize,
+    /// Time in the trace, s.
+    pub time_s: f64,
+    /// The bellows law there (trace volume, flow, driving pressure).
+    pub bellows: BellowsState,
+    /// Surface pressure applied, Pa (−P; negative inflates).
+    pub surface_pressure_pa: f64,
+    /// Volume change of the simulated lung surface, mL.
+    pub simulated_volume_ml: f64,
+    /// Largest node displacement, mm.
+    pub max_displacement_mm: f64,
+    /// Mean node displacement, mm.
+    pub mean_displacement_mm: f64,
+    /// Kinetic energy of the lung, J.
+    pub kinetic_energy_j: f64,
+    /// Time steps taken since the start of the run.
+    pub steps: usize,
+}
+
+/// What a dynamic run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct DynamicReport {
+    /// Settings used.
+    pub settings: DynamicSettings,
+    /// Compliance used, mL/Pa.
+    pub compliance_ml_per_pa: f64,
+    /// Whether C was measured on the scene (else given).
+    pub compliance_calibrated: bool,
+    /// Volume enclosed by the mesh surface at rest, mL.
+    pub rest_volume_ml: f64,
+    /// Time step bound of the damped scene (the step used is its `step_s`).
+    pub time_step: TimeStepBound,
+    /// Start of the integration (the trace's first sample), s.
+    pub start_time_s: f64,
+    /// Bellows pressure of the initial quasi-static equilibrium, Pa.
+    pub initial_pressure_pa: f64,
+    /// Steps taken.
+    pub steps: usize,
+    /// Largest |simulated − trace| volume over the frames, mL.
+    pub max_volume_difference_ml: f64,
+    /// The frames.
+    pub frames: Vec<DynamicFrame>,
+    /// Wall time of the calibration and initial equilibrium, s.
+    pub setup_wall_time_s: f64,
+    /// Wall time of the integration, s.
+    pub integration_wall_time_s: f64,
+}
+
+/// Integrates `scene` (whose surface pressures add up to `settings.reference_pressure_pa`)
+/// through `trace` under the bellows law; `on_frame` receives each requested instant's frame
+/// and node positions (metres) in time order. `output_times_s` must be ascending and lie
+/// within the trace.
+pub fn run_dynamic(
+    scene: &Scene,
+    trace: &BreathingTrace,
+    settings: &DynamicSettings,
+    output_times_s: &[f64],
+    on_frame: &mut dyn FnMut(&DynamicFrame, &[V3]) -> Result<()>,
+) -> Result<DynamicReport> {
+    let setup_start = Instant::now();
+    settings.validate()?;
+    trace.validate()?;
+    let t_start = trace.time_s[0];
+    let t_end = trace.time_s[trace.time_s.len() - 1];
+    check_output_times(output_times_s, t_start, t_end)?;
+
+    // The dampers live in the element classes the force kernels are packed from: one
+    // rebuilt scene for the whole run.
+    let mut mesh = scene.mesh.clone();
+    mesh.classes = mesh
+        .classes
+        .into_iter()
+        .map(|c| c.with_damping_ratio(settings.voigt_damping_ratio))
+        .collect();
+    let damped = Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?;
+    let rest = &damped.mesh.rest_positions_m;
+    let rest_volume_m3 = damped.mesh.enclosed_volume_m3(rest);
+    let p_ref = settings.reference_pressure_pa;
+
+    // The free-solid compliance overestimates a constrained lung's: a cautious first step.
+    let seed = damped.mesh.classes.first().map_or(1.0, |c| {
+        elastic_compliance_ml_per_pa(rest_volume_m3 * 1e6, &c.material)
+    });
+    let mut driver = BreathingDriver::new(&damped, p_ref, seed, settings.solver.clone())?;
+    let (compliance, calibrated) = match settings.compliance_ml_per_pa {
+        Some(c) => (c, false),
+        None => {
+            let extreme = trace.volume_change_ml.iter().copied().fold(0.0f64, |m, v| {
+                if v.abs() > m.abs() {
+                    v
+                } else {
+                    m
+                }
+            });
+            if extreme.abs() < 1e-9 {
+                return Err(Error::InvalidInput(
+                    "dynamic breathing: the trace never leaves the scanned volume, so the \
+                     compliance cannot be calibrated; give compliance_ml_per_pa"
+                        .into(),
+                ));
+            }
+            let s = driver
+                .solve_volume(extreme, 1e-3 * extreme.abs())
+                .map_err(|e| {
+                    Error::InvalidModel(format!(
+                        "calibrating the compliance at {extreme:.1} mL: {e}"
+                    ))
+                })?;
+            // Surface pressure −P inflates by ΔV: C = ΔV / P.
+            (extreme / -s.pressure_pa, true)
+        }
+    };
+    if !(compliance.is_finite() && compliance > 0.0) {
+        return Err(Error::InvalidModel(format!(
+            "dynamic breathing: compliance {compliance} mL/Pa is not positive"
+        )));
+    }
+    let bellows = |t: f64| {
+        bellows_state(
+            trace,
+            t,
+            compliance,
+            settings.resistance_pa_s_per_ml,
+            settings.inertance_pa_s2_per_ml,
+            settings.derivative_half_window_s,
+        )
+    };
+
+    let initial = bellows(t_start);
+    let mut x = if initial.pressure_pa == 0.0 {
+        damped.initial_positions()
+    } else {
+        driver
+            .solve_pressure(-initial.pressure_pa)
+            .map_err(|e| {
+                Error::InvalidModel(format!(
+                    "initial equilibrium at {:.2} Pa: {e}",
+                    initial.pressure_pa
+                ))
+            })?
+            .positions_m
+    };
+    drop(driver);
+    let setup_wall_time_s = setup_start.elapsed().as_secs_f64();
+
+    let time_step = TimeStepBound::new(&damped, settings.time_step_safety);
+    let h_max = time_step.step_s;
+    if !(h_max.is_finite() && h_max > 0.0) {
+        return Err(Error::InvalidModel(format!(
+            "dynamic breathing: time step {h_max} s is not positive"
+        )));
+    }
+
+    let start = Instant::now();
+    let n = damped.node_count();
+    let mut v = vec![V3::zeros(); n];
+    let mut a = vec![V3::zeros(); n];
+    let mut force = vec![V3::zeros(); n];
+    let mut external = vec![V3::zeros(); n];
+    let inv_mass: Vec<f64> = damped.mesh.node_mass_kg.iter().map(|m| 1.0 / m).collect();
+    let load_factor = |t: f64| -bellows(t).pressure_pa / p_ref;
+    accelerations(
+        &damped,
+        &x,
+        &v,
+        load_factor(t_start),
+        &inv_mass,
+        (&mut force, &mut external),
+        &mut a,
+    );
+    let mut guard = BlowUpGuard::new(rest);
+    let mut t = t_start;
+    let mut steps = 0usize;
+    let mut frames = Vec::with_capacity(output_times_s.len());
+    let mut max_volume_difference: f64 = 0.0;
+    for (index, &t_out) in output_times_s.iter().enumerate() {
+        // Steps land exactly on the output instant: the last one is shortened.
+        while t_out - t > 1e-9 * h_max {
+            let h = h_max.min(t_out - t);
+            for ((xi, vi), ai) in x.iter_mut().zip(v.iter_mut()).zip(&a) {
+                *vi += ai * (0.5 * h);
+                *xi += *vi * h;
+            }
+            damped.constraints.project_positions(&mut x);
+            damped.constraints.project_field(&x, &mut v);
+            t = if t_out - (t + h) <= 1e-9 * h_max {
+                t_out
+            } else {
+                t + h
+            };
+            accelerations(
+                &damped,
+                &x,
+                &v,
+                load_factor(t),
+                &inv_mass,
+                (&mut force, &mut external),
+                &mut a,
+            );
+            for (vi, ai) in v.iter_mut().zip(&a) {
+                *vi += ai * (0.5 * h);
+            }
+            damped.constraints.project_field(&x, &mut v);
+            steps += 1;
+            if steps.is_multiple_of(settings.check_every) {
+                guard.check(&damped, &x, kinetic_energy_j(&damped, &v), steps)?;
+            }
+            if steps >= settings.max_steps {
+                return Err(Error::InvalidInput(format!(
+                    "dynamic breathing: {steps} steps of {h_max:.3e} s reached the limit before \
+                     t = {t_out} s"
+                )));
+            }
+        }
+        let ke = kinetic_energy_j(&damped, &v);
+        guard.check(&damped, &x, ke, steps)?;
+        let b = bellows(t_out);
+        let simulated = (damped.mesh.enclosed_volume_m3(&x) - rest_volume_m3) * 1e6;
+        max_volume_difference = max_volume_difference.max((simulated - b.volume_ml).abs());
+        let (max_d, sum_d) = x
+            .iter()
+            .zip(rest)
+            .map(|(p, r)| (p - r).norm() * 1e3)
+            .fold((0.0f64, 0.0), |(m, s), d| (m.max(d), s + d));
+        let frame = DynamicFrame {
+            index,
+            time_s: t_out,
+            bellows: b,
+            surface_pressure_pa: -b.pressure_pa,
+            simulated_volume_ml: simulated,
+            max_displacement_mm: max_d,
+            mean_displacement_mm: sum_d / n as f64,
+            kinetic_energy_j: ke,
+            steps,
+        };
+        on_frame(&frame, &x)?;
+        frames.push(frame);
+    }
+    Ok(DynamicReport {
+        settings: settings.clone(),
+        compliance_ml_per_pa: compliance,
+        compliance_calibrated: calibrated,
+        rest_volume_ml: rest_volume_m3 * 1e6,
+        time_step,
+        start_time_s: t_start,
+        initial_pressure_pa: initial.pressure_pa,
+        steps,
+        max_volume_difference_ml: max_volume_difference,
+        frames,
+        setup_wall_time_s,
+        integration_wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+fn check_output_times(times: &[f64], t_start: f64, t_end: f64) -> Result<()> {
+    if times.is_empty() {
+        return Err(Error::InvalidInput(
+            "dynamic breathing: no output time requested".into(),
+        ));
+    }
+    for (i, &t) in times.iter().enumerate() {
+        if !(t.is_finite() && t >= t_start && t <= t_end) {
+            return Err(Error::InvalidInput(format!(
+                "dynamic breathing: output time {t} s (index {i}) is outside the trace \
+                 ({t_start} … {t_end} s)"
+            )));
+        }
+        if i > 0 && t < times[i - 1] {
+            return Err(Error::InvalidInput(format!(
+                "dynamic breathing: output times must ascend; {t} s (index {i}) follows {} s",
+                times[i - 1]
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Accelerations of the free motion under internal forces (dampers read `v`) and the scene's
+/// loads scaled by `load_factor`; `scratch` holds the force and external-load buffers.
+fn accelerations(
+    scene: &Scene,
+    x: &[V3],
+    v: &[V3],
+    load_factor: f64,
+    inv_mass: &[f64],
+    scratch: (&mut [V3], &mut [V3]),
+    a: &mut [V3],
+) {
+    let (force, external) = scratch;
+    scene.internal_forces(x, Some(v), force);
+    scene.external_forces(x, external);
+    for (f, e) in force.iter_mut().zip(external.iter()) {
+        *f += e * load_factor;
+    }
+    scene.constraints.project_field(x, force);
+    for ((ai, f), im) in a.iter_mut().zip(force.iter()).zip(inv_mass) {
+        *ai = f * *im;
+    }
+}
+
+fn kinetic_energy_j(scene: &Scene, v: &[V3]) -> f64 {
+    v.iter()
+        .zip(&scene.mesh.node_mass_kg)
+        .map(|(v, m)| 0.5 * m * v.norm_squared())
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bellows_law_differentiates_a_sampled_parabola() {
+        // V = 100 t² mL sampled at 100 Hz: V' = 200 t, V'' = 200.
+        let times: Vec<f64> = (0..=200).map(|i| i as f64 * 0.01).collect();
+        let volumes = times.iter().map(|t| 100.0 * t * t).collect();
+        let trace = BreathingTrace::new(times, volumes).unwrap();
+        let (c, r, i) = (5.0, 0.2, 0.01);
+        let b = bellows_state(&trace, 1.0, c, r, i, 0.05);
+        assert!((b.volume_ml - 100.0).abs() < 1e-9);
+        assert!((b.flow_ml_per_s - 200.0).abs() < 1e-6, "{b:?}");
+        assert!((b.flow_rate_ml_per_s2 - 200.0).abs() < 1e-6, "{b:?}");
+        assert!((b.pressure_pa - (100.0 / c + r * 200.0 + i * 200.0)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn bad_settings_and_times_are_refused() {
+        let s = DynamicSettings {
+            resistance_pa_s_per_ml: -1.0,
+            ..Default::default()
+        };
+        assert!(s.validate().is_err());
+        let s = DynamicSettings {
+            time_step_safety: 1.5,
+            ..Default::default()
+        };
+        assert!(s.validate().is_err());
+        assert!(DynamicSettings::default().validate().is_ok());
+        assert!(check_output_times(&[0.0, 1.0], 0.0, 2.0).is_ok());
+        assert!(check_output_times(&[1.0, 0.5], 0.0, 2.0).is_err());
+        assert!(check_output_times(&[3.0], 0.0, 2.0).is_err());
+        assert!(check_output_times(&[], 0.0, 2.0).is_err());
+    }
+}

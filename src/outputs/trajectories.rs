@@ -1,0 +1,489 @@
+//! Tracked points: the user's points file in, one trajectory row per frame and point out.
+//!
+//! Convention: every coordinate is in DICOM patient space, **LPS millimetres** (+x towards
+//! the patient's left, +y posterior, +z superior), the space of the CT's
+//! `ImagePositionPatient`. Both files are plain comma-separated text, UTF-8, one header line,
+//! no quoting (names may not contain commas or double quotes); blank lines and lines starting
+//! with `#` are ignored when reading.
+//!
+//! * Points file (user input): header `name,x_mm,y_mm,z_mm`, then one row per point at its
+//!   position in the CT (rest, i.e. at the scan's breathing state). Names are unique and
+//!   non-empty; coordinates finite.
+//! * Trajectories file (output): header
+//!   `frame,time_s,point,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm,inside_lung`, one row per (frame,
+//!   point), frames in increasing order and points in the points file's order. `x,y,z` is
+//!   the moved position (rest position + displacement), `dx,dy,dz` the displacement from the
+//!   CT's position, both in LPS mm written with 4 decimals (0.1 µm); `time_s` is seconds on
+//!   the breathing trace's clock with 6 decimals; `inside_lung` is `true` when the point lies
+//!   inside an element of the lung mesh and `false` when it was extrapolated from the
+//!   nearest one. The file is written under a `.partial` name and renamed when complete, so a
+//!   file with the final name is never a truncated run.
+
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::{Error, Result};
+
+/// Header line of the points file.
+pub const POINTS_HEADER: &str = "name,x_mm,y_mm,z_mm";
+
+/// Header line of the trajectories file.
+pub const TRAJECTORY_HEADER: &str =
+    "frame,time_s,point,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm,inside_lung";
+
+/// Most points a points file may list (more is a sign of a wrong file, e.g. a point cloud).
+pub const MAX_POINTS: usize = 10_000;
+
+/// A named point the user wants followed, at its position in the CT.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackedPoint {
+    /// The user's name for it (tumour centre, carina, …), unique within a file.
+    pub name: String,
+    /// Position in the CT, LPS mm.
+    pub rest_lps_mm: [f64; 3],
+}
+
+/// One row of a trajectories file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrajectorySample {
+    /// Output frame index.
+    pub frame: usize,
+    /// Time of the frame on the breathing trace, seconds.
+    pub time_s: f64,
+    /// Name of the tracked point.
+    pub point: String,
+    /// Moved position, LPS mm.
+    pub position_lps_mm: [f64; 3],
+    /// Displacement from the CT position, LPS mm.
+    pub displacement_mm: [f64; 3],
+    /// Whether the point lies inside the lung mesh (else extrapolated from the nearest element).
+    pub inside_lung: bool,
+}
+
+/// Reads a points file; errors name the file, the line and the problem.
+pub fn read_points(path: &Path) -> Result<Vec<TrackedPoint>> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Error::InvalidInput(format!("{}: cannot read points file: {e}", path.display()))
+    })?;
+    parse_points(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
+}
+
+/// Parses the text of a points file; errors say `line N: problem`.
+pub fn parse_points(text: &str) -> std::result::Result<Vec<TrackedPoint>, String> {
+    let mut lines = content_lines(text);
+    let Some((n, header)) = lines.next() else {
+        return Err(format!(
+            "empty points file: expected the header `{POINTS_HEADER}`"
+        ));
+    };
+    check_header(n, header, POINTS_HEADER)?;
+    let mut points: Vec<TrackedPoint> = Vec::new();
+    let mut line_of_name: HashMap<String, usize> = HashMap::new();
+    for (n, line) in lines {
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        if fields.len() != 4 {
+            return Err(format!(
+                "line {n}: {} fields, expected 4 ({POINTS_HEADER})",
+                fields.len()
+            ));
+        }
+        let name = parse_name(n, fields[0])?;
+        if let Some(first) = line_of_name.get(name) {
+            return Err(format!(
+                "line {n}: point name {name:?} already used on line {first}"
+            ));
+        }
+        let mut rest_lps_mm = [0.0; 3];
+        for (a, v) in rest_lps_mm.iter_mut().enumerate() {
+            *v = parse_finite(n, ["x_mm", "y_mm", "z_mm"][a], fields[1 + a])?;
+        }
+        if points.len() == MAX_POINTS {
+            return Err(format!("line {n}: more than {MAX_POINTS} points"));
+        }
+        line_of_name.insert(name.to_string(), n);
+        points.push(TrackedPoint {
+            name: name.to_string(),
+            rest_lps_mm,
+        });
+    }
+    if points.is_empty() {
+        return Err("no points after the header".into());
+    }
+    Ok(points)
+}
+
+/// Streams trajectory rows, one frame at a time, to any writer.
+#[derive(Debug)]
+pub struct TrajectoryWriter<W: Write> {
+    out: W,
+    points: Vec<TrackedPoint>,
+    last: Option<(usize, f64)>,
+    /// Reused for every row so streaming does not allocate per frame.
+    line: String,
+}
+
+impl<W: Write> TrajectoryWriter<W> {
+    /// Writes the header; `points` fixes the rows of every frame (names must be unique).
+    pub fn new(mut out: W, points: &[TrackedPoint]) -> Result<Self> {
+        if points.is_empty() {
+            return Err(Error::InvalidInput("no points to track".into()));
+        }
+        let mut names = std::collections::HashSet::with_capacity(points.len());
+        for (i, p) in points.iter().enumerate() {
+            if let Some(problem) = name_problem(&p.name) {
+                return Err(Error::InvalidInput(format!(
+                    "point {} name {:?}: {problem}",
+                    i + 1,
+                    p.name
+                )));
+            }
+            if !names.insert(p.name.as_str()) {
+                return Err(Error::InvalidInput(format!(
+                    "point name {:?} is used twice",
+                    p.name
+                )));
+            }
+            if p.rest_lps_mm.iter().any(|v| !v.is_finite()) {
+                return Err(Error::InvalidInput(format!(
+                    "point {:?} has a non-finite position {:?}",
+                    p.name, p.rest_lps_mm
+                )));
+            }
+        }
+        writeln!(out, "{TRAJECTORY_HEADER}")?;
+        Ok(TrajectoryWriter {
+            out,
+            points: points.to_vec(),
+            last: None,
+            line: String::with_capacity(160),
+        })
+    }
+
+    /// Appends the rows of one frame: the displacement (LPS mm) and inside-lung flag of each
+    /// point, in the order the points were given. Frames must come in increasing order, at
+    /// non-decreasing finite times.
+    pub fn write_frame(
+        &mut self,
+        frame: usize,
+        time_s: f64,
+        displacements_mm: &[[f64; 3]],
+        inside_lung: &[bool],
+    ) -> Result<()> {
+        let n = self.points.len();
+        if displacements_mm.len() != n || inside_lung.len() != n {
+            return Err(Error::InvalidInput(format!(
+                "frame {frame}: {} displacements and {} inside flags for {n} points",
+                displacements_mm.len(),
+                inside_lung.len()
+            )));
+        }
+        if !time_s.is_finite() {
+            return Err(Error::InvalidInput(format!(
+                "frame {frame}: time {time_s} s is not finite"
+            )));
+        }
+        if let Some((last_frame, last_time_s)) = self.last {
+            if frame <= last_frame || time_s < last_time_s {
+                return Err(Error::InvalidInput(format!(
+                    "frame {frame} at {time_s} s comes after frame {last_frame} at \
+                     {last_time_s} s: frames must increase in number and time"
+                )));
+            }
+        }
+        if let Some((p, d)) = self
+            .points
+            .iter()
+            .zip(displacements_mm)
+            .find(|(_, d)| d.iter().any(|v| !v.is_finite()))
+        {
+            return Err(Error::InvalidInput(format!(
+                "frame {frame}: point {:?} has a non-finite displacement {d:?}",
+                p.name
+            )));
+        }
+        for ((p, d), inside) in self.points.iter().zip(displacements_mm).zip(inside_lung) {
+            let x = p.rest_lps_mm;
+            self.line.clear();
+            // Writing into a String cannot fail.
+            let _ = writeln!(
+                self.line,
+                "{frame},{time_s:.6},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{inside}",
+                p.name,
+                x[0] + d[0],
+                x[1] + d[1],
+                x[2] + d[2],
+                d[0],
+                d[1],
+                d[2],
+            );
+            self.out.write_all(self.line.as_bytes())?;
+        }
+        self.last = Some((frame, time_s));
+        Ok(())
+    }
+
+    /// Flushes and returns the underlying writer.
+    pub fn finish(mut self) -> Result<W> {
+        self.out.flush()?;
+        Ok(self.out)
+    }
+}
+
+/// A trajectories file being written: rows go to `<path>.partial`, renamed to `path` by
+/// [`TrajectoryFile::finish`].
+#[derive(Debug)]
+pub struct TrajectoryFile {
+    writer: TrajectoryWriter<BufWriter<File>>,
+    partial: PathBuf,
+    path: PathBuf,
+}
+
+impl TrajectoryFile {
+    /// Starts the file (header written to the `.partial` sibling).
+    pub fn create(path: &Path, points: &[TrackedPoint]) -> Result<Self> {
+        let mut name = path.as_os_str().to_owned();
+        name.push(".partial");
+        let partial = PathBuf::from(name);
+        let file = File::create(&partial).map_err(|e| {
+            Error::InvalidInput(format!("{}: cannot create: {e}", partial.display()))
+        })?;
+        Ok(TrajectoryFile {
+            writer: TrajectoryWriter::new(BufWriter::new(file), points)?,
+            partial,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// Appends one frame (see [`TrajectoryWriter::write_frame`]).
+    pub fn write_frame(
+        &mut self,
+        frame: usize,
+        time_s: f64,
+        displacements_mm: &[[f64; 3]],
+        inside_lung: &[bool],
+    ) -> Result<()> {
+        self.writer
+            .write_frame(frame, time_s, displacements_mm, inside_lung)
+            .map_err(|e| with_path(e, &self.partial))
+    }
+
+    /// Flushes, syncs and gives the file its final name, which it returns.
+    pub fn finish(self) -> Result<PathBuf> {
+        let file = self
+            .writer
+            .finish()
+            .and_then(|w| w.into_inner().map_err(|e| e.into_error().into()))
+            .map_err(|e| with_path(e, &self.partial))?;
+        file.sync_all()?;
+        std::fs::rename(&self.partial, &self.path).map_err(|e| {
+            Error::InvalidInput(format!(
+                "{}: cannot rename to {}: {e}",
+                self.partial.display(),
+                self.path.display()
+            ))
+        })?;
+        Ok(self.path)
+    }
+}
+
+/// Reads a trajectories file; errors name the file, the line and the problem.
+pub fn read_trajectories(path: &Path) -> Result<Vec<TrajectorySample>> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Error::InvalidInput(format!(
+            "{}: cannot read trajectories file: {e}",
+            path.display()
+        ))
+    })?;
+    parse_trajectories(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
+}
+
+/// Parses the text of a trajectories file; errors say `line N: problem`.
+pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySample>, String> {
+    let mut lines = content_lines(text);
+    let Some((n, header)) = lines.next() else {
+        return Err(format!(
+            "empty trajectories file: expected the header `{TRAJECTORY_HEADER}`"
+        ));
+    };
+    check_header(n, header, TRAJECTORY_HEADER)?;
+    let mut samples = Vec::new();
+    for (n, line) in lines {
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        if f.len() != 10 {
+            return Err(format!("line {n}: {} fields, expected 10", f.len()));
+        }
+        let frame = f[0]
+            .parse::<usize>()
+            .map_err(|_| format!("line {n}: frame {:?} is not a non-negative integer", f[0]))?;
+        let time_s = parse_finite(n, "time_s", f[1])?;
+        let point = parse_name(n, f[2])?.to_string();
+        let mut v = [0.0; 6];
+        for (c, value) in v.iter_mut().enumerate() {
+            let column = ["x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm"][c];
+            *value = parse_finite(n, column, f[3 + c])?;
+        }
+        let inside_lung = match f[9] {
+            "true" | "1" => true,
+            "false" | "0" => false,
+            other => return Err(format!("line {n}: inside_lung {other:?} is not true/false")),
+        };
+        samples.push(TrajectorySample {
+            frame,
+            time_s,
+            point,
+            position_lps_mm: [v[0], v[1], v[2]],
+            displacement_mm: [v[3], v[4], v[5]],
+            inside_lung,
+        });
+    }
+    Ok(samples)
+}
+
+/// Non-blank, non-comment lines with their 1-based line numbers (BOM and CR removed).
+fn content_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
+    text.strip_prefix('\u{feff}')
+        .unwrap_or(text)
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+}
+
+fn check_header(n: usize, found: &str, expected: &str) -> std::result::Result<(), String> {
+    let columns: Vec<String> = found
+        .split(',')
+        .map(|c| c.trim().to_ascii_lowercase())
+        .collect();
+    if columns.iter().map(String::as_str).eq(expected.split(',')) {
+        Ok(())
+    } else {
+        Err(format!(
+            "line {n}: header `{expected}` required (LPS millimetres), found `{found}`"
+        ))
+    }
+}
+
+fn parse_name(n: usize, name: &str) -> std::result::Result<&str, String> {
+    match name_problem(name) {
+        Some(problem) => Err(format!("line {n}: point name {name:?}: {problem}")),
+        None => Ok(name),
+    }
+}
+
+/// Why a point name cannot be written unquoted in a CSV cell, if it cannot.
+fn name_problem(name: &str) -> Option<&'static str> {
+    if name.trim().is_empty() {
+        Some("empty")
+    } else if name.trim() != name {
+        Some("leading or trailing spaces")
+    } else if name.chars().any(|c| c == '"' || c == ',' || c.is_control()) {
+        Some("contains a quote, comma or control character")
+    } else {
+        None
+    }
+}
+
+fn parse_finite(n: usize, column: &str, text: &str) -> std::result::Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(_) => Err(format!("line {n}: {column} {text:?} is not finite")),
+        Err(_) => Err(format!("line {n}: {column} {text:?} is not a number")),
+    }
+}
+
+/// Prefixes an I/O or input error with the file being written.
+fn with_path(e: Error, path: &Path) -> Error {
+    match e {
+        Error::Io(io) => Error::InvalidInput(format!("{}: write failed: {io}", path.display())),
+        other => other,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_points_file_with_comments_blank_lines_and_crlf_is_read() {
+        let text = "\u{feff}# tumour and carina\r\nname, x_mm, y_mm, z_mm\r\n\r\ntumour,-42.5,10,-120.25\r\ncarina,0,-5e1,-60\r\n";
+        let points = parse_points(text).unwrap();
+        assert_eq!(points.len(), 2);
+        assert_eq!(points[0].name, "tumour");
+        assert_eq!(points[0].rest_lps_mm, [-42.5, 10.0, -120.25]);
+        assert_eq!(points[1].rest_lps_mm, [0.0, -50.0, -60.0]);
+    }
+
+    #[test]
+    fn points_file_errors_name_the_line_and_the_problem() {
+        let cases = [
+            ("", "empty points file"),
+            (
+                "tumour,1,2,3\n",
+                "line 1: header `name,x_mm,y_mm,z_mm` required",
+            ),
+            ("name,x,y,z\na,1,2,3\n", "line 1: header"),
+            ("name,x_mm,y_mm,z_mm\n", "no points"),
+            (
+                "name,x_mm,y_mm,z_mm\na,1,2\n",
+                "line 2: 3 fields, expected 4",
+            ),
+            (
+                "name,x_mm,y_mm,z_mm\na,1,2,3\n\na,4,5,6\n",
+                "line 4: point name \"a\" already used on line 2",
+            ),
+            (
+                "name,x_mm,y_mm,z_mm\n,1,2,3\n",
+                "line 2: point name \"\": empty",
+            ),
+            (
+                "name,x_mm,y_mm,z_mm\na,1,nan,3\n",
+                "line 2: y_mm \"nan\" is not finite",
+            ),
+            (
+                "name,x_mm,y_mm,z_mm\na,1,2,3mm\n",
+                "line 2: z_mm \"3mm\" is not a number",
+            ),
+            ("name,x_mm,y_mm,z_mm\n\"a\",1,2,3\n", "line 2: point name"),
+        ];
+        for (text, expected) in cases {
+            let e = parse_points(text).unwrap_err();
+            assert!(e.contains(expected), "{text:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn the_writer_refuses_inconsistent_frames() {
+        let points = [TrackedPoint {
+            name: "p".into(),
+            rest_lps_mm: [0.0; 3],
+        }];
+        let mut w = TrajectoryWriter::new(Vec::new(), &points).unwrap();
+        w.write_frame(0, 0.0, &[[0.0; 3]], &[true]).unwrap();
+        assert!(w.write_frame(0, 0.5, &[[0.0; 3]], &[true]).is_err());
+        assert!(w.write_frame(1, -0.5, &[[0.0; 3]], &[true]).is_err());
+        assert!(w.write_frame(1, 0.5, &[[0.0; 3]; 2], &[true; 2]).is_err());
+        let e = w
+            .write_frame(1, 0.5, &[[f64::NAN, 0.0, 0.0]], &[true])
+            .unwrap_err();
+        assert!(e.to_string().contains("point \"p\""), "{e}");
+        w.write_frame(1, 0.5, &[[0.0, 0.0, -1.0]], &[false])
+            .unwrap();
+        let text = String::from_utf8(w.finish().unwrap()).unwrap();
+        assert_eq!(text.lines().count(), 3, "{text}");
+        let dup = [points[0].clone(), points[0].clone()];
+        assert!(TrajectoryWriter::new(Vec::new(), &dup).is_err());
+        let comma = [TrackedPoint {
+            name: "a,b".into(),
+            rest_lps_mm: [0.0; 3],
+        }];
+        let e = TrajectoryWriter::new(Vec::new(), &comma).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("point 1 name \"a,b\": contains a quote"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,251 @@
+//! Run configuration: a TOML file (every field optional, unknown fields refused) whose values
+//! the command line may override. `lungmotion run --config` documents the format; an empty
+//! file is the default run.
+//!
+//! ```toml
+//! element_size_mm = 6.0
+//! diaphragm = "cranio_caudal"          # or "free"
+//! [material]
+//! youngs_modulus_pa = 390.0
+//! poisson_ratio = 0.3
+//! density_kg_per_m3 = 700.0
+//! [trace]
+//! reference = "change_from_scan"       # or { absolute = { scanned_volume_ml = 2800 } }
+//! [motion]
+//! driver = { kind = "volume" }         # or { kind = "compliance", compliance_ml_per_pa = 2.0 }
+//! instants = { kind = "phases", count = 10 }   # every_sample | every_kth k | frame_rate hz
+//! interpolation_tolerance_mm = 0.1
+//! solve_every_frame = false
+//! [outputs]
+//! metaimage = false                    # frames/<k>/displacement.mha beside the NIfTI
+//! mesh_vtu = false                     # frames/<k>/mesh.vtu (deformed mesh for ParaView)
+//! ingest_files = true                  # ingest/: lung mask, groups, mesh, ingest.json
+//! quicklooks = true                    # breathing-curve and end-inhale PNGs
+//! ```
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::breathing::{OutputInstants, TraceOptions};
+use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
+use crate::model::Material;
+use crate::motion::DriverKind;
+use crate::{Error, Result};
+
+/// Largest configuration file read, bytes (a real one is well under 2 kB).
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// Everything a breathing run can be told besides its inputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RunConfig {
+    /// Edge of the cubic elements, mm (2–16).
+    pub element_size_mm: f64,
+    /// How the diaphragmatic face moves.
+    pub diaphragm: DiaphragmMotion,
+    /// Lung tissue.
+    pub material: Material,
+    /// How the trace file is read.
+    pub trace: TraceOptions,
+    /// Driver, output instants and solver accuracy.
+    pub motion: MotionConfig,
+    /// Which optional files are written.
+    pub outputs: OutputConfig,
+}
+
+/// Driver, output instants and accuracy of a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotionConfig {
+    /// Volume (default) or compliance driver.
+    pub driver: DriverKind,
+    /// Which instants get a displacement field.
+    pub instants: OutputInstants,
+    /// Largest interpolation error allowed against direct solves, mm.
+    pub interpolation_tolerance_mm: f64,
+    /// Solve every frame instead of interpolating between key volumes.
+    pub solve_every_frame: bool,
+    /// Volume driver tolerance as a fraction of the tidal volume.
+    pub volume_tolerance_fraction: f64,
+}
+
+/// Optional outputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OutputConfig {
+    /// Also write each frame's field as MetaImage (`displacement.mha`).
+    pub metaimage: bool,
+    /// Also write each frame's deformed mesh (`mesh.vtu`).
+    pub mesh_vtu: bool,
+    /// Write the ingest results (`ingest/`).
+    pub ingest_files: bool,
+    /// Write the PNG quick looks.
+    pub quicklooks: bool,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            element_size_mm: DEFAULT_ELEMENT_SIZE_MM,
+            diaphragm: DiaphragmMotion::default(),
+            material: Material::LUNG,
+            trace: TraceOptions::default(),
+            motion: MotionConfig::default(),
+            outputs: OutputConfig::default(),
+        }
+    }
+}
+
+impl Default for MotionConfig {
+    fn default() -> Self {
+        let m = crate::motion::MotionSettings::default();
+        MotionConfig {
+            driver: m.driver,
+            instants: m.instants,
+            interpolation_tolerance_mm: m.interpolation_tolerance_mm,
+            solve_every_frame: m.solve_every_frame,
+            volume_tolerance_fraction: m.volume_tolerance_fraction,
+        }
+    }
+}
+
+impl Default for OutputConfig {
+    fn default() -> Self {
+        OutputConfig {
+            metaimage: false,
+            mesh_vtu: false,
+            ingest_files: true,
+            quicklooks: true,
+        }
+    }
+}
+
+impl RunConfig {
+    /// Reads a TOML configuration; the error names the file and the offending key.
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let bad = |m: String| Error::InvalidInput(format!("configuration {}: {m}", path.display()));
+        let meta = std::fs::metadata(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        if meta.len() > MAX_CONFIG_BYTES {
+            return Err(bad(format!(
+                "{} bytes is not a configuration file (limit {MAX_CONFIG_BYTES})",
+                meta.len()
+            )));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        Self::from_toml(&text).map_err(|e| bad(e.to_string()))
+    }
+
+    /// Parses TOML text and validates it.
+    pub fn from_toml(text: &str) -> Result<Self> {
+        let config: RunConfig = toml::from_str(text)
+            .map_err(|e| Error::InvalidInput(e.message().trim().to_string()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Refuses values no run can use, naming the key.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::InvalidInput(m));
+        let h = self.element_size_mm;
+        if !(h.is_finite() && (2.0..=16.0).contains(&h)) {
+            return bad(format!("element_size_mm = {h}: must be within 2–16 mm"));
+        }
+        self.material.validate()?;
+        let m = &self.motion;
+        if !(m.interpolation_tolerance_mm.is_finite() && m.interpolation_tolerance_mm > 0.0) {
+            return bad(format!(
+                "motion.interpolation_tolerance_mm = {}: must be positive",
+                m.interpolation_tolerance_mm
+            ));
+        }
+        let f = m.volume_tolerance_fraction;
+        if !(f.is_finite() && f > 0.0 && f <= 0.1) {
+            return bad(format!(
+                "motion.volume_tolerance_fraction = {f}: must be in (0, 0.1]"
+            ));
+        }
+        if let DriverKind::Compliance {
+            compliance_ml_per_pa: Some(c),
+        } = m.driver
+        {
+            if !(c.is_finite() && c > 0.0) {
+                return bad(format!(
+                    "motion.driver.compliance_ml_per_pa = {c}: must be positive"
+                ));
+            }
+        }
+        if let crate::breathing::VolumeReference::Absolute { scanned_volume_ml } =
+            self.trace.reference
+        {
+            if !(scanned_volume_ml.is_finite() && scanned_volume_ml > 0.0) {
+                return bad(format!(
+                    "trace.reference.absolute.scanned_volume_ml = {scanned_volume_ml}: must be \
+                     positive"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The motion settings this configuration asks for.
+    pub fn motion_settings(&self) -> crate::motion::MotionSettings {
+        let m = &self.motion;
+        crate::motion::MotionSettings {
+            driver: m.driver,
+            instants: m.instants,
+            interpolation_tolerance_mm: m.interpolation_tolerance_mm,
+            solve_every_frame: m.solve_every_frame,
+            volume_tolerance_fraction: m.volume_tolerance_fraction,
+            ..crate::motion::MotionSettings::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_file_is_the_default_and_the_doc_example_parses() {
+        assert_eq!(RunConfig::from_toml("").unwrap(), RunConfig::default());
+        let doc = include_str!("config.rs")
+            .lines()
+            .skip_while(|l| !l.starts_with("//! ```toml"))
+            .skip(1)
+            .take_while(|l| !l.starts_with("//! ```"))
+            .map(|l| l.trim_start_matches("//!").trim_start())
+            .collect::<Vec<_>>()
+            .join("\n");
+        let c = RunConfig::from_toml(&doc).unwrap();
+        assert_eq!(c.motion.instants, OutputInstants::Phases { count: 10 });
+        let c = RunConfig::from_toml(
+            "element_size_mm = 8\n[motion]\ndriver = { kind = \"compliance\", \
+             compliance_ml_per_pa = 2.0 }\ninstants = { kind = \"frame_rate\", hz = 5.0 }\n\
+             [trace]\nreference = { absolute = { scanned_volume_ml = 2800.0 } }",
+        )
+        .unwrap();
+        assert_eq!(c.element_size_mm, 8.0);
+        assert_eq!(c.motion.instants, OutputInstants::FrameRate { hz: 5.0 });
+        assert!(matches!(
+            c.motion.driver,
+            DriverKind::Compliance {
+                compliance_ml_per_pa: Some(_)
+            }
+        ));
+    }
+
+    #[test]
+    fn bad_values_and_unknown_keys_are_named() {
+        let err = |t: &str| RunConfig::from_toml(t).unwrap_err().to_string();
+        assert!(err("element_size_mm = 40").contains("element_size_mm"));
+        assert!(err("elemnt_size_mm = 4").contains("elemnt_size_mm"));
+        assert!(err("[material]\npoisson_ratio = 0.5").contains("Poisson"));
+        assert!(err("[motion]\ninterpolation_tolerance_mm = -1").contains("interpolation"));
+        assert!(err("[motion]\ninstants = { kind = \"sometimes\" }").contains("sometimes"));
+        assert!(
+            err("element_size_mm = \"big\"").contains("element_size_mm")
+                || err("element_size_mm = \"big\"").contains("invalid type")
+        );
+    }
+}

@@ -1,0 +1,81 @@
+//! The demo job: the bundled phantom CT, a generated tidal breathing curve and the phantom's
+//! landmarks as tracked points, so `lungmotion demo` needs no file from the user.
+
+use std::path::{Path, PathBuf};
+
+use super::{RunInputs, TrackedPoint};
+use crate::breathing::LujanBreathing;
+use crate::{Error, Result};
+
+/// Sample rate of the generated demo curve, Hz (a spirometer records 25–100 Hz).
+pub const DEMO_SAMPLE_RATE_HZ: f64 = 25.0;
+/// Breaths in the demo curve.
+pub const DEMO_BREATHS: f64 = 2.0;
+/// How far inside the lung the apex and base points are placed from the phantom's landmarks,
+/// mm (the landmarks lie on the lung boundary).
+const LANDMARK_INSET_MM: f64 = 15.0;
+
+/// Where the bundled sample volumes are: `./sample-volumes` when run from the repository,
+/// else the directory the binary was built from.
+pub fn sample_volumes_dir() -> PathBuf {
+    let here = PathBuf::from("sample-volumes");
+    if here.join("phantom.json").is_file() {
+        here
+    } else {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes")
+    }
+}
+
+/// Inputs of the demo: the phantom's DICOM series, two Lujan breaths of 500 mL (4 s period,
+/// the CT at end-exhale) and tracked points at the tumour, the right apex and the right base.
+pub fn demo_inputs(sample_dir: &Path) -> Result<RunInputs> {
+    let description = sample_dir.join("phantom.json");
+    let text = std::fs::read_to_string(&description).map_err(|e| {
+        Error::InvalidInput(format!(
+            "demo: cannot read {} ({e}); run from the repository or regenerate it with \
+             `lungmotion phantom`",
+            description.display()
+        ))
+    })?;
+    let json: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::InvalidInput(format!("demo: {}: {e}", description.display())))?;
+    let landmark = |name: &str, dz_mm: f64| -> Result<Option<TrackedPoint>> {
+        let v = &json["landmarks"][format!("{name}_lps_mm")];
+        if v.is_null() {
+            return Ok(None);
+        }
+        let p: [f64; 3] = serde_json::from_value(v.clone()).map_err(|e| {
+            Error::InvalidInput(format!(
+                "demo: landmark {name} in {}: {e}",
+                description.display()
+            ))
+        })?;
+        Ok(Some(TrackedPoint {
+            name: name.trim_end_matches("_centre").to_string(),
+            rest_lps_mm: [p[0], p[1], p[2] + dz_mm],
+        }))
+    };
+    let points = [
+        landmark("tumour_centre", 0.0)?,
+        landmark("right_lung_apex", -LANDMARK_INSET_MM)?,
+        landmark("right_lung_base", LANDMARK_INSET_MM)?,
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    let curve = LujanBreathing::default();
+    let trace = curve.trace(DEMO_BREATHS * curve.period_s, DEMO_SAMPLE_RATE_HZ)?;
+    Ok(RunInputs {
+        ct_path: sample_dir.join("phantom-dicom"),
+        trace,
+        trace_source: format!(
+            "generated: Lujan cos^{} breathing, {} mL tidal, {} s period, {} breaths at {} Hz",
+            2 * curve.exponent,
+            curve.tidal_volume_ml,
+            curve.period_s,
+            DEMO_BREATHS,
+            DEMO_SAMPLE_RATE_HZ
+        ),
+        points,
+    })
+}

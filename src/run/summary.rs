@@ -1,0 +1,297 @@
+//! `summary.json`: what a run did, frame by frame, with the model and the software version.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use super::{group_name, RunConfig, RunInputs};
+use crate::ingest::lung_model::{ConstraintGroup, DiaphragmMotion, LungModel, SlidingMode};
+use crate::ingest::pipeline::{IngestOutcome, IngestSummary};
+use crate::model::{Material, NodeConstraint};
+use crate::motion::{FrameSummary, MotionReport};
+use crate::simulation::Scene;
+
+type V3 = Vector3<f64>;
+
+/// The machine-readable record of a run (`summary.json`); scripts rely on its field names.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    /// `lungmotion`.
+    pub software: &'static str,
+    /// Version of the software that wrote it.
+    pub software_version: &'static str,
+    /// Conventions of every output file.
+    pub conventions: BTreeMap<&'static str, &'static str>,
+    /// The CT input as given.
+    pub ct: String,
+    /// The breathing trace.
+    pub trace: TraceSummary,
+    /// The configuration used (file and command line merged).
+    pub config: RunConfig,
+    /// The mechanical model.
+    pub model: ModelSummary,
+    /// Ingest results (segmentation, meshing, groups).
+    pub ingest: IngestSummary,
+    /// Driver, key volumes and accuracy of the motion (frames listed in `frames`).
+    pub motion: MotionReport,
+    /// One entry per output frame, in time order.
+    pub frames: Vec<FrameRecord>,
+    /// The frame with the largest volume, with physical checks.
+    pub end_inhale: EndInhaleSummary,
+    /// Tracked points (also in `trajectories.csv`).
+    pub points: Vec<PointTrajectory>,
+    /// Stage wall times, s.
+    pub timings_s: BTreeMap<String, f64>,
+    /// Peak resident memory of the process, MiB.
+    pub peak_memory_mib: Option<f64>,
+    /// Everything the user should know.
+    pub warnings: Vec<String>,
+}
+
+/// The trace as the run used it.
+#[derive(Debug, Clone, Serialize)]
+pub struct TraceSummary {
+    /// File name or "generated: …".
+    pub source: String,
+    /// Number of samples.
+    pub samples: usize,
+    /// First and last sample times, s.
+    pub time_range_s: [f64; 2],
+    /// Smallest and largest volume change from the scan, mL.
+    pub volume_range_ml: [f64; 2],
+}
+
+/// The mechanical model of the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelSummary {
+    /// Element edge, mm.
+    pub element_size_mm: f64,
+    /// Elements of both lungs.
+    pub elements: usize,
+    /// Nodes of both lungs.
+    pub nodes: usize,
+    /// Lung tissue.
+    pub material: Material,
+    /// How the diaphragmatic face moves.
+    pub diaphragm: DiaphragmMotion,
+    /// How sliding nodes follow the wall.
+    pub sliding: SlidingMode,
+    /// Boundary condition of each group, by name.
+    pub groups: BTreeMap<&'static str, &'static str>,
+    /// Volume enclosed by the mesh at rest, mL.
+    pub rest_volume_ml: f64,
+    /// What drives the surface.
+    pub load: &'static str,
+}
+
+/// Files of one frame, relative to the output directory.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameFiles {
+    /// NIfTI displacement field.
+    pub displacement_nifti: String,
+    /// MetaImage copy, when asked for.
+    pub displacement_mha: Option<String>,
+    /// Deformed mesh, when asked for.
+    pub mesh_vtu: Option<String>,
+}
+
+/// One output frame in `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameRecord {
+    /// Time, volumes, pressure, displacement, solver effort.
+    #[serde(flatten)]
+    pub summary: FrameSummary,
+    /// Rest position of the node that moved most, LPS mm.
+    pub max_displacement_at_lps_mm: [f64; 3],
+    /// Files written for this frame.
+    pub files: FrameFiles,
+    /// Time to sample and write the frame's files, s.
+    pub write_time_s: f64,
+}
+
+/// A tracked point's displacement per frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct PointTrajectory {
+    /// The user's name for it.
+    pub name: String,
+    /// Position at the scanned state, LPS mm.
+    pub rest_lps_mm: [f64; 3],
+    /// Displacement at each frame, LPS mm.
+    pub displacement_mm: Vec<[f64; 3]>,
+}
+
+/// The end-inhale frame and the physical checks made on it.
+#[derive(Debug, Clone, Serialize)]
+pub struct EndInhaleSummary {
+    /// Frame index.
+    pub frame: usize,
+    /// Time, s.
+    pub time_s: f64,
+    /// Simulated volume change, mL.
+    pub simulated_volume_ml: f64,
+    /// Largest node displacement, mm.
+    pub max_displacement_mm: f64,
+    /// Where it occurs (rest position, LPS mm).
+    pub max_displacement_at_lps_mm: [f64; 3],
+    /// Constraint group of that node (`interior` if none).
+    pub max_displacement_group: &'static str,
+    /// Lung of that node.
+    pub max_displacement_lung: &'static str,
+    /// Mean cranio-caudal displacement of the diaphragmatic nodes, mm (negative = down).
+    pub mean_base_dz_mm: f64,
+    /// Mean cranio-caudal displacement of the apex nodes, mm.
+    pub mean_apex_dz_mm: f64,
+    /// Largest displacement of a hilum node, mm.
+    pub hilum_max_displacement_mm: f64,
+    /// Costal nodes: median and largest change of distance to the chest wall, mm.
+    pub costal_wall_gap_change_mm: [f64; 2],
+}
+
+pub(super) fn end_inhale_summary(
+    model: &LungModel,
+    scene: &Scene,
+    frame: usize,
+    x: &[V3],
+    report: &MotionReport,
+) -> EndInhaleSummary {
+    let rest = &scene.mesh.rest_positions_m;
+    let u_mm = |n: usize| (x[n] - rest[n]) * 1e3;
+    let mean_dz = |g: ConstraintGroup| {
+        let nodes = model.group_nodes(g);
+        nodes.iter().map(|&n| u_mm(n as usize).z).sum::<f64>() / nodes.len().max(1) as f64
+    };
+    let (node, max_mm) = (0..x.len())
+        .map(|n| (n, u_mm(n).norm()))
+        .fold((0, 0.0), |b, c| if c.1 > b.1 { c } else { b });
+    let node_lung = model.node_lung();
+    let hilum_max = model
+        .group_nodes(ConstraintGroup::Hilum)
+        .iter()
+        .map(|&n| u_mm(n as usize).norm())
+        .fold(0.0, f64::max);
+    let mut gaps: Vec<f64> = model
+        .group_nodes(ConstraintGroup::Costal)
+        .iter()
+        .filter(|&&n| {
+            matches!(
+                scene.constraints.get(n),
+                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
+            )
+        })
+        .map(|&n| {
+            let n = n as usize;
+            (model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0).abs() * 1e3
+        })
+        .collect();
+    gaps.sort_by(f64::total_cmp);
+    let f = &report.frames[frame];
+    EndInhaleSummary {
+        frame,
+        time_s: f.time_s,
+        simulated_volume_ml: f.simulated_volume_ml,
+        max_displacement_mm: max_mm,
+        max_displacement_at_lps_mm: (rest[node] * 1e3).into(),
+        max_displacement_group: group_name(model.node_group[node]),
+        max_displacement_lung: match node_lung[node] {
+            1 => "right",
+            2 => "left",
+            _ => "none",
+        },
+        mean_base_dz_mm: mean_dz(ConstraintGroup::Diaphragmatic),
+        mean_apex_dz_mm: mean_dz(ConstraintGroup::Apex),
+        hilum_max_displacement_mm: hilum_max,
+        costal_wall_gap_change_mm: [
+            gaps.get(gaps.len() / 2).copied().unwrap_or(0.0),
+            gaps.last().copied().unwrap_or(0.0),
+        ],
+    }
+}
+
+impl RunSummary {
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn new(
+        inputs: &RunInputs,
+        config: &RunConfig,
+        outcome: &IngestOutcome,
+        mut motion: MotionReport,
+        frames: Vec<FrameRecord>,
+        points: Vec<PointTrajectory>,
+        end_inhale: EndInhaleSummary,
+        timings_s: BTreeMap<String, f64>,
+    ) -> Self {
+        motion.frames.clear();
+        let trace = &inputs.trace;
+        let (vmin, vmax) = trace
+            .volume_change_ml
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        let model = &outcome.model;
+        let groups = ConstraintGroup::ALL
+            .iter()
+            .map(|g| (g.name(), g.mechanical_role()))
+            .collect();
+        RunSummary {
+            software: "lungmotion",
+            software_version: env!("CARGO_PKG_VERSION"),
+            conventions: conventions(),
+            ct: inputs.ct_path.display().to_string(),
+            trace: TraceSummary {
+                source: inputs.trace_source.clone(),
+                samples: trace.time_s.len(),
+                time_range_s: [trace.time_s[0], *trace.time_s.last().unwrap_or(&0.0)],
+                volume_range_ml: [vmin, vmax],
+            },
+            config: config.clone(),
+            model: ModelSummary {
+                element_size_mm: model.report.element_size_mm,
+                elements: model.report.elements,
+                nodes: model.report.nodes,
+                material: config.material,
+                diaphragm: model.report.diaphragm_motion,
+                sliding: model.report.sliding_mode,
+                groups,
+                rest_volume_ml: motion.rest_volume_ml,
+                load: "follower pressure on the whole lung surface (negative inflates); \
+                       constrained directions taken by the wall, the diaphragm line or the \
+                       fixed hilum",
+            },
+            ingest: outcome.summary.clone(),
+            motion,
+            frames,
+            end_inhale,
+            points,
+            timings_s,
+            peak_memory_mib: None,
+            warnings: outcome.summary.warnings.clone(),
+        }
+    }
+}
+
+fn conventions() -> BTreeMap<&'static str, &'static str> {
+    BTreeMap::from([
+        (
+            "coordinates",
+            "DICOM patient space LPS, millimetres (+x patient left, +y posterior, +z superior)",
+        ),
+        (
+            "displacement_nifti",
+            "NIfTI-1 vector image, intent 1007, 3 float32 components in LPS millimetres (ITK / \
+             elastix convention, not RAS), on the input CT's grid and affine, zero outside the \
+             lungs; the tissue at voxel x is at x + u(x)",
+        ),
+        (
+            "volumes",
+            "volume change from the scanned state, millilitres (positive = more air)",
+        ),
+        (
+            "pressure",
+            "surface pressure on the lung, pascals, positive pushing inward (inhalation is \
+             negative)",
+        ),
+        (
+            "phases",
+            "phase 0 is end-inhale; N phases split one cycle into equal time steps",
+        ),
+    ])
+}
