@@ -1,0 +1,320 @@
+//! The breathing pipeline end to end on the bundled phantom: the physics a physicist would
+//! check first, every output file read back against the summary, and refusals that lose
+//! nothing already stored.
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use lungmotion::breathing::{BreathingTrace, LujanBreathing};
+use lungmotion::formats::nifti;
+use lungmotion::ingest::scan::load_ct;
+use lungmotion::outputs::quicklook::read_png;
+use lungmotion::outputs::trajectories::read_trajectories;
+use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
+use lungmotion::run::{
+    run_breathing, RunConfig, RunInputs, RunObserver, RunStage, RunSummary, SilentObserver,
+    TrackedPoint,
+};
+use lungmotion::Error;
+
+/// Coarse elements keep the test to seconds; the physics checked does not depend on them.
+const ELEMENT_SIZE_MM: f64 = 8.0;
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lm-run-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn config() -> RunConfig {
+    RunConfig {
+        element_size_mm: ELEMENT_SIZE_MM,
+        ..RunConfig::default()
+    }
+}
+
+/// One demo run shared by the tests of this file: (output directory, summary).
+fn demo_run() -> &'static (PathBuf, RunSummary) {
+    static RUN: OnceLock<(PathBuf, RunSummary)> = OnceLock::new();
+    RUN.get_or_init(|| {
+        let out = temp_dir("demo");
+        let inputs = demo_inputs(&sample_volumes_dir()).unwrap();
+        let summary = run_breathing(&inputs, &config(), &out, &mut SilentObserver).unwrap();
+        (out, summary)
+    })
+}
+
+#[test]
+fn inhalation_moves_the_base_down_more_than_the_apex_and_holds_the_hilum() {
+    let (_, s) = demo_run();
+    let e = &s.end_inhale;
+    // Phase 0 is end-inhale: the 500 mL peak of the Lujan curve.
+    assert_eq!(e.frame, 0);
+    assert!((s.frames[0].summary.target_volume_ml - 500.0).abs() < 1.0);
+    assert!(
+        e.mean_base_dz_mm < -5.0,
+        "base moved {} mm in z",
+        e.mean_base_dz_mm
+    );
+    assert!(
+        e.mean_base_dz_mm < 3.0 * e.mean_apex_dz_mm.min(0.0) - 3.0,
+        "base {} mm vs apex {} mm",
+        e.mean_base_dz_mm,
+        e.mean_apex_dz_mm
+    );
+    assert!(e.mean_apex_dz_mm.abs() < 0.25 * e.mean_base_dz_mm.abs());
+    assert!(e.hilum_max_displacement_mm < 1e-6);
+    // Costal nodes stay on the chest wall: their distance to it barely changes.
+    let [median, max] = e.costal_wall_gap_change_mm;
+    assert!(median < 0.5, "median costal gap change {median} mm");
+    assert!(max < ELEMENT_SIZE_MM, "largest costal gap change {max} mm");
+    // The largest motion is at the base, on the diaphragm.
+    assert_eq!(e.max_displacement_group, "diaphragmatic");
+    assert!(e.max_displacement_mm > 10.0 && e.max_displacement_mm < 40.0);
+    // Inhalation needs suction.
+    assert!(s.frames[0].summary.pressure_pa < 0.0);
+}
+
+#[test]
+fn the_simulated_volume_follows_the_curve_at_every_frame() {
+    let (_, s) = demo_run();
+    assert_eq!(s.frames.len(), 10);
+    let tidal = s.motion.tidal_volume_ml;
+    assert!((tidal - 500.0).abs() < 1.0, "tidal {tidal}");
+    for f in &s.frames {
+        let f = &f.summary;
+        assert!(
+            (f.simulated_volume_ml - f.target_volume_ml).abs() <= 0.005 * tidal,
+            "frame {}: {} mL for {} mL",
+            f.index,
+            f.simulated_volume_ml,
+            f.target_volume_ml
+        );
+        assert!(f.max_displacement_mm.is_finite() && f.mean_displacement_mm >= 0.0);
+    }
+    let keys = s.motion.keyframes.as_ref().expect("frames interpolated");
+    assert!(keys.measured_error_mm <= 0.1, "{keys:?}");
+    // Larger volume, larger motion and stronger suction.
+    let mut by_volume: Vec<_> = s.frames.iter().map(|f| &f.summary).collect();
+    by_volume.sort_by(|a, b| a.target_volume_ml.total_cmp(&b.target_volume_ml));
+    for w in by_volume.windows(2) {
+        assert!(w[1].max_displacement_mm >= w[0].max_displacement_mm - 1e-9);
+        assert!(w[1].pressure_pa <= w[0].pressure_pa + 1e-9);
+    }
+}
+
+#[test]
+fn fields_are_on_the_ct_grid_finite_and_zero_outside_the_lungs() {
+    let (out, s) = demo_run();
+    let ct = load_ct(&sample_volumes_dir().join("phantom-dicom"))
+        .unwrap()
+        .ct;
+    let lungs = nifti::read_nifti_labels(&out.join("ingest/lung-mask.nii.gz")).unwrap();
+    assert!(lungs.geometry.same_grid(&ct.geometry, 1e-3));
+    for f in [&s.frames[0], &s.frames[5]] {
+        let (geometry, field) =
+            nifti::read_nifti_vector_field(&out.join(&f.files.displacement_nifti)).unwrap();
+        assert!(geometry.same_grid(&ct.geometry, 1e-3), "{geometry:?}");
+        assert_eq!(field.len(), ct.geometry.voxel_count());
+        let mut max_mm: f64 = 0.0;
+        for (u, &l) in field.iter().zip(&lungs.data) {
+            assert!(u.iter().all(|c| c.is_finite()));
+            if l == 0 {
+                assert_eq!(*u, [0.0; 3]);
+            }
+            max_mm = max_mm.max(u.iter().map(|&c| (c as f64).powi(2)).sum::<f64>().sqrt());
+        }
+        // Voxels interpolate the nodes: no voxel moves more than the fastest node.
+        let node_max = f.summary.max_displacement_mm;
+        assert!(max_mm <= node_max + 1e-3, "{max_mm} > {node_max}");
+        if node_max > 1.0 {
+            assert!(max_mm > 0.5 * node_max, "{max_mm} vs {node_max}");
+        }
+    }
+}
+
+#[test]
+fn tracked_points_and_quick_looks_match_the_summary() {
+    let (out, s) = demo_run();
+    let rows = read_trajectories(&out.join("trajectories.csv")).unwrap();
+    assert_eq!(rows.len(), s.frames.len() * s.points.len());
+    for row in &rows {
+        let p = s.points.iter().find(|p| p.name == row.point).unwrap();
+        let d = p.displacement_mm[row.frame];
+        for (a, d_a) in d.iter().enumerate() {
+            assert!((row.displacement_mm[a] - d_a).abs() < 1e-3);
+            assert!((row.position_lps_mm[a] - p.rest_lps_mm[a] - d_a).abs() < 1e-3);
+        }
+        assert!(row.inside_lung, "{} outside the lung", row.point);
+    }
+    let tumour = s.points.iter().find(|p| p.name == "tumour").unwrap();
+    let base = s
+        .points
+        .iter()
+        .find(|p| p.name == "right_lung_base")
+        .unwrap();
+    let apex = s
+        .points
+        .iter()
+        .find(|p| p.name == "right_lung_apex")
+        .unwrap();
+    // The lower-lobe tumour moves down with the base; at end-exhale (phase 5) all are home.
+    assert!(
+        tumour.displacement_mm[0][2] < -5.0,
+        "{:?}",
+        tumour.displacement_mm[0]
+    );
+    assert!(base.displacement_mm[0][2] < apex.displacement_mm[0][2] - 5.0);
+    let f5 = &s.frames[5].summary;
+    assert!(f5.target_volume_ml.abs() < 1.0);
+    assert!(tumour.displacement_mm[5].iter().all(|c| c.abs() < 0.5));
+    for (name, (w, h)) in [
+        ("breathing.png", (960, 540)),
+        ("end-inhale-displacement.png", (0, 0)),
+    ] {
+        let img = read_png(&out.join(name)).unwrap();
+        if w > 0 {
+            assert_eq!((img.width, img.height), (w, h));
+        }
+        assert!(img.width > 400 && img.height > 300);
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["software_version"], env!("CARGO_PKG_VERSION"));
+    let frame = &json["frames"][0];
+    for key in [
+        "time_s",
+        "target_volume_ml",
+        "simulated_volume_ml",
+        "pressure_pa",
+        "max_displacement_mm",
+        "mean_displacement_mm",
+        "newton_iterations",
+        "residual",
+        "wall_time_s",
+    ] {
+        assert!(frame[key].is_number(), "frames[0].{key} missing");
+    }
+    assert_eq!(json["model"]["material"]["youngs_modulus_pa"], 390.0);
+    assert_eq!(
+        frame["files"]["displacement_nifti"],
+        "frames/0/displacement.nii.gz"
+    );
+}
+
+fn small_inputs(trace: BreathingTrace) -> RunInputs {
+    RunInputs {
+        ct_path: sample_volumes_dir().join("phantom-ct.nii.gz"),
+        trace,
+        trace_source: "test".into(),
+        points: Vec::new(),
+    }
+}
+
+fn coarse() -> RunConfig {
+    RunConfig {
+        element_size_mm: 12.0,
+        ..RunConfig::default()
+    }
+}
+
+#[test]
+fn bad_inputs_are_refused_and_earlier_results_survive() {
+    // A trace with a NaN never reaches the CT, and nothing is created.
+    let out = temp_dir("refused");
+    let bad = BreathingTrace {
+        time_s: vec![0.0, 1.0, 2.0],
+        volume_change_ml: vec![0.0, f64::NAN, 0.0],
+    };
+    let err = run_breathing(&small_inputs(bad), &coarse(), &out, &mut SilentObserver)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.to_lowercase().contains("finite") || err.contains("NaN"),
+        "{err}"
+    );
+    assert!(!out.exists());
+
+    // A foreign non-empty directory is never replaced.
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("plan.dcm"), b"keep me").unwrap();
+    let trace = LujanBreathing::default().trace(8.0, 10.0).unwrap();
+    let err = run_breathing(
+        &small_inputs(trace.clone()),
+        &coarse(),
+        &out,
+        &mut SilentObserver,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("not empty"), "{err}");
+    assert_eq!(std::fs::read(out.join("plan.dcm")).unwrap(), b"keep me");
+    std::fs::remove_dir_all(&out).unwrap();
+
+    // A finished run, then a failing one into the same directory: the first stays whole.
+    let ok = run_breathing(
+        &small_inputs(trace.clone()),
+        &coarse(),
+        &out,
+        &mut SilentObserver,
+    )
+    .unwrap();
+    let before = std::fs::read(out.join("summary.json")).unwrap();
+    let mut inputs = small_inputs(trace.clone());
+    inputs.points = vec![TrackedPoint {
+        name: "far away".into(),
+        rest_lps_mm: [0.0, 0.0, 5000.0],
+    }];
+    let err = run_breathing(&inputs, &coarse(), &out, &mut SilentObserver)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("far away") && err.contains("outside"), "{err}");
+    assert_eq!(std::fs::read(out.join("summary.json")).unwrap(), before);
+    assert!(out.join(&ok.frames[0].files.displacement_nifti).is_file());
+    let leftovers: Vec<_> = std::fs::read_dir(out.parent().unwrap())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| {
+            e.file_name()
+                .to_string_lossy()
+                .starts_with(&format!(".{}", out.file_name().unwrap().to_string_lossy()))
+        })
+        .collect();
+    assert!(leftovers.is_empty(), "staging left behind: {leftovers:?}");
+
+    // A CT that is not a CT is named.
+    let mut inputs = small_inputs(trace);
+    inputs.ct_path = sample_volumes_dir().join("phantom.json");
+    let err = run_breathing(&inputs, &coarse(), &temp_dir("notct"), &mut SilentObserver)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("phantom.json"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+struct CancelAfterIngest {
+    stages: Vec<RunStage>,
+}
+
+impl RunObserver for CancelAfterIngest {
+    fn stage(&mut self, stage: RunStage) {
+        self.stages.push(stage);
+    }
+    fn cancelled(&self) -> bool {
+        self.stages.contains(&RunStage::Solving)
+    }
+}
+
+#[test]
+fn a_cancelled_run_publishes_nothing() {
+    let out = temp_dir("cancel");
+    let trace = LujanBreathing::default().trace(8.0, 10.0).unwrap();
+    let mut observer = CancelAfterIngest { stages: Vec::new() };
+    let err = run_breathing(&small_inputs(trace), &coarse(), &out, &mut observer).unwrap_err();
+    assert!(matches!(err, Error::Cancelled(_)), "{err}");
+    assert!(!out.exists());
+    assert_eq!(
+        observer.stages,
+        [RunStage::LoadingScan, RunStage::Ingest, RunStage::Solving]
+    );
+}
