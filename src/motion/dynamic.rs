@@ -462,6 +462,59 @@ fn kinetic_energy_j(scene: &Scene, v: &[V3]) -> f64 {
         .sum()
 }
 
+impl DynamicFrame {
+    /// The frame as `summary.json` lists quasi-static frames: the target is the trace's
+    /// volume, the pressure the surface pressure; no solver iterations (residual undefined).
+    pub fn as_frame_summary(&self) -> super::FrameSummary {
+        super::FrameSummary {
+            index: self.index,
+            time_s: self.time_s,
+            target_volume_ml: self.bellows.volume_ml,
+            simulated_volume_ml: self.simulated_volume_ml,
+            pressure_pa: self.surface_pressure_pa,
+            max_displacement_mm: self.max_displacement_mm,
+            mean_displacement_mm: self.mean_displacement_mm,
+            interpolated: false,
+            solves: 0,
+            newton_iterations: 0,
+            linear_iterations: 0,
+            residual: f64::NAN,
+            wall_time_s: 0.0,
+        }
+    }
+}
+
+impl DynamicReport {
+    /// The run in the quasi-static report's shape (frames converted, no key volumes); the
+    /// volume error is the dynamic lag behind the trace, not a solver tolerance.
+    pub fn as_motion_report(
+        &self,
+        settings: &super::MotionSettings,
+        material: &crate::model::Material,
+    ) -> super::MotionReport {
+        let frames: Vec<super::FrameSummary> = self
+            .frames
+            .iter()
+            .map(DynamicFrame::as_frame_summary)
+            .collect();
+        let (lo, hi) = frames.iter().fold((f64::MAX, f64::MIN), |(a, b), f| {
+            (a.min(f.target_volume_ml), b.max(f.target_volume_ml))
+        });
+        super::MotionReport {
+            settings: settings.clone(),
+            material: *material,
+            compliance_ml_per_pa: self.compliance_ml_per_pa,
+            rest_volume_ml: self.rest_volume_ml,
+            tidal_volume_ml: hi - lo,
+            volume_tolerance_ml: f64::NAN,
+            keyframes: None,
+            max_volume_error_ml: self.max_volume_difference_ml,
+            frames,
+            wall_time_s: self.setup_wall_time_s + self.integration_wall_time_s,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

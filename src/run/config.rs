@@ -16,6 +16,10 @@
 //! instants = { kind = "phases", count = 10 }   # every_sample | every_kth k | frame_rate hz
 //! interpolation_tolerance_mm = 0.1
 //! solve_every_frame = false
+//! # [motion.dynamic]                 # optional: bellows law, explicit dynamics (hysteresis)
+//! # resistance_pa_s_per_ml = 0.05
+//! # inertance_pa_s2_per_ml = 0.001
+//! # voigt_damping_ratio = 0.1
 //! [outputs]
 //! metaimage = false                    # frames/<k>/displacement.mha beside the NIfTI
 //! mesh_vtu = false                     # frames/<k>/mesh.vtu (deformed mesh for ParaView)
@@ -68,6 +72,47 @@ pub struct MotionConfig {
     pub solve_every_frame: bool,
     /// Volume driver tolerance as a fraction of the tidal volume.
     pub volume_tolerance_fraction: f64,
+    /// Dynamic mode (bellows law, explicit integration) instead of quasi-static frames.
+    pub dynamic: Option<DynamicConfig>,
+}
+
+/// The bellows law P = V/C + R·dV/dt + I·d²V/dt² of the optional dynamic mode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DynamicConfig {
+    /// Compliance C, mL/Pa; absent: measured on the model at the trace's largest volume.
+    pub compliance_ml_per_pa: Option<f64>,
+    /// Airway resistance R, Pa·s/mL (physiological ≈ 0.2; this model's C is ≈ 3.5× the
+    /// physiological one, so R ≈ 0.05 gives a physiological time constant RC).
+    pub resistance_pa_s_per_ml: f64,
+    /// Inertance I, Pa·s²/mL.
+    pub inertance_pa_s2_per_ml: f64,
+    /// Voigt damping of every spring, fraction of critical.
+    pub voigt_damping_ratio: f64,
+}
+
+impl Default for DynamicConfig {
+    fn default() -> Self {
+        DynamicConfig {
+            compliance_ml_per_pa: None,
+            resistance_pa_s_per_ml: 0.05,
+            inertance_pa_s2_per_ml: 0.001,
+            voigt_damping_ratio: 0.1,
+        }
+    }
+}
+
+impl DynamicConfig {
+    /// The integrator settings.
+    pub fn settings(&self) -> crate::motion::dynamic::DynamicSettings {
+        crate::motion::dynamic::DynamicSettings {
+            compliance_ml_per_pa: self.compliance_ml_per_pa,
+            resistance_pa_s_per_ml: self.resistance_pa_s_per_ml,
+            inertance_pa_s2_per_ml: self.inertance_pa_s2_per_ml,
+            voigt_damping_ratio: self.voigt_damping_ratio,
+            ..crate::motion::dynamic::DynamicSettings::default()
+        }
+    }
 }
 
 /// Optional outputs.
@@ -106,6 +151,7 @@ impl Default for MotionConfig {
             interpolation_tolerance_mm: m.interpolation_tolerance_mm,
             solve_every_frame: m.solve_every_frame,
             volume_tolerance_fraction: m.volume_tolerance_fraction,
+            dynamic: None,
         }
     }
 }
@@ -174,6 +220,9 @@ impl RunConfig {
                     "motion.driver.compliance_ml_per_pa = {c}: must be positive"
                 ));
             }
+        }
+        if let Some(d) = &m.dynamic {
+            d.settings().validate()?;
         }
         if let crate::breathing::VolumeReference::Absolute { scanned_volume_ml } =
             self.trace.reference

@@ -42,6 +42,7 @@ use crate::formats::{metaimage, nifti, vtk};
 use crate::ingest::lung_model::{ConstraintGroup, LungModelSettings};
 use crate::ingest::pipeline::{ingest_scan, IngestSettings};
 use crate::ingest::scan::load_ct;
+use crate::motion::dynamic::run_dynamic;
 use crate::motion::{lung_scene, run_motion, FrameSummary};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
@@ -179,118 +180,67 @@ pub fn run_breathing(
     let geometry = scan.ct.geometry;
     let frames_dir = staging.dir().join("frames");
     std::fs::create_dir_all(&frames_dir)?;
-    let mut field_mm = vec![[0.0f32; 3]; geometry.voxel_count()];
-    let mut records: Vec<FrameRecord> = Vec::with_capacity(times.len());
-    let mut trajectories: Vec<PointTrajectory> = inputs
-        .points
-        .iter()
-        .map(|p| PointTrajectory {
-            name: p.name.clone(),
-            rest_lps_mm: p.rest_lps_mm,
-            displacement_mm: Vec::with_capacity(times.len()),
-        })
-        .collect();
-    let mut end_inhale: Option<EndInhaleCapture> = None;
-    let mut trajectory_file = if inputs.points.is_empty() {
-        None
-    } else {
-        Some(TrajectoryFile::create(
-            &staging.dir().join("trajectories.csv"),
-            &inputs.points,
-        )?)
-    };
-    let mut point_displacements = vec![[0.0f64; 3]; inputs.points.len()];
-    let mut write_s = 0.0;
-    let total = times.len();
-    let outputs = &config.outputs;
-    let report = run_motion(
-        &scene,
-        &config.material,
-        &inputs.trace,
-        &settings,
-        &mut |frame, positions| {
-            check_cancel(observer, &format!("frame {}", frame.index))?;
-            if frame.index == 0 {
-                observer.stage(RunStage::WritingFrames);
-            }
-            let t = Instant::now();
-            field.sample_mm(mesh, positions, &mut field_mm);
-            let dir = frames_dir.join(frame.index.to_string());
-            std::fs::create_dir_all(&dir)?;
-            let description = format!("frame {} t={:.3}s", frame.index, frame.time_s);
-            nifti::write_nifti_vector_field(
-                &dir.join("displacement.nii.gz"),
-                &geometry,
-                &field_mm,
-                &description,
-            )?;
-            let mut files = FrameFiles {
-                displacement_nifti: format!("frames/{}/displacement.nii.gz", frame.index),
-                displacement_mha: None,
-                mesh_vtu: None,
-            };
-            if outputs.metaimage {
-                metaimage::write_mha(
-                    &dir.join("displacement.mha"),
-                    &geometry,
-                    3,
-                    field_mm.as_flattened(),
-                    &format!("displacement LPS mm; {description}"),
-                )?;
-                files.displacement_mha = Some(format!("frames/{}/displacement.mha", frame.index));
-            }
-            if outputs.mesh_vtu {
-                vtk::write_vtu(
-                    &dir.join("mesh.vtu"),
-                    &vtk::vtu_from_hex_mesh(mesh, positions)?,
-                )?;
-                files.mesh_vtu = Some(format!("frames/{}/mesh.vtu", frame.index));
-            }
-            points.displacements_into(mesh, positions, &mut point_displacements);
-            for (trajectory, d) in trajectories.iter_mut().zip(&point_displacements) {
-                trajectory.displacement_mm.push(*d);
-            }
-            if let Some(file) = trajectory_file.as_mut() {
-                file.write_frame(
-                    frame.index,
-                    frame.time_s,
-                    &point_displacements,
-                    points.inside_mesh(),
-                )?;
-            }
-            let (node, _) = positions
-                .iter()
-                .zip(&mesh.rest_positions_m)
-                .map(|(x, r)| (x - r).norm_squared())
-                .enumerate()
-                .fold(
-                    (0, -1.0),
-                    |best, (i, d)| if d > best.1 { (i, d) } else { best },
-                );
-            records.push(FrameRecord {
-                summary: frame.clone(),
-                max_displacement_at_lps_mm: (mesh.rest_positions_m[node] * 1e3).into(),
-                files,
-                write_time_s: 0.0,
-            });
-            if end_inhale
-                .as_ref()
-                .is_none_or(|e| frame.target_volume_ml > e.target_volume_ml)
-            {
-                end_inhale = Some(EndInhaleCapture {
-                    frame: frame.index,
-                    target_volume_ml: frame.target_volume_ml,
-                    positions_m: positions.to_vec(),
-                    field_mm: field_mm.clone(),
-                });
-            }
-            let dt = t.elapsed().as_secs_f64();
-            records.last_mut().expect("pushed above").write_time_s = dt;
-            write_s += dt;
-            observer.frame_written(frame.index + 1, total);
-            Ok(())
+    let mut sink = FrameSink {
+        field: &field,
+        points: &points,
+        mesh,
+        geometry,
+        frames_dir,
+        outputs: &config.outputs,
+        total: times.len(),
+        field_mm: vec![[0.0f32; 3]; geometry.voxel_count()],
+        records: Vec::with_capacity(times.len()),
+        trajectories: inputs
+            .points
+            .iter()
+            .map(|p| PointTrajectory {
+                name: p.name.clone(),
+                rest_lps_mm: p.rest_lps_mm,
+                displacement_mm: Vec::with_capacity(times.len()),
+            })
+            .collect(),
+        trajectory_file: if inputs.points.is_empty() {
+            None
+        } else {
+            Some(TrajectoryFile::create(
+                &staging.dir().join("trajectories.csv"),
+                &inputs.points,
+            )?)
         },
-    )?;
+        point_displacements: vec![[0.0f64; 3]; inputs.points.len()],
+        end_inhale: None,
+        write_s: 0.0,
+    };
+    let (report, dynamic) = match &config.motion.dynamic {
+        None => (
+            run_motion(
+                &scene,
+                &config.material,
+                &inputs.trace,
+                &settings,
+                &mut |frame, positions| sink.frame(frame, positions, observer),
+            )?,
+            None,
+        ),
+        Some(dynamic) => {
+            let r = run_dynamic(
+                &scene,
+                &inputs.trace,
+                &dynamic.settings(),
+                &times,
+                &mut |f, positions| sink.frame(&f.as_frame_summary(), positions, observer),
+            )?;
+            (r.as_motion_report(&settings, &config.material), Some(r))
+        }
+    };
+    let write_s = sink.write_s;
+    let FrameSink {
+        records,
+        trajectories,
+        trajectory_file,
+        end_inhale,
+        ..
+    } = sink;
     timings.insert("motion_solve".to_string(), report.wall_time_s - write_s);
     timings.insert("frame_files".to_string(), write_s);
 
@@ -319,6 +269,7 @@ pub fn run_breathing(
         config,
         &outcome,
         report,
+        dynamic,
         records,
         trajectories,
         end_inhale,
@@ -341,6 +292,117 @@ pub fn run_breathing(
     )?;
     staging.publish()?;
     Ok(summary)
+}
+
+/// Everything written per frame, shared by the quasi-static and the dynamic paths.
+struct FrameSink<'a> {
+    field: &'a FieldSampler,
+    points: &'a PointSampler,
+    mesh: &'a crate::model::HexMesh,
+    geometry: crate::volume::VolumeGeometry,
+    frames_dir: PathBuf,
+    outputs: &'a OutputConfig,
+    total: usize,
+    field_mm: Vec<[f32; 3]>,
+    records: Vec<FrameRecord>,
+    trajectories: Vec<PointTrajectory>,
+    trajectory_file: Option<TrajectoryFile>,
+    point_displacements: Vec<[f64; 3]>,
+    end_inhale: Option<EndInhaleCapture>,
+    write_s: f64,
+}
+
+impl FrameSink<'_> {
+    /// Samples the frame's field on the CT grid and writes its files and trajectory rows.
+    fn frame(
+        &mut self,
+        frame: &FrameSummary,
+        positions: &[V3],
+        observer: &mut dyn RunObserver,
+    ) -> Result<()> {
+        check_cancel(observer, &format!("frame {}", frame.index))?;
+        if frame.index == 0 {
+            observer.stage(RunStage::WritingFrames);
+        }
+        let t = Instant::now();
+        let mesh = self.mesh;
+        self.field.sample_mm(mesh, positions, &mut self.field_mm);
+        let dir = self.frames_dir.join(frame.index.to_string());
+        std::fs::create_dir_all(&dir)?;
+        let description = format!("frame {} t={:.3}s", frame.index, frame.time_s);
+        nifti::write_nifti_vector_field(
+            &dir.join("displacement.nii.gz"),
+            &self.geometry,
+            &self.field_mm,
+            &description,
+        )?;
+        let mut files = FrameFiles {
+            displacement_nifti: format!("frames/{}/displacement.nii.gz", frame.index),
+            displacement_mha: None,
+            mesh_vtu: None,
+        };
+        if self.outputs.metaimage {
+            metaimage::write_mha(
+                &dir.join("displacement.mha"),
+                &self.geometry,
+                3,
+                self.field_mm.as_flattened(),
+                &format!("displacement LPS mm; {description}"),
+            )?;
+            files.displacement_mha = Some(format!("frames/{}/displacement.mha", frame.index));
+        }
+        if self.outputs.mesh_vtu {
+            vtk::write_vtu(
+                &dir.join("mesh.vtu"),
+                &vtk::vtu_from_hex_mesh(mesh, positions)?,
+            )?;
+            files.mesh_vtu = Some(format!("frames/{}/mesh.vtu", frame.index));
+        }
+        self.points
+            .displacements_into(mesh, positions, &mut self.point_displacements);
+        for (trajectory, d) in self.trajectories.iter_mut().zip(&self.point_displacements) {
+            trajectory.displacement_mm.push(*d);
+        }
+        if let Some(file) = self.trajectory_file.as_mut() {
+            file.write_frame(
+                frame.index,
+                frame.time_s,
+                &self.point_displacements,
+                self.points.inside_mesh(),
+            )?;
+        }
+        let (node, _) = positions
+            .iter()
+            .zip(&mesh.rest_positions_m)
+            .map(|(x, r)| (x - r).norm_squared())
+            .enumerate()
+            .fold(
+                (0, -1.0),
+                |best, (i, d)| if d > best.1 { (i, d) } else { best },
+            );
+        if self
+            .end_inhale
+            .as_ref()
+            .is_none_or(|e| frame.target_volume_ml > e.target_volume_ml)
+        {
+            self.end_inhale = Some(EndInhaleCapture {
+                frame: frame.index,
+                target_volume_ml: frame.target_volume_ml,
+                positions_m: positions.to_vec(),
+                field_mm: self.field_mm.clone(),
+            });
+        }
+        let write_time_s = t.elapsed().as_secs_f64();
+        self.records.push(FrameRecord {
+            summary: frame.clone(),
+            max_displacement_at_lps_mm: (mesh.rest_positions_m[node] * 1e3).into(),
+            files,
+            write_time_s,
+        });
+        self.write_s += write_time_s;
+        observer.frame_written(frame.index + 1, self.total);
+        Ok(())
+    }
 }
 
 /// The frame with the largest volume, kept for the quick look and the physical checks.

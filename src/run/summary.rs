@@ -9,6 +9,7 @@ use super::{group_name, RunConfig, RunInputs};
 use crate::ingest::lung_model::{ConstraintGroup, DiaphragmMotion, LungModel, SlidingMode};
 use crate::ingest::pipeline::{IngestOutcome, IngestSummary};
 use crate::model::{Material, NodeConstraint};
+use crate::motion::dynamic::DynamicReport;
 use crate::motion::{FrameSummary, MotionReport};
 use crate::simulation::Scene;
 
@@ -35,6 +36,8 @@ pub struct RunSummary {
     pub ingest: IngestSummary,
     /// Driver, key volumes and accuracy of the motion (frames listed in `frames`).
     pub motion: MotionReport,
+    /// The dynamic run (time step, steps, compliance), when the dynamic mode was used.
+    pub dynamic: Option<DynamicReport>,
     /// One entry per output frame, in time order.
     pub frames: Vec<FrameRecord>,
     /// The frame with the largest volume, with physical checks.
@@ -215,12 +218,16 @@ impl RunSummary {
         config: &RunConfig,
         outcome: &IngestOutcome,
         mut motion: MotionReport,
+        mut dynamic: Option<DynamicReport>,
         frames: Vec<FrameRecord>,
         points: Vec<PointTrajectory>,
         end_inhale: EndInhaleSummary,
         timings_s: BTreeMap<String, f64>,
     ) -> Self {
         motion.frames.clear();
+        if let Some(d) = dynamic.as_mut() {
+            d.frames.clear();
+        }
         let trace = &inputs.trace;
         let (vmin, vmax) = trace
             .volume_change_ml
@@ -258,6 +265,7 @@ impl RunSummary {
             },
             ingest: outcome.summary.clone(),
             motion,
+            dynamic,
             frames,
             end_inhale,
             points,
