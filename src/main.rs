@@ -133,6 +133,11 @@ enum Command {
         /// Skip the CalculiX comparisons (no `ccx` needed).
         #[arg(long)]
         no_calculix: bool,
+        /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm) against
+        /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes);
+        /// writes lung_calculix.json and lung_calculix.md.
+        #[arg(long, conflicts_with_all = ["quick", "no_calculix"])]
+        lung: bool,
     },
     /// Measure speed and memory: force-evaluation throughput (1 thread and all threads),
     /// memory per element and node, quasi-static solves of pressurised blocks, and CalculiX on
@@ -203,7 +208,14 @@ fn main() -> ExitCode {
             out,
             quick,
             no_calculix,
-        } => validate(out, quick, !no_calculix),
+            lung,
+        } => {
+            if lung {
+                validate_lung(out)
+            } else {
+                validate(out, quick, !no_calculix)
+            }
+        }
         Command::Bench {
             out,
             quick,
@@ -491,6 +503,24 @@ fn validate(out: PathBuf, quick: bool, calculix: bool) -> anyhow::Result<()> {
         "lungmotion: wrote {} and {}",
         out.join("validation.json").display(),
         out.join("validation.md").display()
+    );
+    Ok(())
+}
+
+fn validate_lung(out: PathBuf) -> anyhow::Result<()> {
+    use lungmotion::validation::lung_calculix::{
+        compare_end_inhale_with_calculix, LungCalculixSettings,
+    };
+    prepare_out(&out)?;
+    eprintln!("lungmotion: end-inhale frame of the CIP lungs against CalculiX (minutes)");
+    let report = compare_end_inhale_with_calculix(&LungCalculixSettings::default())?;
+    report
+        .write(&out)
+        .with_context(|| format!("writing the reports into {}", out.display()))?;
+    println!("{}", report.to_markdown());
+    eprintln!(
+        "lungmotion: wrote {}",
+        out.join("lung_calculix.json").display()
     );
     Ok(())
 }
