@@ -147,8 +147,9 @@ pub struct EndInhaleSummary {
     pub mean_apex_dz_mm: f64,
     /// Largest displacement of a hilum node, mm.
     pub hilum_max_displacement_mm: f64,
-    /// Costal nodes: median and largest change of distance to the chest wall, mm.
-    pub costal_wall_gap_change_mm: [f64; 2],
+    /// Costal nodes: median, 95th percentile and largest change of distance to the chest
+    /// wall, mm (tangent-plane sliding departs from a curved wall as nodes slide).
+    pub costal_wall_gap_change_mm: [f64; 3],
 }
 
 pub(super) fn end_inhale_summary(
@@ -206,6 +207,7 @@ pub(super) fn end_inhale_summary(
         hilum_max_displacement_mm: hilum_max,
         costal_wall_gap_change_mm: [
             gaps.get(gaps.len() / 2).copied().unwrap_or(0.0),
+            gaps.get(gaps.len() * 95 / 100).copied().unwrap_or(0.0),
             gaps.last().copied().unwrap_or(0.0),
         ],
     }
