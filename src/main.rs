@@ -23,6 +23,7 @@ struct Cli {
 enum BenchSuite {
     Core,
     Ingest,
+    Motion,
     All,
 }
 
@@ -157,7 +158,8 @@ enum Command {
         #[arg(long)]
         nlgeom: bool,
         /// Which benchmarks: `core` (mechanics), `ingest` (segmentation of the CIP case and of
-        /// a 512×512×300 CT) or `all`.
+        /// a 512×512×300 CT), `motion` (10-phase tidal cycle on the CIP case at 8 and 4 mm:
+        /// cycle time, fields served per second, interpolation error) or `all`.
         #[arg(long, value_enum, default_value_t = BenchSuite::All)]
         suite: BenchSuite,
     },
@@ -534,7 +536,7 @@ fn bench(
 ) -> anyhow::Result<()> {
     prepare_out(&out)?;
     eprintln!("lungmotion: benchmarking (medians of repeated runs; keep the machine quiet)");
-    if suite != BenchSuite::Ingest {
+    if matches!(suite, BenchSuite::Core | BenchSuite::All) {
         let mut options = if quick {
             BenchOptions::quick()
         } else {
@@ -554,7 +556,7 @@ fn bench(
         println!("{md}");
         eprintln!("lungmotion: wrote {}", out.join("bench.json").display());
     }
-    if suite != BenchSuite::Core {
+    if matches!(suite, BenchSuite::Ingest | BenchSuite::All) {
         use lungmotion::bench::ingest::{run_ingest_bench, IngestBenchOptions};
         let options = IngestBenchOptions {
             quick,
@@ -571,6 +573,26 @@ fn bench(
         eprintln!(
             "lungmotion: wrote {}",
             out.join("bench-ingest.json").display()
+        );
+    }
+    if matches!(suite, BenchSuite::Motion | BenchSuite::All) {
+        use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
+        let options = if quick {
+            MotionBenchOptions::quick()
+        } else {
+            MotionBenchOptions::default()
+        };
+        let report = run_motion_bench(&options)?;
+        write_atomic(
+            &out.join("bench-motion.json"),
+            serde_json::to_string_pretty(&report)?.as_bytes(),
+        )?;
+        let md = report.to_markdown();
+        write_atomic(&out.join("bench-motion.md"), md.as_bytes())?;
+        println!("{md}");
+        eprintln!(
+            "lungmotion: wrote {}",
+            out.join("bench-motion.json").display()
         );
     }
     Ok(())

@@ -1,27 +1,14 @@
 //! `lungmotion ingest` as scripts use it: the files and fields the command-line contract
 //! promises, on the bundled phantom, and clear refusals that leave earlier outputs intact.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
+
+use std::path::Path;
+
+use common::{absent_temp_dir, bin, sample};
 
 use lungmotion::formats::{nifti, vtk};
 use lungmotion::outputs::quicklook::read_png;
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_lungmotion"))
-}
-
-fn sample(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("sample-volumes")
-        .join(name)
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lm-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
 
 fn run_ingest(ct: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
     bin()
@@ -37,7 +24,7 @@ fn run_ingest(ct: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
 
 #[test]
 fn ingest_of_the_dicom_phantom_writes_the_promised_files_and_fields() {
-    let out = temp_dir("phantom");
+    let out = absent_temp_dir("phantom");
     let o = run_ingest(&sample("phantom-dicom"), &out, &["--element-size", "10"]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
@@ -123,7 +110,7 @@ fn ingest_of_the_dicom_phantom_writes_the_promised_files_and_fields() {
 
 #[test]
 fn nifti_and_dicom_inputs_give_the_same_lungs() {
-    let (a, b) = (temp_dir("nii"), temp_dir("dcm"));
+    let (a, b) = (absent_temp_dir("nii"), absent_temp_dir("dcm"));
     assert!(run_ingest(&sample("phantom-ct.nii.gz"), &a, &[])
         .status
         .success());
@@ -139,7 +126,7 @@ fn nifti_and_dicom_inputs_give_the_same_lungs() {
 
 #[test]
 fn bad_inputs_are_refused_by_name_and_earlier_outputs_survive() {
-    let out = temp_dir("bad");
+    let out = absent_temp_dir("bad");
     assert!(run_ingest(&sample("phantom-ct.nii.gz"), &out, &[])
         .status
         .success());

@@ -1,25 +1,19 @@
 //! `lungmotion run` as scripts use it: a CSV trace, a points file and a TOML configuration in;
 //! the promised files out, each read back; bad inputs refused with the reason.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+use common::{absent_temp_dir, bin, sample};
 
 use lungmotion::formats::{metaimage, nifti, vtk};
 use lungmotion::outputs::trajectories::read_trajectories;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_lungmotion"))
-}
-
-fn sample(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("sample-volumes")
-        .join(name)
-}
-
+/// An empty scratch directory for one test.
 fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lm-cli-run-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
+    let d = absent_temp_dir(&format!("run-{name}"));
     std::fs::create_dir_all(&d).unwrap();
     d
 }

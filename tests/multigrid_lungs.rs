@@ -7,9 +7,10 @@ use lungmotion::model::{
     ConstraintSet, HexMesh, Loads, Material, NodeConstraint, SurfacePressure, VoxelGrid,
 };
 use lungmotion::motion::{lung_scene, REFERENCE_PRESSURE_PA};
+use lungmotion::simulation::keyframes::VolumeKeyframes;
 use lungmotion::simulation::multigrid::{Lattice, Multigrid};
 use lungmotion::simulation::{
-    PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, Scene, SolveReport,
+    BreathingDriver, PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, Scene, SolveReport,
 };
 use nalgebra::{Matrix3, Vector3};
 
@@ -232,6 +233,74 @@ fn two_touching_boxes_solve_with_multigrid_as_with_block_jacobi() {
         mg.linear_iterations,
         bj.linear_iterations
     );
+}
+
+/// The CIP lungs meshed at `element_size_mm`, or None without the shared data.
+fn cip_scene(element_size_mm: f64) -> Option<Scene> {
+    let dir = lungmotion::datasets::cip_chest_ct64()?;
+    let lm = lungmotion::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).unwrap();
+    let labels = lungmotion::datasets::cip_expert_labels(&lm);
+    const AIRWAY: u8 = 3;
+    let lungs = labels.map(|l| if l == AIRWAY { 0 } else { l });
+    let airways = labels.map(|l| u8::from(l == AIRWAY));
+    let model = build_lung_model(
+        &lungs,
+        &airways,
+        &LungModelSettings {
+            element_size_mm,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    Some(lung_scene(&model).unwrap())
+}
+
+#[test]
+fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
+    let Some(scene) = cip_scene(8.0) else {
+        println!("skipped: shared data not found");
+        return;
+    };
+    let rest_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;
+    let compliance = lungmotion::motion::elastic_compliance_ml_per_pa(rest_ml, &Material::LUNG);
+    let settings = QuasiStaticSettings {
+        relaxation_max_steps: 0,
+        ..QuasiStaticSettings::default()
+    };
+    // As `lungmotion run` builds them for a 500 mL tidal breath (tolerance 0.5 % of it).
+    let (tolerance_mm, volume_tolerance_ml) = (0.1, 0.005 * 500.0 * 0.2);
+    let mut driver =
+        BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone()).unwrap();
+    let keys =
+        VolumeKeyframes::build(&mut driver, 0.0, 500.0, tolerance_mm, volume_tolerance_ml).unwrap();
+    let r = &keys.report;
+    println!("{r:?}");
+    for s in &keys.states {
+        println!(
+            "  key {:.1} mL: {} solves, {} Newton, {} Krylov",
+            s.volume_change_ml, s.solves, s.newton_iterations, s.linear_iterations
+        );
+    }
+    assert!(r.measured_error_mm <= tolerance_mm, "{r:?}");
+    // One sweep: the rest key is free, every other key is predicted well enough for one
+    // solve but for the second, whose load-factor prediction has no curvature yet.
+    assert_eq!(r.keys, 9, "{r:?}");
+    assert!(r.solves <= r.keys + 1, "{r:?}");
+    assert!(r.newton_iterations <= 3 * r.solves, "{r:?}");
+    // Fresh direct solves between the keys, each from rest in its own driver: the
+    // interpolant reproduces them within the tolerance.
+    let rest = scene.mesh.rest_positions_m.clone();
+    let mut interpolated = vec![V3::zeros(); rest.len()];
+    for target_ml in [120.0, 410.0] {
+        let mut direct =
+            BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone())
+                .unwrap();
+        let s = direct.solve_volume(target_ml, volume_tolerance_ml).unwrap();
+        keys.positions_at(&rest, s.volume_change_ml, &mut interpolated);
+        let error_mm = max_difference_mm(&interpolated, &s.positions_m);
+        println!("{target_ml} mL: interpolation vs direct solve {error_mm:.4} mm");
+        assert!(error_mm <= tolerance_mm, "{target_ml} mL: {error_mm} mm");
+    }
 }
 
 #[test]

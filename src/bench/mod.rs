@@ -7,6 +7,7 @@
 //! Nothing here asserts a speed: the report states the targets and whether they were met.
 
 pub mod ingest;
+pub mod motion;
 
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 

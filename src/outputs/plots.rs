@@ -26,7 +26,9 @@
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use crate::outputs::quicklook::{render_slice, HuWindow, RgbImage, SlicePlane, MAX_IMAGE_SIDE};
+use crate::outputs::quicklook::{
+    render_slice, HuWindow, RgbImage, SliceGrid, SlicePlane, MAX_IMAGE_SIDE,
+};
 use crate::outputs::raster_text::{draw_text, draw_text_up, text_height_px, text_width_px};
 use crate::volume::Volume;
 use crate::{Error, Result};
@@ -492,7 +494,7 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
         input.coronal_y_mm,
         HuWindow::LUNG,
     )?;
-    let native = coronal_grid(ct, input.coronal_y_mm);
+    let native = SliceGrid::native(g, SlicePlane::Coronal, input.coronal_y_mm)?;
     let refine = PANEL_MIN_SIDE_PX
         .div_ceil(base.width.max(base.height))
         .clamp(1, 8);
@@ -506,9 +508,9 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
         height_px: ph,
         pixel_mm,
         first_pixel_lps_mm: [
-            native.first_lps_mm[0] + shift,
+            native.first_pixel_lps_mm[0] + shift,
             input.coronal_y_mm,
-            native.first_lps_mm[2] - shift,
+            native.first_pixel_lps_mm[2] - shift,
         ],
     };
     let subtitle = format!(
@@ -728,42 +730,6 @@ fn draw_colour_bar(image: &mut RgbImage, left: i64, top: i64, panel_h: i64, max_
             TEXT_SCALE,
             BLACK,
         );
-    }
-}
-
-/// Coronal pixel grid of `render_slice` at the CT's smallest spacing: quicklook's box
-/// (the scan's 8 outer corners projected on +x and −z), centred, with square pixels.
-struct NativeGrid {
-    pixel_mm: f64,
-    /// LPS of pixel (0, 0)'s centre (x and z used).
-    first_lps_mm: [f64; 3],
-}
-
-fn coronal_grid(ct: &Volume<f32>, y_mm: f64) -> NativeGrid {
-    let g = &ct.geometry;
-    let pixel_mm = g.spacing_mm.iter().cloned().fold(f64::MAX, f64::min);
-    let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
-    for corner in 0..8 {
-        let ijk = Vector3::from_fn(|a, _| {
-            if (corner >> a) & 1 == 1 {
-                g.dims[a] as f64 - 0.5
-            } else {
-                -0.5
-            }
-        });
-        let p = g.voxel_to_lps_mm(ijk);
-        for (a, v) in [p.x, -p.z].into_iter().enumerate() {
-            lo[a] = lo[a].min(v);
-            hi[a] = hi[a].max(v);
-        }
-    }
-    let start = |a: usize| {
-        let n = ((hi[a] - lo[a]) / pixel_mm - 1e-6).ceil().max(1.0);
-        lo[a] + 0.5 * ((hi[a] - lo[a]) - n * pixel_mm) + 0.5 * pixel_mm
-    };
-    NativeGrid {
-        pixel_mm,
-        first_lps_mm: [start(0), y_mm, -start(1)],
     }
 }
 

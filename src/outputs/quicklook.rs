@@ -148,12 +148,7 @@ pub fn render_slice(
     position_lps_mm: f64,
     window: HuWindow,
 ) -> Result<RgbImage> {
-    let pixel_mm = ct
-        .geometry
-        .spacing_mm
-        .iter()
-        .cloned()
-        .fold(f64::MAX, f64::min);
+    let pixel_mm = smallest_spacing_mm(&ct.geometry);
     render_slice_with_pixel(ct, overlays, plane, position_lps_mm, window, pixel_mm)
 }
 
@@ -178,12 +173,7 @@ pub fn write_overview(
             out_dir.display()
         ))
     })?;
-    let spacing = ct
-        .geometry
-        .spacing_mm
-        .iter()
-        .cloned()
-        .fold(f64::MAX, f64::min);
+    let spacing = smallest_spacing_mm(&ct.geometry);
     let extent_px = ct
         .geometry
         .dims
@@ -295,6 +285,122 @@ pub fn read_png(path: &Path) -> Result<RgbImage> {
     })
 }
 
+/// The pixel grid of a slice image in LPS mm: square pixels covering the scan's LPS bounding
+/// box in the slice plane, centred on it, oriented by the display convention of the module
+/// doc. [`render_slice`] draws on [`SliceGrid::native`]; other pictures use the same grid to
+/// put their own pixels on the same anatomy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SliceGrid {
+    /// Pixels per row.
+    pub width_px: usize,
+    /// Number of rows.
+    pub height_px: usize,
+    /// Side of a (square) pixel, mm.
+    pub pixel_mm: f64,
+    /// LPS position of pixel (0, 0)'s centre, mm.
+    pub first_pixel_lps_mm: [f64; 3],
+    /// LPS step from one column to the next (towards the image's right), mm.
+    pub column_step_lps_mm: [f64; 3],
+    /// LPS step from one row to the next (downwards), mm.
+    pub row_step_lps_mm: [f64; 3],
+}
+
+impl SliceGrid {
+    /// The grid of `plane` at `position_lps_mm` (its fixed coordinate) through the scan of
+    /// `geometry`, with pixels of `pixel_mm`; fails if the slice misses the scan or the image
+    /// would exceed [`MAX_IMAGE_SIDE`].
+    pub fn new(
+        geometry: &VolumeGeometry,
+        plane: SlicePlane,
+        position_lps_mm: f64,
+        pixel_mm: f64,
+    ) -> Result<SliceGrid> {
+        if !(pixel_mm.is_finite() && pixel_mm > 0.0) {
+            return Err(Error::InvalidInput(format!(
+                "{} slice pixel {pixel_mm} mm must be positive and finite",
+                plane.name()
+            )));
+        }
+        let [col_dir, row_dir, normal] = plane.frame();
+        // LPS bounding box of the scan: its 8 outer voxel corners projected on the frame axes.
+        let g = geometry;
+        let mut lo = [f64::MAX; 3];
+        let mut hi = [f64::MIN; 3];
+        for corner in 0..8 {
+            let ijk = Vector3::from_fn(|a, _| {
+                if (corner >> a) & 1 == 1 {
+                    g.dims[a] as f64 - 0.5
+                } else {
+                    -0.5
+                }
+            });
+            let p = g.voxel_to_lps_mm(ijk);
+            for (a, axis) in [col_dir, row_dir, normal].iter().enumerate() {
+                lo[a] = lo[a].min(axis.dot(&p));
+                hi[a] = hi[a].max(axis.dot(&p));
+            }
+        }
+        if !position_lps_mm.is_finite() || position_lps_mm < lo[2] || position_lps_mm > hi[2] {
+            return Err(Error::InvalidInput(format!(
+                "{} slice at {position_lps_mm} mm is outside the scan ({:.1} to {:.1} mm)",
+                plane.name(),
+                lo[2],
+                hi[2]
+            )));
+        }
+        let side = |a: usize| ((hi[a] - lo[a]) / pixel_mm - 1e-6).ceil().max(1.0) as usize;
+        let (width, height) = (side(0), side(1));
+        if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+            return Err(Error::InvalidInput(format!(
+                "{} slice would be {width}×{height} pixels (more than {MAX_IMAGE_SIDE} per side)",
+                plane.name()
+            )));
+        }
+        // The image is centred on the scan's box.
+        let margin = |a: usize, n: usize| 0.5 * ((hi[a] - lo[a]) - n as f64 * pixel_mm);
+        let first = col_dir * (lo[0] + margin(0, width) + 0.5 * pixel_mm)
+            + row_dir * (lo[1] + margin(1, height) + 0.5 * pixel_mm)
+            + normal * position_lps_mm;
+        Ok(SliceGrid {
+            width_px: width,
+            height_px: height,
+            pixel_mm,
+            first_pixel_lps_mm: first.into(),
+            column_step_lps_mm: (col_dir * pixel_mm).into(),
+            row_step_lps_mm: (row_dir * pixel_mm).into(),
+        })
+    }
+
+    /// The grid [`render_slice`] draws on: pixels of the scan's smallest spacing.
+    pub fn native(
+        geometry: &VolumeGeometry,
+        plane: SlicePlane,
+        position_lps_mm: f64,
+    ) -> Result<SliceGrid> {
+        SliceGrid::new(
+            geometry,
+            plane,
+            position_lps_mm,
+            smallest_spacing_mm(geometry),
+        )
+    }
+
+    /// LPS position of the centre of pixel (`col`, `row`), mm (fractional pixels allowed).
+    pub fn lps_mm(&self, col: f64, row: f64) -> [f64; 3] {
+        let (f, c, r) = (
+            self.first_pixel_lps_mm,
+            self.column_step_lps_mm,
+            self.row_step_lps_mm,
+        );
+        [0, 1, 2].map(|a| f[a] + c[a] * col + r[a] * row)
+    }
+}
+
+/// The scan's smallest voxel spacing, mm: the pixel that loses no resolution in any plane.
+fn smallest_spacing_mm(g: &VolumeGeometry) -> f64 {
+    g.spacing_mm.iter().cloned().fold(f64::MAX, f64::min)
+}
+
 /// Linear map from output pixel (column, row) to continuous voxel index of one grid.
 struct PixelToVoxel {
     first: Vector3<f64>,
@@ -358,49 +464,13 @@ fn render_slice_with_pixel(
             "HU window {window:?} needs a positive finite width and a finite level"
         )));
     }
-    let [col_dir, row_dir, normal] = plane.frame();
-    // LPS bounding box of the scan: its 8 outer voxel corners projected on the frame axes.
-    let g = &ct.geometry;
-    let mut lo = [f64::MAX; 3];
-    let mut hi = [f64::MIN; 3];
-    for corner in 0..8 {
-        let ijk = Vector3::from_fn(|a, _| {
-            if (corner >> a) & 1 == 1 {
-                g.dims[a] as f64 - 0.5
-            } else {
-                -0.5
-            }
-        });
-        let p = g.voxel_to_lps_mm(ijk);
-        for (a, axis) in [col_dir, row_dir, normal].iter().enumerate() {
-            lo[a] = lo[a].min(axis.dot(&p));
-            hi[a] = hi[a].max(axis.dot(&p));
-        }
-    }
-    if !position_lps_mm.is_finite() || position_lps_mm < lo[2] || position_lps_mm > hi[2] {
-        return Err(Error::InvalidInput(format!(
-            "{} slice at {position_lps_mm} mm is outside the scan ({:.1} to {:.1} mm)",
-            plane.name(),
-            lo[2],
-            hi[2]
-        )));
-    }
-    let side = |a: usize| ((hi[a] - lo[a]) / pixel_mm - 1e-6).ceil().max(1.0) as usize;
-    let (width, height) = (side(0), side(1));
-    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-        return Err(Error::InvalidInput(format!(
-            "{} slice would be {width}×{height} pixels (more than {MAX_IMAGE_SIDE} per side)",
-            plane.name()
-        )));
-    }
-    // Centre of pixel (0, 0); the image is centred on the scan's box.
-    let margin = |a: usize, n: usize| 0.5 * ((hi[a] - lo[a]) - n as f64 * pixel_mm);
-    let first = col_dir * (lo[0] + margin(0, width) + 0.5 * pixel_mm)
-        + row_dir * (lo[1] + margin(1, height) + 0.5 * pixel_mm)
-        + normal * position_lps_mm;
-    let (col_mm, row_mm) = (col_dir * pixel_mm, row_dir * pixel_mm);
+    let grid = SliceGrid::new(&ct.geometry, plane, position_lps_mm, pixel_mm)?;
+    let (width, height) = (grid.width_px, grid.height_px);
+    let first = Vector3::from(grid.first_pixel_lps_mm);
+    let col_mm = Vector3::from(grid.column_step_lps_mm);
+    let row_mm = Vector3::from(grid.row_step_lps_mm);
 
-    let ct_map = PixelToVoxel::new(g, first, col_mm, row_mm);
+    let ct_map = PixelToVoxel::new(&ct.geometry, first, col_mm, row_mm);
     let mut pixels = vec![0u8; 3 * width * height];
     pixels
         .par_chunks_mut(3 * width)
@@ -515,4 +585,33 @@ fn sample_nearest(v: &Volume<u8>, ijk: Vector3<f64>) -> u8 {
         idx[a] = r as usize;
     }
     v.get(idx[0], idx[1], idx[2])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn coronal_grid_is_centred_on_the_scan_with_the_display_orientation() {
+        // 10 × 4 × 6 voxels of 2 × 3 × 2.5 mm: x spans −1…19 mm, z spans −1.25…13.75 mm.
+        let g = VolumeGeometry::axis_aligned([10, 4, 6], [2.0, 3.0, 2.5], [0.0, 0.0, 0.0]);
+        let grid = SliceGrid::native(&g, SlicePlane::Coronal, 4.5).unwrap();
+        assert_eq!(grid.pixel_mm, 2.0);
+        // 20 mm in x → 10 pixels; 15 mm in z → 8 pixels (16 mm), half a pixel over each end.
+        assert_eq!((grid.width_px, grid.height_px), (10, 8));
+        let first = grid.lps_mm(0.0, 0.0);
+        assert!((first[0] - 0.0).abs() < 1e-12, "{first:?}");
+        assert!((first[1] - 4.5).abs() < 1e-12, "{first:?}");
+        assert!((first[2] - 13.25).abs() < 1e-12, "{first:?}");
+        // Columns go to the patient's left (+x), rows downwards (−z).
+        let last = grid.lps_mm(9.0, 7.0);
+        assert!((last[0] - 18.0).abs() < 1e-12 && (last[2] + 0.75).abs() < 1e-12);
+        let outside = SliceGrid::native(&g, SlicePlane::Coronal, 20.0).unwrap_err();
+        assert!(
+            outside.to_string().contains("outside the scan"),
+            "{outside}"
+        );
+        assert!(SliceGrid::new(&g, SlicePlane::Axial, 1.0, 0.0).is_err());
+        assert!(SliceGrid::new(&g, SlicePlane::Axial, 1.0, 1e-3).is_err());
+    }
 }

@@ -65,31 +65,14 @@ pub struct TrajectorySample {
 
 /// Reads a points file; errors name the file, the line and the problem.
 pub fn read_points(path: &Path) -> Result<Vec<TrackedPoint>> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Error::InvalidInput(format!("{}: cannot read points file: {e}", path.display()))
-    })?;
-    parse_points(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
+    read_csv(path, "points", parse_points)
 }
 
 /// Parses the text of a points file; errors say `line N: problem`.
 pub fn parse_points(text: &str) -> std::result::Result<Vec<TrackedPoint>, String> {
-    let mut lines = content_lines(text);
-    let Some((n, header)) = lines.next() else {
-        return Err(format!(
-            "empty points file: expected the header `{POINTS_HEADER}`"
-        ));
-    };
-    check_header(n, header, POINTS_HEADER)?;
     let mut points: Vec<TrackedPoint> = Vec::new();
     let mut line_of_name: HashMap<String, usize> = HashMap::new();
-    for (n, line) in lines {
-        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        if fields.len() != 4 {
-            return Err(format!(
-                "line {n}: {} fields, expected 4 ({POINTS_HEADER})",
-                fields.len()
-            ));
-        }
+    for_each_row(text, "points", POINTS_HEADER, |n, fields| {
         let name = parse_name(n, fields[0])?;
         if let Some(first) = line_of_name.get(name) {
             return Err(format!(
@@ -108,7 +91,8 @@ pub fn parse_points(text: &str) -> std::result::Result<Vec<TrackedPoint>, String
             name: name.to_string(),
             rest_lps_mm,
         });
-    }
+        Ok(())
+    })?;
     if points.is_empty() {
         return Err("no points after the header".into());
     }
@@ -291,30 +275,13 @@ impl TrajectoryFile {
 
 /// Reads a trajectories file; errors name the file, the line and the problem.
 pub fn read_trajectories(path: &Path) -> Result<Vec<TrajectorySample>> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Error::InvalidInput(format!(
-            "{}: cannot read trajectories file: {e}",
-            path.display()
-        ))
-    })?;
-    parse_trajectories(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
+    read_csv(path, "trajectories", parse_trajectories)
 }
 
 /// Parses the text of a trajectories file; errors say `line N: problem`.
 pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySample>, String> {
-    let mut lines = content_lines(text);
-    let Some((n, header)) = lines.next() else {
-        return Err(format!(
-            "empty trajectories file: expected the header `{TRAJECTORY_HEADER}`"
-        ));
-    };
-    check_header(n, header, TRAJECTORY_HEADER)?;
     let mut samples = Vec::new();
-    for (n, line) in lines {
-        let f: Vec<&str> = line.split(',').map(str::trim).collect();
-        if f.len() != 10 {
-            return Err(format!("line {n}: {} fields, expected 10", f.len()));
-        }
+    for_each_row(text, "trajectories", TRAJECTORY_HEADER, |n, f| {
         let frame = f[0]
             .parse::<usize>()
             .map_err(|_| format!("line {n}: frame {:?} is not a non-negative integer", f[0]))?;
@@ -338,8 +305,51 @@ pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySampl
             displacement_mm: [v[3], v[4], v[5]],
             inside_lung,
         });
-    }
+        Ok(())
+    })?;
     Ok(samples)
+}
+
+/// Reads `path` (a `kind` file) and parses it, prefixing parse errors with the path.
+fn read_csv<T>(
+    path: &Path,
+    kind: &str,
+    parse: impl FnOnce(&str) -> std::result::Result<T, String>,
+) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Error::InvalidInput(format!("{}: cannot read {kind} file: {e}", path.display()))
+    })?;
+    parse(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
+}
+
+/// Checks the header of a `kind` CSV text, then hands `row` the 1-based line number and
+/// trimmed fields of every data row, each row having exactly the header's column count.
+fn for_each_row<'t>(
+    text: &'t str,
+    kind: &str,
+    header: &str,
+    mut row: impl FnMut(usize, &[&'t str]) -> std::result::Result<(), String>,
+) -> std::result::Result<(), String> {
+    let mut lines = content_lines(text);
+    let Some((n, found)) = lines.next() else {
+        return Err(format!("empty {kind} file: expected the header `{header}`"));
+    };
+    check_header(n, found, header)?;
+    let columns = header.split(',').count();
+    // One buffer for every row: a long file does not allocate per line.
+    let mut fields: Vec<&'t str> = Vec::with_capacity(columns);
+    for (n, line) in lines {
+        fields.clear();
+        fields.extend(line.split(',').map(str::trim));
+        if fields.len() != columns {
+            return Err(format!(
+                "line {n}: {} fields, expected {columns} ({header})",
+                fields.len()
+            ));
+        }
+        row(n, &fields)?;
+    }
+    Ok(())
 }
 
 /// Non-blank, non-comment lines with their 1-based line numbers (BOM and CR removed).
@@ -452,6 +462,31 @@ mod tests {
             let e = parse_points(text).unwrap_err();
             assert!(e.contains(expected), "{text:?}: {e}");
         }
+    }
+
+    #[test]
+    fn trajectories_file_errors_name_the_line_and_the_problem() {
+        let row = "0,0.000000,p,1,2,3,0,0,0,true";
+        let cases = [
+            (String::new(), "empty trajectories file".to_string()),
+            (format!("{row}\n"), "line 1: header".to_string()),
+            (
+                format!("{TRAJECTORY_HEADER}\n# note\n0,0,p,1,2,3\n"),
+                "line 3: 6 fields, expected 10".to_string(),
+            ),
+            (
+                format!("{TRAJECTORY_HEADER}\n{row}\n0,0,p,1,2,3,0,0,0,maybe\n"),
+                "line 3: inside_lung \"maybe\"".to_string(),
+            ),
+        ];
+        for (text, expected) in &cases {
+            let e = parse_trajectories(text).unwrap_err();
+            assert!(e.contains(expected.as_str()), "{text:?}: {e}");
+        }
+        let crlf = format!("\u{feff}{TRAJECTORY_HEADER}\r\n\r\n{row}\r\n");
+        let samples = parse_trajectories(&crlf).unwrap();
+        assert_eq!(samples.len(), 1);
+        assert_eq!(samples[0].position_lps_mm, [1.0, 2.0, 3.0]);
     }
 
     #[test]

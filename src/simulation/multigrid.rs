@@ -1032,7 +1032,12 @@ impl Multigrid {
         self.coarse_lu = coarse_factor(self.levels.last().expect("non-empty"));
     }
 
-    /// Number of levels.
+    /// Chebyshev smoothing steps before and after each coarse correction (4 by default).
+    pub fn set_smoothing_degree(&mut self, degree: usize) {
+        self.degree = degree;
+    }
+
+    /// Number of levels, the fine one included.
     pub fn level_count(&self) -> usize {
         self.levels.len()
     }

@@ -9,10 +9,11 @@
 
 use std::collections::HashMap;
 use std::fmt::Write as _;
+use std::fs::File;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
 use serde::Serialize;
@@ -140,6 +141,10 @@ pub struct CalculixSolution {
     pub displacements_m: Vec<V3>,
     /// Wall time of the `ccx` process, seconds.
     pub wall_time_s: f64,
+    /// Peak resident memory of `ccx` (VmHWM), MB, when `/proc` shows it.
+    pub peak_memory_mb: Option<f64>,
+    /// Load increments CalculiX reported (NLGEOM cuts the step into increments).
+    pub increments: usize,
 }
 
 /// An element face: element, C3D8 face number 1…6, corners in our outward order.
@@ -546,7 +551,8 @@ pub fn parse_dat_displacements(dat: &str, node_count: usize) -> Result<(f64, Vec
 
 static RUN_COUNTER: AtomicUsize = AtomicUsize::new(0);
 
-/// Runs CalculiX on `scene` and returns the displacement of every node.
+/// Runs CalculiX on `scene` and returns the displacement of every node, with the run's wall
+/// time, peak memory (polled from `/proc` while it runs) and increment count.
 ///
 /// Fails with the tail of ccx's output when it exits with an error, prints `*ERROR`, or stops
 /// before the end of the step (no converged solution at full load).
@@ -583,17 +589,38 @@ fn run_in(
     options: &CalculixOptions,
 ) -> Result<CalculixSolution> {
     std::fs::write(dir.join("job.inp"), deck)?;
+    // Output goes to files, not pipes: nobody reads a pipe while we poll, and a full one
+    // would stall ccx.
+    let stdout_path = dir.join("ccx.stdout");
+    let stderr_path = dir.join("ccx.stderr");
     let start = Instant::now();
-    let out = Command::new(ccx)
+    let mut child = Command::new(ccx)
         .arg("-i")
         .arg("job")
         .current_dir(dir)
         .env("OMP_NUM_THREADS", options.threads.max(1).to_string())
-        .output()
+        .stdout(Stdio::from(File::create(&stdout_path)?))
+        .stderr(Stdio::from(File::create(&stderr_path)?))
+        .spawn()
         .map_err(|e| Error::External(format!("cannot run {}: {e}", ccx.display())))?;
+    let status_path = format!("/proc/{}/status", child.id());
+    let mut peak_kb: Option<f64> = None;
+    let status = loop {
+        if let Some(s) = child.try_wait()? {
+            break s;
+        }
+        if let Some(kb) = std::fs::read_to_string(&status_path)
+            .ok()
+            .as_deref()
+            .and_then(vm_hwm_kb)
+        {
+            peak_kb = Some(peak_kb.map_or(kb, |p: f64| p.max(kb)));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
     let wall_time_s = start.elapsed().as_secs_f64();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stdout = std::fs::read_to_string(&stdout_path).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&stderr_path).unwrap_or_default();
     let fail = |why: &str| {
         Error::External(format!(
             "CalculiX {why}\n--- ccx stdout (tail) ---\n{}\n--- ccx stderr (tail) ---\n{}",
@@ -601,8 +628,8 @@ fn run_in(
             tail(&stderr, 30)
         ))
     };
-    if !out.status.success() {
-        return Err(fail(&format!("exited with {}", out.status)));
+    if !status.success() {
+        return Err(fail(&format!("exited with {status}")));
     }
     if let Some(line) = stdout
         .lines()
@@ -623,7 +650,27 @@ fn run_in(
     Ok(CalculixSolution {
         displacements_m,
         wall_time_s,
+        peak_memory_mb: peak_kb.map(|kb| kb / 1024.0),
+        increments: increment_count(&stdout),
     })
+}
+
+/// Converged load increments in ccx's standard output: each increment's first attempt
+/// prints one `increment N attempt 1` line.
+fn increment_count(stdout: &str) -> usize {
+    stdout
+        .lines()
+        .filter(|l| l.trim_start().starts_with("increment") && l.contains("attempt 1"))
+        .count()
+}
+
+/// The `VmHWM` (peak resident set) line of a `/proc/<pid>/status` text, kB.
+fn vm_hwm_kb(status: &str) -> Option<f64> {
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
 }
 
 fn tail(s: &str, n: usize) -> String {
@@ -802,5 +849,21 @@ mod tests {
         assert_eq!(u[1], V3::new(0.0, 4.0, -1.5e-3));
         assert!(parse_dat_displacements(dat, 3).is_err());
         assert!(parse_dat_displacements("nothing", 1).is_err());
+    }
+
+    #[test]
+    fn peak_memory_is_read_from_proc_status() {
+        let status = "Name:\tccx\nVmPeak:\t  900 kB\nVmHWM:\t  123456 kB\nVmRSS:\t 1 kB\n";
+        assert_eq!(vm_hwm_kb(status), Some(123456.0));
+        assert_eq!(vm_hwm_kb("Name:\tccx\n"), None);
+    }
+
+    #[test]
+    fn increments_are_counted_once_per_converged_increment() {
+        let stdout = " STEP 1\n\n increment 1 attempt 1 \n increment size= 1.0e-01\n \
+                      iteration 1\n increment 2 attempt 1 \n increment 2 attempt 2 \n \
+                      increment 3 attempt 1 \n Job finished\n";
+        assert_eq!(increment_count(stdout), 3);
+        assert_eq!(increment_count(""), 0);
     }
 }

@@ -14,18 +14,13 @@
 //! positions in DICOM LPS millimetres) and markdown, written like the validation suite's.
 
 use std::fmt::Write as _;
-use std::fs::File;
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::calculix::{
-    parse_dat_displacements, require_ccx, write_deck, CalculixOptions, ElementType,
-};
+use super::calculix::{self, CalculixOptions, ElementType};
 use super::report::write_atomic;
 use crate::ingest::lung_model::{build_lung_model, ConstraintGroup, LungModel, LungModelSettings};
 use crate::model::{Material, NodeConstraint};
@@ -252,7 +247,7 @@ pub fn compare_model_with_calculix(
             "the CalculiX comparison needs at least one element type".into(),
         ));
     }
-    require_ccx()?;
+    calculix::require_ccx()?;
     let scene = lung_scene(model)?;
     let material = model.mesh.mesh.classes[0].material;
     let rest = &scene.mesh.rest_positions_m;
@@ -308,7 +303,7 @@ pub fn compare_model_with_calculix(
             threads: settings.ccx_threads,
             ..CalculixOptions::default()
         };
-        let run = run_ccx_measured(&ccx_scene, &options)
+        let run = calculix::solve(&ccx_scene, &options)
             .map_err(|e| Error::External(format!("CalculiX {element_type:?}: {e}")))?;
         calculix.push(CalculixRun {
             element_type,
@@ -384,7 +379,7 @@ fn small_strain_check(
         ..CalculixOptions::linear()
     };
     let ccx_scene = scaled_scene(scene, pressure_pa / REFERENCE_PRESSURE_PA);
-    let run = run_ccx_measured(&ccx_scene, &options)
+    let run = calculix::solve(&ccx_scene, &options)
         .map_err(|e| Error::External(format!("CalculiX linear C3D8: {e}")))?;
     let groups = &model.node_group;
     Ok(SmallStrainCheck {
@@ -502,128 +497,6 @@ pub fn displacement_difference(
         max_node_displacement_b_mm: mm(b[max_node]),
         per_group,
     })
-}
-
-/// What one measured `ccx` run gave.
-struct MeasuredRun {
-    displacements_m: Vec<V3>,
-    wall_time_s: f64,
-    peak_memory_mb: Option<f64>,
-    increments: usize,
-}
-
-static RUN_COUNTER: AtomicUsize = AtomicUsize::new(0);
-
-/// Like [`super::calculix::solve`], but polls the process's peak resident memory and counts
-/// its increments (`solve` keeps only the displacements).
-fn run_ccx_measured(scene: &Scene, options: &CalculixOptions) -> Result<MeasuredRun> {
-    let ccx = require_ccx()?;
-    let deck = write_deck(scene, options)?;
-    let dir = std::env::temp_dir().join(format!(
-        "lungmotion-lung-ccx-{}-{}",
-        std::process::id(),
-        RUN_COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::create_dir_all(&dir)?;
-    let result = run_measured_in(&ccx, &dir, &deck, scene.node_count(), options);
-    if options.keep_files {
-        result.map_err(|e| Error::External(format!("{e} (files kept in {})", dir.display())))
-    } else {
-        let _ = std::fs::remove_dir_all(&dir);
-        result
-    }
-}
-
-fn run_measured_in(
-    ccx: &Path,
-    dir: &Path,
-    deck: &str,
-    node_count: usize,
-    options: &CalculixOptions,
-) -> Result<MeasuredRun> {
-    std::fs::write(dir.join("job.inp"), deck)?;
-    // Output goes to files, not pipes: nobody reads a pipe while we poll, and a full one
-    // would stall ccx.
-    let stdout_path = dir.join("ccx.stdout");
-    let stderr_path = dir.join("ccx.stderr");
-    let start = Instant::now();
-    let mut child = Command::new(ccx)
-        .arg("-i")
-        .arg("job")
-        .current_dir(dir)
-        .env("OMP_NUM_THREADS", options.threads.max(1).to_string())
-        .stdout(Stdio::from(File::create(&stdout_path)?))
-        .stderr(Stdio::from(File::create(&stderr_path)?))
-        .spawn()
-        .map_err(|e| Error::External(format!("cannot run {}: {e}", ccx.display())))?;
-    let status_path = format!("/proc/{}/status", child.id());
-    let mut peak_kb: Option<f64> = None;
-    let status = loop {
-        if let Some(s) = child.try_wait()? {
-            break s;
-        }
-        if let Some(kb) = std::fs::read_to_string(&status_path)
-            .ok()
-            .as_deref()
-            .and_then(vm_hwm_kb)
-        {
-            peak_kb = Some(peak_kb.map_or(kb, |p: f64| p.max(kb)));
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let wall_time_s = start.elapsed().as_secs_f64();
-    let stdout = std::fs::read_to_string(&stdout_path).unwrap_or_default();
-    let stderr = std::fs::read_to_string(&stderr_path).unwrap_or_default();
-    let fail = |why: &str| {
-        Error::External(format!(
-            "{why}\n--- ccx stdout (tail) ---\n{}\n--- ccx stderr (tail) ---\n{}",
-            tail(&stdout, 30),
-            tail(&stderr, 30)
-        ))
-    };
-    if !status.success() {
-        return Err(fail(&format!("exited with {status}")));
-    }
-    if let Some(line) = stdout
-        .lines()
-        .chain(stderr.lines())
-        .find(|l| l.contains("*ERROR"))
-    {
-        return Err(fail(&format!("reported an error: {}", line.trim())));
-    }
-    let dat = std::fs::read_to_string(dir.join("job.dat"))
-        .map_err(|e| fail(&format!("wrote no readable job.dat ({e})")))?;
-    let (time, displacements_m) = parse_dat_displacements(&dat, node_count)
-        .map_err(|e| fail(&format!("output unusable: {e}")))?;
-    if (time - 1.0).abs() > 1e-6 {
-        return Err(fail(&format!(
-            "stopped at step time {time} before reaching full load (1.0): not converged"
-        )));
-    }
-    let increments = stdout
-        .lines()
-        .filter(|l| l.trim_start().starts_with("increment") && l.contains("attempt 1"))
-        .count();
-    Ok(MeasuredRun {
-        displacements_m,
-        wall_time_s,
-        peak_memory_mb: peak_kb.map(|kb| kb / 1024.0),
-        increments,
-    })
-}
-
-/// The `VmHWM` (peak resident set) line of a `/proc/<pid>/status` text, kB.
-fn vm_hwm_kb(status: &str) -> Option<f64> {
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.split_whitespace().next())
-        .and_then(|v| v.parse().ok())
-}
-
-fn tail(s: &str, n: usize) -> String {
-    let lines: Vec<&str> = s.lines().collect();
-    lines[lines.len().saturating_sub(n)..].join("\n")
 }
 
 fn fmt3(v: [f64; 3]) -> String {
@@ -783,12 +656,5 @@ mod tests {
         assert!(d.per_group.iter().any(|g| g.group == "interior"));
         assert!(displacement_difference(&a, &b[..3], &rest, &groups).is_err());
         assert!(displacement_difference(&[], &[], &[], &[]).is_err());
-    }
-
-    #[test]
-    fn peak_memory_is_read_from_proc_status() {
-        let status = "Name:\tccx\nVmPeak:\t  900 kB\nVmHWM:\t  123456 kB\nVmRSS:\t 1 kB\n";
-        assert_eq!(vm_hwm_kb(status), Some(123456.0));
-        assert_eq!(vm_hwm_kb("Name:\tccx\n"), None);
     }
 }
