@@ -22,7 +22,7 @@
 //!   repeated, median → fields per second; separately `positions_at` alone (node states
 //!   per second).
 //! * **Accuracy**: the same cycle with `solve_every_frame` (one direct volume-driven solve per
-//!   frame) against the interpolated one, per frame: largest node position difference and
+//!   frame, volume tolerance 10× tighter than the run's) against the interpolated one, per frame: largest node position difference and
 //!   largest voxel displacement difference (mm), and each run's volume error against the
 //!   trace (target ≤ 0.5 % of the tidal volume).
 //!
@@ -632,8 +632,12 @@ fn bench_accuracy(
     let rest = &scene.mesh.rest_positions_m;
     let mut at_direct_volume = rest.clone();
     let mut differences: Vec<[f64; 3]> = Vec::with_capacity(interpolated.len());
+    // The direct solves meet their volumes 10× tighter than the run's 0.5 % of tidal: a
+    // direct solve that stops 2.5 mL short is a different state, and the difference would be
+    // the volume driver's tolerance rather than the interpolation error being measured.
     let direct_settings = MotionSettings {
         solve_every_frame: true,
+        volume_tolerance_fraction: 0.1 * settings.volume_tolerance_fraction,
         ..settings.clone()
     };
     let direct = run_motion(
