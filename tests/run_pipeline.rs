@@ -71,7 +71,13 @@ fn inhalation_moves_the_base_down_more_than_the_apex_and_holds_the_hilum() {
     assert!(max < ELEMENT_SIZE_MM, "largest costal gap change {max} mm");
     // The largest motion is at the base: in the lowest quarter between the tracked points
     // 15 mm inside the right apex and above the right dome.
-    let z_of = |name: &str| s.points.iter().find(|p| p.name == name).unwrap().rest_lps_mm[2];
+    let z_of = |name: &str| {
+        s.points
+            .iter()
+            .find(|p| p.name == name)
+            .unwrap()
+            .rest_lps_mm[2]
+    };
     let (apex_z, base_z) = (z_of("right_lung_apex"), z_of("right_lung_base"));
     let z = e.max_displacement_at_lps_mm[2];
     assert!(
