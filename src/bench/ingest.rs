@@ -24,7 +24,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::{peak_rss_bytes, Outcome, TimeStats};
+use super::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome, TimeStats};
 use crate::datasets::cip_chest_ct64;
 use crate::formats::nrrd::read_nrrd;
 use crate::ingest::segmentation::{
@@ -242,25 +242,6 @@ fn bench_cip(
     })
 }
 
-/// CPU time (user + system, all threads) of this process so far, s, from /proc/self/stat
-/// (fields 14–15, in clock ticks of 1/100 s, the Linux USER_HZ).
-fn process_cpu_s() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name may hold spaces; fields are counted after its closing parenthesis.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let (utime, stime): (u64, u64) = (f.get(11)?.parse().ok()?, f.get(12)?.parse().ok()?);
-    Some((utime + stime) as f64 / 100.0)
-}
-
-/// VmRSS of this process, bytes.
-fn current_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
 fn bench_upsampled(
     ct: &Volume<f32>,
     grid: [usize; 3],
@@ -272,7 +253,7 @@ fn bench_upsampled(
     let fine = upsample_trilinear(ct, grid)?;
     let upsample_s = start.elapsed().as_secs_f64();
     let rss_before = current_rss_bytes();
-    let peak_reset = std::fs::write("/proc/self/clear_refs", "5").is_ok();
+    let peak_reset = reset_peak_rss();
     let cpu_before = process_cpu_s();
     let mut times = Vec::with_capacity(repeats);
     let mut last = None;

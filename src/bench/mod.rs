@@ -627,7 +627,7 @@ fn time_solves(
 
 fn quasistatic_block(n: usize, pressure_pa: f64, runs: usize) -> Result<QuasiStaticBench> {
     let (scene, scene_build_s) = block_scene(n, pressure_pa)?;
-    let rss_before = rss_bytes("VmRSS");
+    let rss_before = current_rss_bytes();
     reset_peak_rss();
     let (x, rep, [setup, solve, total]) = time_solves(&scene, runs)?;
     let peak = rss_bytes("VmHWM");
@@ -1099,9 +1099,26 @@ pub fn peak_rss_bytes() -> Option<u64> {
     rss_bytes("VmHWM")
 }
 
-/// Resets VmHWM to the current RSS (Linux `clear_refs` 5) so a phase's own peak is visible.
-fn reset_peak_rss() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
+/// Current resident memory of the process, bytes.
+fn current_rss_bytes() -> Option<u64> {
+    rss_bytes("VmRSS")
+}
+
+/// Resets VmHWM to the current RSS (Linux `clear_refs` 5) so a phase's own peak is visible;
+/// false where the kernel refuses (the peak then includes earlier phases).
+fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// CPU time (user + system, all threads) of this process so far, s, from /proc/self/stat
+/// (fields 14–15, in clock ticks of 1/100 s, the Linux USER_HZ).
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name may hold spaces; fields are counted after its closing parenthesis.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let (utime, stime): (u64, u64) = (f.get(11)?.parse().ok()?, f.get(12)?.parse().ok()?);
+    Some((utime + stime) as f64 / 100.0)
 }
 
 /// Current UTC time as ISO 8601, from the system clock (no date crate needed).

@@ -36,7 +36,7 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::{peak_rss_bytes, Outcome, TimeStats};
+use super::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome, TimeStats};
 use crate::breathing::{BreathingTrace, LujanBreathing};
 use crate::datasets::cip_chest_ct64;
 use crate::ingest::lung_model::LungModelSettings;
@@ -712,30 +712,6 @@ fn bench_accuracy(
         direct_cycle_s: direct.wall_time_s,
         frames,
     })
-}
-
-/// CPU time (user + system, all threads) of this process so far, s, from /proc/self/stat
-/// (fields 14–15, in clock ticks of 1/100 s, the Linux USER_HZ).
-fn process_cpu_s() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name may hold spaces; fields are counted after its closing parenthesis.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let (utime, stime): (u64, u64) = (f.get(11)?.parse().ok()?, f.get(12)?.parse().ok()?);
-    Some((utime + stime) as f64 / 100.0)
-}
-
-/// VmRSS of this process, bytes.
-fn current_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
-/// Resets VmHWM to the current RSS (Linux `clear_refs` 5); false where the kernel refuses.
-fn reset_peak_rss() -> bool {
-    std::fs::write("/proc/self/clear_refs", "5").is_ok()
 }
 
 /// The machine's load averages, to judge how shared it was.
