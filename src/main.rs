@@ -527,6 +527,21 @@ fn validate_lung(out: PathBuf) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Writes `<stem>.json` and `<stem>.md` into `out` and prints the Markdown.
+fn write_bench_report(
+    out: &std::path::Path,
+    stem: &str,
+    report: &impl serde::Serialize,
+    markdown: &str,
+) -> anyhow::Result<()> {
+    let json = out.join(format!("{stem}.json"));
+    write_atomic(&json, serde_json::to_string_pretty(report)?.as_bytes())?;
+    write_atomic(&out.join(format!("{stem}.md")), markdown.as_bytes())?;
+    println!("{markdown}");
+    eprintln!("lungmotion: wrote {}", json.display());
+    Ok(())
+}
+
 fn bench(
     out: PathBuf,
     quick: bool,
@@ -547,14 +562,7 @@ fn bench(
         }
         options.calculix_nlgeom = nlgeom;
         let report = run_bench(&options)?;
-        write_atomic(
-            &out.join("bench.json"),
-            serde_json::to_string_pretty(&report)?.as_bytes(),
-        )?;
-        let md = report.to_markdown();
-        write_atomic(&out.join("bench.md"), md.as_bytes())?;
-        println!("{md}");
-        eprintln!("lungmotion: wrote {}", out.join("bench.json").display());
+        write_bench_report(&out, "bench", &report, &report.to_markdown())?;
     }
     if matches!(suite, BenchSuite::Ingest | BenchSuite::All) {
         use lungmotion::bench::ingest::{run_ingest_bench, IngestBenchOptions};
@@ -563,17 +571,7 @@ fn bench(
             ..IngestBenchOptions::default()
         };
         let report = run_ingest_bench(&options)?;
-        write_atomic(
-            &out.join("bench-ingest.json"),
-            serde_json::to_string_pretty(&report)?.as_bytes(),
-        )?;
-        let md = report.to_markdown();
-        write_atomic(&out.join("bench-ingest.md"), md.as_bytes())?;
-        println!("{md}");
-        eprintln!(
-            "lungmotion: wrote {}",
-            out.join("bench-ingest.json").display()
-        );
+        write_bench_report(&out, "bench-ingest", &report, &report.to_markdown())?;
     }
     if matches!(suite, BenchSuite::Motion | BenchSuite::All) {
         use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
@@ -583,17 +581,7 @@ fn bench(
             MotionBenchOptions::default()
         };
         let report = run_motion_bench(&options)?;
-        write_atomic(
-            &out.join("bench-motion.json"),
-            serde_json::to_string_pretty(&report)?.as_bytes(),
-        )?;
-        let md = report.to_markdown();
-        write_atomic(&out.join("bench-motion.md"), md.as_bytes())?;
-        println!("{md}");
-        eprintln!(
-            "lungmotion: wrote {}",
-            out.join("bench-motion.json").display()
-        );
+        write_bench_report(&out, "bench-motion", &report, &report.to_markdown())?;
     }
     Ok(())
 }
