@@ -180,6 +180,20 @@ pub fn run_breathing(
     let geometry = scan.ct.geometry;
     let frames_dir = staging.dir().join("frames");
     std::fs::create_dir_all(&frames_dir)?;
+    // End-inhale is the frame with the largest trace volume (the first, on a tie); known
+    // before solving, so only that frame's field and positions are kept.
+    let end_inhale_frame = times
+        .iter()
+        .map(|&t| inputs.trace.volume_at(t))
+        .enumerate()
+        .fold((0, f64::NEG_INFINITY), |best, (i, v)| {
+            if v > best.1 {
+                (i, v)
+            } else {
+                best
+            }
+        })
+        .0;
     let mut sink = FrameSink {
         field: &field,
         points: &points,
@@ -208,6 +222,7 @@ pub fn run_breathing(
             )?)
         },
         point_displacements: vec![[0.0f64; 3]; inputs.points.len()],
+        end_inhale_frame,
         end_inhale: None,
         write_s: 0.0,
     };
@@ -308,6 +323,7 @@ struct FrameSink<'a> {
     trajectories: Vec<PointTrajectory>,
     trajectory_file: Option<TrajectoryFile>,
     point_displacements: Vec<[f64; 3]>,
+    end_inhale_frame: usize,
     end_inhale: Option<EndInhaleCapture>,
     write_s: f64,
 }
@@ -380,14 +396,9 @@ impl FrameSink<'_> {
                 (0, -1.0),
                 |best, (i, d)| if d > best.1 { (i, d) } else { best },
             );
-        if self
-            .end_inhale
-            .as_ref()
-            .is_none_or(|e| frame.target_volume_ml > e.target_volume_ml)
-        {
+        if frame.index == self.end_inhale_frame {
             self.end_inhale = Some(EndInhaleCapture {
                 frame: frame.index,
-                target_volume_ml: frame.target_volume_ml,
                 positions_m: positions.to_vec(),
                 field_mm: self.field_mm.clone(),
             });
@@ -408,7 +419,6 @@ impl FrameSink<'_> {
 /// The frame with the largest volume, kept for the quick look and the physical checks.
 struct EndInhaleCapture {
     frame: usize,
-    target_volume_ml: f64,
     positions_m: Vec<V3>,
     field_mm: Vec<[f32; 3]>,
 }
@@ -466,7 +476,7 @@ fn write_quicklooks(
     write_png(&dir.join("end-inhale-displacement.png"), &look.image)
 }
 
-/// Group of each node of `model` by [`ConstraintGroup`] code, for summaries.
+/// Name of a [`ConstraintGroup`] code (`interior` for 0), for summaries.
 fn group_name(code: u8) -> &'static str {
     ConstraintGroup::from_code(code).map_or("interior", |g| g.name())
 }
