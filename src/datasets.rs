@@ -46,3 +46,18 @@ pub fn cip_expert_labels(lm: &crate::volume::Volume<f32>) -> crate::volume::Volu
         }
     })
 }
+
+/// The CIP expert map split as the lung model takes it: lungs (1 right, 2 left) and the
+/// airways outside them (1); `None` without the shared data.
+pub fn cip_expert_lung_masks(
+) -> Option<crate::Result<(crate::volume::Volume<u8>, crate::volume::Volume<u8>)>> {
+    let dir = cip_chest_ct64()?;
+    Some(
+        crate::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).map(|lm| {
+            let labels = cip_expert_labels(&lm);
+            let lungs = labels.map(|l| if l == CIP_AIRWAY_LABEL { 0 } else { l });
+            let airways = labels.map(|l| u8::from(l == CIP_AIRWAY_LABEL));
+            (lungs, airways)
+        }),
+    )
+}

@@ -6,7 +6,6 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
-use lungmotion::datasets::CIP_AIRWAY_LABEL;
 use lungmotion::ingest::lung_model::{
     build_lung_model, ConstraintGroup, LungModel, LungModelSettings, LEFT_LUNG, RIGHT_LUNG,
 };
@@ -601,14 +600,9 @@ fn bad_inputs_are_refused_with_the_reason() {
     }
 }
 
-/// The CIP expert label map: `(lm & 0xFF)` 9–11 left lung, 12–14 right lung, `lm == 512` airways.
+/// The CIP expert lungs and airways.
 fn cip_masks() -> Option<(Volume<u8>, Volume<u8>)> {
-    let dir = lungmotion::datasets::cip_chest_ct64()?;
-    let lm = lungmotion::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).unwrap();
-    let labels = lungmotion::datasets::cip_expert_labels(&lm);
-    let lungs = labels.map(|l| if l == CIP_AIRWAY_LABEL { 0 } else { l });
-    let airways = labels.map(|l| u8::from(l == CIP_AIRWAY_LABEL));
-    Some((lungs, airways))
+    lungmotion::datasets::cip_expert_lung_masks().map(|m| m.unwrap())
 }
 
 fn real_case(h: f64, pressure_pa: f64, solve: bool) {

@@ -237,12 +237,7 @@ fn two_touching_boxes_solve_with_multigrid_as_with_block_jacobi() {
 
 /// The CIP lungs meshed at `element_size_mm`, or None without the shared data.
 fn cip_scene(element_size_mm: f64) -> Option<Scene> {
-    let dir = lungmotion::datasets::cip_chest_ct64()?;
-    let lm = lungmotion::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).unwrap();
-    let labels = lungmotion::datasets::cip_expert_labels(&lm);
-    const AIRWAY: u8 = 3;
-    let lungs = labels.map(|l| if l == AIRWAY { 0 } else { l });
-    let airways = labels.map(|l| u8::from(l == AIRWAY));
+    let (lungs, airways) = lungmotion::datasets::cip_expert_lung_masks()?.unwrap();
     let model = build_lung_model(
         &lungs,
         &airways,
@@ -305,25 +300,10 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
 
 #[test]
 fn cip_lungs_inflate_to_500_ml_with_multigrid_as_with_block_jacobi() {
-    let Some(dir) = lungmotion::datasets::cip_chest_ct64() else {
+    let Some(scene) = cip_scene(8.0) else {
         println!("skipped: shared data not found");
         return;
     };
-    let lm = lungmotion::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd")).unwrap();
-    let labels = lungmotion::datasets::cip_expert_labels(&lm);
-    const AIRWAY: u8 = 3;
-    let lungs = labels.map(|l| if l == AIRWAY { 0 } else { l });
-    let airways = labels.map(|l| u8::from(l == AIRWAY));
-    let model = build_lung_model(
-        &lungs,
-        &airways,
-        &LungModelSettings {
-            element_size_mm: 8.0,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let scene = lung_scene(&model).unwrap();
     // The two lungs touch on the lattice: some lattice points carry a node of each.
     let lattice = Lattice::infer(&scene.mesh).expect("the lungs' mesh is a lattice");
     assert_eq!(lattice.body.iter().max(), Some(&1), "two lungs, two bodies");

@@ -205,17 +205,12 @@ pub struct LungCalculixReport {
 /// Builds the CIP chest CT's lung model (expert lung labels, airways for the hilum) at
 /// `element_size_mm`; fails naming the directory when the shared data is missing.
 pub fn cip_lung_model(element_size_mm: f64) -> Result<LungModel> {
-    let dir = crate::datasets::cip_chest_ct64().ok_or_else(|| {
+    let (lungs, airways) = crate::datasets::cip_expert_lung_masks().ok_or_else(|| {
         Error::InvalidInput(format!(
             "the CIP chest CT (cip-chest-ct64) was not found; set {} to the shared data directory",
             crate::datasets::SHARED_DATA_ENV
         ))
-    })?;
-    let lm = crate::formats::nrrd::read_nrrd(&dir.join("lm-64.nrrd"))?;
-    let labels = crate::datasets::cip_expert_labels(&lm);
-    let airway = crate::datasets::CIP_AIRWAY_LABEL;
-    let lungs = labels.map(|l| if l == airway { 0 } else { l });
-    let airways = labels.map(|l| u8::from(l == airway));
+    })??;
     build_lung_model(
         &lungs,
         &airways,
