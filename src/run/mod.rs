@@ -248,12 +248,12 @@ pub fn run_breathing(
             (r.as_motion_report(&settings, &config.material), Some(r))
         }
     };
-    let write_s = sink.write_s;
     let FrameSink {
         records,
         trajectories,
         trajectory_file,
         end_inhale,
+        write_s,
         ..
     } = sink;
     timings.insert("motion_solve".to_string(), report.wall_time_s - write_s);
@@ -279,7 +279,7 @@ pub fn run_breathing(
             &capture,
         )?;
     }
-    let summary = RunSummary::new(
+    let mut summary = RunSummary::new(
         inputs,
         config,
         &outcome,
@@ -288,9 +288,8 @@ pub fn run_breathing(
         records,
         trajectories,
         end_inhale,
-        timings.clone(),
+        timings,
     );
-    let mut summary = summary;
     summary.timings_s.insert(
         "summary_and_quicklooks".to_string(),
         t.elapsed().as_secs_f64(),
