@@ -53,6 +53,7 @@ pub mod motion;
 pub mod outputs;
 pub mod phantom;
 pub mod run;
+pub mod service;
 pub mod simulation;
 pub mod validation;
 pub mod volume;

@@ -163,11 +163,48 @@ enum Command {
         #[arg(long, value_enum, default_value_t = BenchSuite::All)]
         suite: BenchSuite,
     },
+    /// Serve the pipeline over HTTP: upload a scan, submit breathing curves, follow the jobs,
+    /// fetch displacement fields (see README, "HTTP service", and GET /openapi.json).
+    ///
+    /// Settings come from --config (TOML), then the environment (LUNGMOTION_LISTEN,
+    /// LUNGMOTION_DATA_DIR, LUNGMOTION_WORKERS, LUNGMOTION_QUEUE_CAPACITY,
+    /// LUNGMOTION_MAX_UPLOAD_MIB, LUNGMOTION_API_TOKEN, LUNGMOTION_API_TOKEN_FILE), then these
+    /// options. A bearer token is required to listen beyond loopback. SIGTERM or Ctrl-C stops
+    /// it gracefully: running jobs get shutdown_grace_s, then go back to the queue.
+    #[command(verbatim_doc_comment)]
+    Serve {
+        /// Address and port (default 127.0.0.1:8080; port 0 picks a free one).
+        #[arg(long)]
+        listen: Option<String>,
+        /// Where scans, jobs and results are stored (default ./lungmotion-data).
+        #[arg(long)]
+        data_dir: Option<PathBuf>,
+        /// Service configuration (TOML; its [run] table holds the simulation defaults).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Simulations run at once (default: one per core).
+        #[arg(long)]
+        workers: Option<usize>,
+        /// Simulations that may wait for a worker; beyond, 429 (default 16).
+        #[arg(long)]
+        queue_capacity: Option<usize>,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    init_logging();
+    if let Command::Serve {
+        listen,
+        data_dir,
+        config,
+        workers,
+        queue_capacity,
+    } = cli.command
+    {
+        init_logging("info");
+        return serve(listen, data_dir, config, workers, queue_capacity);
+    }
+    init_logging("warn");
     let result = match cli.command {
         Command::Run {
             ct,
@@ -225,6 +262,7 @@ fn main() -> ExitCode {
             nlgeom,
             suite,
         } => bench(out, quick, calculix_cells, nlgeom, suite),
+        Command::Serve { .. } => unreachable!("handled above"),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -236,12 +274,13 @@ fn main() -> ExitCode {
 }
 
 /// Logs go to stderr; `LUNGMOTION_LOG` (e.g. `debug`, `lungmotion=trace`) sets the level.
-fn init_logging() {
+fn init_logging(default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("LUNGMOTION_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
     tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
 }
 
@@ -584,4 +623,50 @@ fn bench(
         write_bench_report(&out, "bench-motion", &report, &report.to_markdown())?;
     }
     Ok(())
+}
+
+/// `lungmotion serve`: exit code 2 when the settings are refused, 1 when serving fails.
+fn serve(
+    listen: Option<String>,
+    data_dir: Option<PathBuf>,
+    config: Option<PathBuf>,
+    workers: Option<usize>,
+    queue_capacity: Option<usize>,
+) -> ExitCode {
+    use lungmotion::service::{serve_blocking, ServiceConfig};
+    let env = |name: &str| std::env::var(name).ok();
+    let settings = ServiceConfig::load(config.as_deref(), &env).and_then(|mut c| {
+        if let Some(listen) = listen {
+            c.listen = listen.parse().map_err(|_| {
+                lungmotion::Error::InvalidInput(format!(
+                    "--listen {listen:?} is not an address:port such as 127.0.0.1:8080"
+                ))
+            })?;
+        }
+        if let Some(dir) = data_dir {
+            c.data_dir = dir;
+        }
+        if let Some(n) = workers {
+            c.workers = n;
+        }
+        if let Some(n) = queue_capacity {
+            c.queue_capacity = n;
+        }
+        c.validate()?;
+        Ok(c)
+    });
+    let settings = match settings {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("lungmotion serve: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    match serve_blocking(settings) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lungmotion serve: error: {e}");
+            ExitCode::FAILURE
+        }
+    }
 }

@@ -190,6 +190,19 @@ impl RunConfig {
         Ok(config)
     }
 
+    /// The ingest settings these options imply (element size, material, diaphragm).
+    pub fn ingest_settings(&self) -> crate::ingest::pipeline::IngestSettings {
+        crate::ingest::pipeline::IngestSettings {
+            model: crate::ingest::lung_model::LungModelSettings {
+                element_size_mm: self.element_size_mm,
+                material: self.material,
+                diaphragm: self.diaphragm,
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
     /// Refuses values no run can use, naming the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(Error::InvalidInput(m));

@@ -39,8 +39,8 @@ pub use summary::{
 
 use crate::breathing::BreathingTrace;
 use crate::formats::{metaimage, nifti, vtk};
-use crate::ingest::lung_model::{ConstraintGroup, LungModelSettings};
-use crate::ingest::pipeline::{ingest_scan, IngestSettings};
+use crate::ingest::lung_model::ConstraintGroup;
+use crate::ingest::pipeline::ingest_scan;
 use crate::ingest::scan::load_ct;
 use crate::motion::dynamic::run_dynamic;
 use crate::motion::{lung_scene, run_motion, FrameSummary};
@@ -142,15 +142,7 @@ pub fn run_breathing(
 
     observer.stage(RunStage::Ingest);
     let t = Instant::now();
-    let ingest_settings = IngestSettings {
-        model: LungModelSettings {
-            element_size_mm: config.element_size_mm,
-            material: config.material,
-            diaphragm: config.diaphragm,
-            ..LungModelSettings::default()
-        },
-        ..IngestSettings::default()
-    };
+    let ingest_settings = config.ingest_settings();
     let outcome = ingest_scan(&scan, &ingest_settings)?;
     let model = &outcome.model;
     let scene = lung_scene(model)?;

@@ -1,0 +1,307 @@
+//! How the service is set up: a TOML file, then the environment, then the command line, each
+//! overriding the one before. Every key is optional; unknown keys are refused by name.
+//!
+//! ```toml
+//! listen = "127.0.0.1:8080"
+//! data_dir = "lungmotion-data"
+//! workers = 2                 # simulations at once; default one per core
+//! queue_capacity = 16         # simulations waiting; beyond it, 429
+//! max_upload_mib = 2048       # scan uploads
+//! max_request_kib = 16384     # JSON and CSV bodies
+//! api_token_file = "/etc/lungmotion/token"
+//! shutdown_grace_s = 30
+//! max_attempts = 2            # runs of one job across server restarts
+//! [run]                       # defaults of every simulation, as `lungmotion run --config`
+//! element_size_mm = 6
+//! ```
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::run::RunConfig;
+use crate::{Error, Result};
+
+/// Largest service configuration file read, bytes.
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// Everything the service can be told.
+#[derive(Debug, Clone)]
+pub struct ServiceConfig {
+    /// Address and port to listen on (port 0 picks a free one).
+    pub listen: SocketAddr,
+    /// Root of the on-disk store (scans, jobs, uploads in progress).
+    pub data_dir: PathBuf,
+    /// Simulations run at once.
+    pub workers: usize,
+    /// Simulations waiting for a worker before new ones are refused with 429.
+    pub queue_capacity: usize,
+    /// Largest scan upload, bytes.
+    pub max_upload_bytes: u64,
+    /// Largest JSON or CSV request body, bytes.
+    pub max_request_bytes: u64,
+    /// Bearer token every `/v1` request must carry; required beyond loopback.
+    pub api_token: Option<String>,
+    /// How long a shutdown waits for running jobs before re-queueing them, seconds.
+    pub shutdown_grace_s: f64,
+    /// Runs of one job (the first and re-runs after a server stopped during it).
+    pub max_attempts: u32,
+    /// Defaults of every simulation; a request's options are merged over them.
+    pub run: RunConfig,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        ServiceConfig {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("lungmotion-data"),
+            workers: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1),
+            queue_capacity: 16,
+            max_upload_bytes: 2048 << 20,
+            max_request_bytes: 16 << 20,
+            api_token: None,
+            shutdown_grace_s: 30.0,
+            max_attempts: 2,
+            run: RunConfig::default(),
+        }
+    }
+}
+
+/// The TOML file's shape: every key optional.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ServiceFile {
+    listen: Option<String>,
+    data_dir: Option<PathBuf>,
+    workers: Option<usize>,
+    queue_capacity: Option<usize>,
+    max_upload_mib: Option<u64>,
+    max_request_kib: Option<u64>,
+    api_token_file: Option<PathBuf>,
+    shutdown_grace_s: Option<f64>,
+    max_attempts: Option<u32>,
+    run: Option<toml::Value>,
+}
+
+/// Environment variables the service reads (each overrides the file's key).
+pub const ENV_VARS: [&str; 7] = [
+    "LUNGMOTION_LISTEN",
+    "LUNGMOTION_DATA_DIR",
+    "LUNGMOTION_WORKERS",
+    "LUNGMOTION_QUEUE_CAPACITY",
+    "LUNGMOTION_MAX_UPLOAD_MIB",
+    "LUNGMOTION_API_TOKEN",
+    "LUNGMOTION_API_TOKEN_FILE",
+];
+
+impl ServiceConfig {
+    /// Reads the optional TOML file, then applies `env` (name → value, as from the process
+    /// environment); the error names the file or variable and the key.
+    pub fn load(file: Option<&Path>, env: &dyn Fn(&str) -> Option<String>) -> Result<Self> {
+        let mut config = ServiceConfig::default();
+        if let Some(path) = file {
+            config.apply_file(path)?;
+        }
+        config.apply_env(env)?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    fn apply_file(&mut self, path: &Path) -> Result<()> {
+        let bad = |m: String| Error::InvalidInput(format!("configuration {}: {m}", path.display()));
+        let meta = std::fs::metadata(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        if meta.len() > MAX_CONFIG_BYTES {
+            return Err(bad(format!(
+                "{} bytes is not a configuration file",
+                meta.len()
+            )));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        let file: ServiceFile =
+            toml::from_str(&text).map_err(|e| bad(e.message().trim().to_string()))?;
+        if let Some(listen) = file.listen {
+            self.listen = parse_listen(&listen).map_err(|m| bad(format!("listen: {m}")))?;
+        }
+        if let Some(dir) = file.data_dir {
+            // Relative to the configuration file, as a hospital's deployment expects.
+            self.data_dir = match path.parent() {
+                Some(parent) if dir.is_relative() => parent.join(dir),
+                _ => dir,
+            };
+        }
+        set(&mut self.workers, file.workers);
+        set(&mut self.queue_capacity, file.queue_capacity);
+        if let Some(mib) = file.max_upload_mib {
+            self.max_upload_bytes = mib.saturating_mul(1 << 20);
+        }
+        if let Some(kib) = file.max_request_kib {
+            self.max_request_bytes = kib.saturating_mul(1 << 10);
+        }
+        if let Some(token_file) = file.api_token_file {
+            self.api_token = Some(read_token_file(&token_file)?);
+        }
+        set(&mut self.shutdown_grace_s, file.shutdown_grace_s);
+        set(&mut self.max_attempts, file.max_attempts);
+        if let Some(run) = file.run {
+            let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
+            self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
+        }
+        Ok(())
+    }
+
+    fn apply_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<()> {
+        fn parsed<T: std::str::FromStr>(name: &str, value: &str) -> Result<T> {
+            value.trim().parse().map_err(|_| {
+                Error::InvalidInput(format!(
+                    "environment {name}={value:?} is not a valid number"
+                ))
+            })
+        }
+        if let Some(v) = env("LUNGMOTION_LISTEN") {
+            self.listen = parse_listen(&v)
+                .map_err(|m| Error::InvalidInput(format!("environment LUNGMOTION_LISTEN: {m}")))?;
+        }
+        if let Some(v) = env("LUNGMOTION_DATA_DIR") {
+            self.data_dir = PathBuf::from(v);
+        }
+        if let Some(v) = env("LUNGMOTION_WORKERS") {
+            self.workers = parsed("LUNGMOTION_WORKERS", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_QUEUE_CAPACITY") {
+            self.queue_capacity = parsed("LUNGMOTION_QUEUE_CAPACITY", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_MAX_UPLOAD_MIB") {
+            let mib: u64 = parsed("LUNGMOTION_MAX_UPLOAD_MIB", &v)?;
+            self.max_upload_bytes = mib.saturating_mul(1 << 20);
+        }
+        if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
+            self.api_token = Some(read_token_file(Path::new(&v))?);
+        }
+        if let Some(v) = env("LUNGMOTION_API_TOKEN") {
+            self.api_token = Some(v.trim().to_string());
+        }
+        Ok(())
+    }
+
+    /// Refuses settings the service cannot run with, naming the key.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: &str| Err(Error::InvalidInput(format!("service configuration: {m}")));
+        if self.workers == 0 || self.workers > 256 {
+            return bad("workers must be 1–256");
+        }
+        if self.queue_capacity == 0 || self.queue_capacity > 100_000 {
+            return bad("queue_capacity must be 1–100000");
+        }
+        if self.max_upload_bytes < 1 << 10 {
+            return bad("max_upload_mib must be at least 1");
+        }
+        if self.max_request_bytes < 1 << 10 {
+            return bad("max_request_kib must be at least 1");
+        }
+        if !(self.shutdown_grace_s.is_finite() && self.shutdown_grace_s >= 0.0) {
+            return bad("shutdown_grace_s must be a non-negative number of seconds");
+        }
+        if self.max_attempts == 0 {
+            return bad("max_attempts must be at least 1");
+        }
+        if let Some(token) = &self.api_token {
+            if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
+                return bad("the API token must be at least 8 characters without spaces");
+            }
+        }
+        if !self.listen.ip().is_loopback() && self.api_token.is_none() {
+            return bad(&format!(
+                "listening on {} (beyond loopback) needs a bearer token: set LUNGMOTION_API_TOKEN \
+                 or LUNGMOTION_API_TOKEN_FILE, or api_token_file in the configuration",
+                self.listen
+            ));
+        }
+        self.run.validate()
+    }
+}
+
+fn set<T>(slot: &mut T, value: Option<T>) {
+    if let Some(v) = value {
+        *slot = v;
+    }
+}
+
+fn parse_listen(text: &str) -> std::result::Result<SocketAddr, String> {
+    text.trim()
+        .parse()
+        .map_err(|_| format!("{text:?} is not an address:port such as 127.0.0.1:8080"))
+}
+
+fn read_token_file(path: &Path) -> Result<String> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Error::InvalidInput(format!(
+            "API token file {}: cannot read: {e}",
+            path.display()
+        ))
+    })?;
+    Ok(text.trim().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn no_env(_: &str) -> Option<String> {
+        None
+    }
+
+    #[test]
+    fn file_then_environment_override_defaults() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            "listen = \"127.0.0.1:9000\"\ndata_dir = \"store\"\nworkers = 3\nqueue_capacity = 5\n\
+             [run]\nelement_size_mm = 10\n",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        assert_eq!(c.listen.port(), 9000);
+        assert_eq!(c.data_dir, dir.join("store"));
+        assert_eq!((c.workers, c.queue_capacity), (3, 5));
+        assert_eq!(c.run.element_size_mm, 10.0);
+        let env = |k: &str| match k {
+            "LUNGMOTION_WORKERS" => Some("1".to_string()),
+            "LUNGMOTION_MAX_UPLOAD_MIB" => Some("7".to_string()),
+            _ => None,
+        };
+        let c = ServiceConfig::load(Some(&path), &env).unwrap();
+        assert_eq!((c.workers, c.max_upload_bytes), (1, 7 << 20));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn refuses_unknown_keys_bad_numbers_and_open_listening_without_token() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-bad-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(&path, "wokers = 3\n").unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("wokers"), "{e}");
+        std::fs::write(&path, "[run]\nelement_sise_mm = 3\n").unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("element_sise_mm"), "{e}");
+        let env = |k: &str| (k == "LUNGMOTION_WORKERS").then(|| "many".to_string());
+        let e = ServiceConfig::load(None, &env).unwrap_err();
+        assert!(e.to_string().contains("LUNGMOTION_WORKERS"), "{e}");
+        let env = |k: &str| (k == "LUNGMOTION_LISTEN").then(|| "0.0.0.0:8080".to_string());
+        let e = ServiceConfig::load(None, &env).unwrap_err();
+        assert!(e.to_string().contains("LUNGMOTION_API_TOKEN"), "{e}");
+        let env = |k: &str| match k {
+            "LUNGMOTION_LISTEN" => Some("0.0.0.0:8080".to_string()),
+            "LUNGMOTION_API_TOKEN" => Some("a-long-secret".to_string()),
+            _ => None,
+        };
+        assert!(ServiceConfig::load(None, &env).is_ok());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,539 @@
+//! Simulation jobs: a bounded queue in front of a fixed pool of worker threads, with every
+//! change of state written to the store before it is acted on, so that a job survives a
+//! crash or restart: queued jobs run after the restart, a job found `running` (the server
+//! stopped during it) is re-run until `max_attempts` runs have started, then failed with
+//! the reason.
+//!
+//! Workers are OS threads, not tokio tasks: a run is seconds of CPU work (itself parallel
+//! with rayon) that must not stall the HTTP reactor. Cost model: one run at a time per
+//! worker, memory per run as `lungmotion run` (≈ 60 MiB at 8 mm, ≈ 300 MiB at 4 mm).
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use super::ids::{JobId, ScanId};
+use super::store::{now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, Store};
+use crate::breathing::BreathingTrace;
+use crate::run::{run_breathing, RunInputs, RunObserver, RunStage};
+use crate::{Error, Result};
+
+/// Why a submission was refused.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SubmitRefusal {
+    /// `queue_capacity` jobs are waiting; retry after about this many seconds.
+    QueueFull {
+        /// Jobs waiting.
+        queued: usize,
+        /// Suggested wait, s.
+        retry_after_s: u64,
+    },
+    /// The server is shutting down.
+    ShuttingDown,
+}
+
+/// What a client's cancellation did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CancelOutcome {
+    /// The job was waiting and is now cancelled.
+    Cancelled,
+    /// The job is running; it stops at its next stage or frame.
+    Requested,
+    /// The job had already finished.
+    AlreadyFinished,
+}
+
+/// Counts of jobs by state, and the queue, for readiness and metrics.
+#[derive(Debug, Clone, Default)]
+pub struct JobCounts {
+    /// Jobs known, by state.
+    pub by_state: [usize; 5],
+    /// Jobs waiting for a worker.
+    pub queued: usize,
+    /// Jobs running.
+    pub running: usize,
+    /// Runs finished since start and their wall times, s (for metrics).
+    pub finished_runs: Vec<f64>,
+}
+
+const CANCEL_NONE: u8 = 0;
+const CANCEL_CLIENT: u8 = 1;
+const CANCEL_SHUTDOWN: u8 = 2;
+
+/// A job the server knows of: its record, and its cancellation flag while it runs.
+struct LiveJob {
+    record: Mutex<JobRecord>,
+    cancel: AtomicU8,
+}
+
+struct Board {
+    jobs: HashMap<JobId, Arc<LiveJob>>,
+    queue: VecDeque<JobId>,
+    running: usize,
+    shutting_down: bool,
+    run_times_s: Vec<f64>,
+}
+
+struct Shared {
+    store: Store,
+    board: Mutex<Board>,
+    changed: Condvar,
+    queue_capacity: usize,
+    workers: usize,
+}
+
+/// The job queue and its workers.
+#[derive(Clone)]
+pub struct JobManager {
+    shared: Arc<Shared>,
+}
+
+/// The worker threads, to join at shutdown.
+pub struct Workers {
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl JobManager {
+    /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads.
+    pub fn start(
+        store: Store,
+        workers: usize,
+        queue_capacity: usize,
+        max_attempts: u32,
+    ) -> Result<(Self, Workers)> {
+        let (records, problems) = store.list_jobs()?;
+        for p in problems {
+            tracing::warn!("store: {p}");
+        }
+        let mut board = Board {
+            jobs: HashMap::new(),
+            queue: VecDeque::new(),
+            running: 0,
+            shutting_down: false,
+            run_times_s: Vec::new(),
+        };
+        for mut record in records {
+            match record.state {
+                JobState::Queued => board.queue.push_back(record.job_id),
+                JobState::Running if record.attempts >= max_attempts => {
+                    record.state = JobState::Failed;
+                    record.error = Some(format!(
+                        "the server stopped during each of this job's {} runs (last started {}); \
+                         not retried",
+                        record.attempts,
+                        record.started_at.as_deref().unwrap_or("at an unknown time")
+                    ));
+                    record.finished_at = Some(now_rfc3339());
+                    store.save_job(&record)?;
+                    tracing::warn!(job = %record.job_id, "interrupted too often, failed");
+                }
+                JobState::Running => {
+                    record.state = JobState::Queued;
+                    record.progress = JobProgress::default();
+                    record.error = Some(format!(
+                        "the server stopped during run {} (started {}); queued to run again",
+                        record.attempts,
+                        record.started_at.as_deref().unwrap_or("at an unknown time")
+                    ));
+                    store.save_job(&record)?;
+                    board.queue.push_back(record.job_id);
+                    tracing::warn!(job = %record.job_id, "was running when the server stopped; re-queued");
+                }
+                _ => {}
+            }
+            board.jobs.insert(
+                record.job_id,
+                Arc::new(LiveJob {
+                    record: Mutex::new(record),
+                    cancel: AtomicU8::new(CANCEL_NONE),
+                }),
+            );
+        }
+        if !board.queue.is_empty() {
+            tracing::info!(queued = board.queue.len(), "jobs recovered from the store");
+        }
+        let shared = Arc::new(Shared {
+            store,
+            board: Mutex::new(board),
+            changed: Condvar::new(),
+            queue_capacity,
+            workers,
+        });
+        let threads = (0..workers)
+            .map(|i| {
+                let shared = shared.clone();
+                std::thread::Builder::new()
+                    .name(format!("lungmotion-worker-{i}"))
+                    .spawn(move || worker_loop(&shared))
+                    .map_err(Error::Io)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok((JobManager { shared }, Workers { threads }))
+    }
+
+    fn board(&self) -> MutexGuard<'_, Board> {
+        self.shared
+            .board
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// Stores and queues a job, or refuses it when the queue is full or the server stops.
+    pub fn submit(
+        &self,
+        scan_id: ScanId,
+        request: &JobRequest,
+    ) -> Result<std::result::Result<JobRecord, SubmitRefusal>> {
+        let mut board = self.board();
+        if board.shutting_down {
+            return Ok(Err(SubmitRefusal::ShuttingDown));
+        }
+        if board.queue.len() >= self.shared.queue_capacity {
+            let queued = board.queue.len();
+            return Ok(Err(SubmitRefusal::QueueFull {
+                queued,
+                retry_after_s: self.retry_after_s(&board),
+            }));
+        }
+        let record = JobRecord {
+            job_id: JobId::random(),
+            scan_id,
+            state: JobState::Queued,
+            progress: JobProgress::default(),
+            error: None,
+            attempts: 0,
+            created_at: now_rfc3339(),
+            started_at: None,
+            finished_at: None,
+        };
+        // On disk before it is acknowledged: an accepted job is never lost.
+        self.shared.store.put_job(&record, request)?;
+        board.jobs.insert(
+            record.job_id,
+            Arc::new(LiveJob {
+                record: Mutex::new(record.clone()),
+                cancel: AtomicU8::new(CANCEL_NONE),
+            }),
+        );
+        board.queue.push_back(record.job_id);
+        drop(board);
+        self.shared.changed.notify_all();
+        Ok(Ok(record))
+    }
+
+    /// Seconds a refused client should wait: the median run time spread over the workers.
+    fn retry_after_s(&self, board: &Board) -> u64 {
+        let mut times = board.run_times_s.clone();
+        times.sort_by(f64::total_cmp);
+        let typical = times.get(times.len() / 2).copied().unwrap_or(10.0);
+        (typical / self.shared.workers as f64)
+            .ceil()
+            .clamp(1.0, 600.0) as u64
+    }
+
+    /// A job's current record.
+    pub fn status(&self, id: JobId) -> Option<JobRecord> {
+        let live = self.board().jobs.get(&id).cloned()?;
+        let record = lock(&live.record).clone();
+        Some(record)
+    }
+
+    /// Whether a scan has jobs that are queued or running.
+    pub fn scan_in_use(&self, scan_id: ScanId) -> bool {
+        self.board().jobs.values().any(|j| {
+            let r = lock(&j.record);
+            r.scan_id == scan_id && !r.state.is_terminal()
+        })
+    }
+
+    /// Cancels a queued or running job; `None` for an unknown job.
+    pub fn cancel(&self, id: JobId) -> Result<Option<CancelOutcome>> {
+        let mut board = self.board();
+        let Some(live) = board.jobs.get(&id).cloned() else {
+            return Ok(None);
+        };
+        let mut record = lock(&live.record);
+        match record.state {
+            JobState::Queued => {
+                board.queue.retain(|q| *q != id);
+                record.state = JobState::Cancelled;
+                record.error = Some("cancelled by a client before it ran".into());
+                record.finished_at = Some(now_rfc3339());
+                self.shared.store.save_job(&record)?;
+                Ok(Some(CancelOutcome::Cancelled))
+            }
+            JobState::Running => {
+                live.cancel.store(CANCEL_CLIENT, Ordering::SeqCst);
+                Ok(Some(CancelOutcome::Requested))
+            }
+            _ => Ok(Some(CancelOutcome::AlreadyFinished)),
+        }
+    }
+
+    /// Removes a finished job and its outputs; `Ok(false)` when it is not finished.
+    pub fn remove(&self, id: JobId) -> Result<bool> {
+        let mut board = self.board();
+        let finished = board
+            .jobs
+            .get(&id)
+            .is_some_and(|j| lock(&j.record).state.is_terminal());
+        if !finished {
+            return Ok(false);
+        }
+        board.jobs.remove(&id);
+        self.shared.store.delete_job(id)?;
+        Ok(true)
+    }
+
+    /// Jobs by state and the queue.
+    pub fn counts(&self) -> JobCounts {
+        let board = self.board();
+        let mut counts = JobCounts {
+            queued: board.queue.len(),
+            running: board.running,
+            finished_runs: board.run_times_s.clone(),
+            ..JobCounts::default()
+        };
+        for live in board.jobs.values() {
+            let state = lock(&live.record).state;
+            let i = JobState::ALL.iter().position(|s| *s == state).unwrap_or(0);
+            counts.by_state[i] += 1;
+        }
+        counts
+    }
+
+    /// Whether shutdown has begun.
+    pub fn shutting_down(&self) -> bool {
+        self.board().shutting_down
+    }
+
+    /// Refuses new jobs from now on (running ones go on).
+    pub fn begin_shutdown(&self) {
+        self.board().shutting_down = true;
+    }
+
+    /// Stops taking jobs, waits up to `grace` for running ones, then stops them and puts them
+    /// back in the queue on disk (they run after the next start), and joins the workers.
+    pub fn shutdown(&self, workers: Workers, grace: Duration) {
+        let deadline = Instant::now() + grace;
+        let mut board = self.board();
+        board.shutting_down = true;
+        self.shared.changed.notify_all();
+        while board.running > 0 {
+            let now = Instant::now();
+            if now >= deadline {
+                break;
+            }
+            board = self
+                .shared
+                .changed
+                .wait_timeout(board, deadline - now)
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+        if board.running > 0 {
+            tracing::info!(
+                running = board.running,
+                "grace period over; stopping running jobs and re-queueing them"
+            );
+            for live in board.jobs.values() {
+                if lock(&live.record).state == JobState::Running {
+                    live.cancel.store(CANCEL_SHUTDOWN, Ordering::SeqCst);
+                }
+            }
+        }
+        drop(board);
+        for t in workers.threads {
+            let _ = t.join();
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn worker_loop(shared: &Shared) {
+    loop {
+        let live = {
+            let mut board = lock(&shared.board);
+            loop {
+                if board.shutting_down {
+                    return;
+                }
+                if let Some(id) = board.queue.pop_front() {
+                    if let Some(live) = board.jobs.get(&id).cloned() {
+                        board.running += 1;
+                        break live;
+                    }
+                    continue;
+                }
+                board = shared
+                    .changed
+                    .wait(board)
+                    .unwrap_or_else(|p| p.into_inner());
+            }
+        };
+        let started = Instant::now();
+        run_job(shared, &live);
+        let mut board = lock(&shared.board);
+        board.running -= 1;
+        board.run_times_s.push(started.elapsed().as_secs_f64());
+        drop(board);
+        shared.changed.notify_all();
+    }
+}
+
+/// Runs one job to a final state (or back to `queued` when the server stops).
+fn run_job(shared: &Shared, live: &LiveJob) {
+    let (id, scan_id) = {
+        let mut record = lock(&live.record);
+        record.state = JobState::Running;
+        record.attempts += 1;
+        record.started_at = Some(now_rfc3339());
+        record.progress = JobProgress::default();
+        if let Err(e) = shared.store.save_job(&record) {
+            tracing::error!(job = %record.job_id, "cannot record the start: {e}");
+        }
+        (record.job_id, record.scan_id)
+    };
+    tracing::info!(job = %id, "run started");
+    let started = Instant::now();
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        execute(shared, id, scan_id, live)
+    }))
+    .unwrap_or_else(|panic| {
+        let what = panic
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "unknown panic".into());
+        Err(Error::InvalidModel(format!("internal error: {what}")))
+    });
+    let mut record = lock(&live.record);
+    match outcome {
+        Ok(()) => {
+            record.state = JobState::Done;
+            record.error = None;
+            record.progress.fraction = 1.0;
+            record.progress.stage = None;
+            record.progress.stage_label = None;
+        }
+        Err(Error::Cancelled(_)) if live.cancel.load(Ordering::SeqCst) == CANCEL_SHUTDOWN => {
+            // Not the job's fault: it runs again after the restart, without using an attempt.
+            record.state = JobState::Queued;
+            record.attempts -= 1;
+            record.progress = JobProgress::default();
+            record.error = Some("the server shut down during the run; queued to run again".into());
+            let _ = shared.store.clear_partial_outputs(id);
+        }
+        Err(Error::Cancelled(_)) => {
+            record.state = JobState::Cancelled;
+            record.error = Some("cancelled by a client while running".into());
+        }
+        Err(e) => {
+            record.state = JobState::Failed;
+            record.error = Some(e.to_string());
+        }
+    }
+    if record.state.is_terminal() {
+        record.finished_at = Some(now_rfc3339());
+    }
+    live.cancel.store(CANCEL_NONE, Ordering::SeqCst);
+    if let Err(e) = shared.store.save_job(&record) {
+        tracing::error!(job = %id, "cannot record the end: {e}");
+    }
+    tracing::info!(
+        job = %id,
+        state = record.state.name(),
+        seconds = started.elapsed().as_secs_f64(),
+        "run ended"
+    );
+}
+
+fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Result<()> {
+    let request = shared.store.job_request(id)?;
+    let scan = shared.store.scan(scan_id)?.ok_or_else(|| {
+        Error::InvalidInput(format!("scan {scan_id} was deleted before the job ran"))
+    })?;
+    shared.store.clear_partial_outputs(id)?;
+    let JobRequest {
+        config,
+        time_s,
+        volume_ml,
+        trace_source,
+        points,
+    } = request;
+    let inputs = RunInputs {
+        ct_path: shared.store.scan_file(&scan),
+        trace: BreathingTrace::new(time_s, volume_ml)?,
+        trace_source,
+        points: points.iter().map(Into::into).collect(),
+    };
+    let mut observer = JobObserver {
+        store: &shared.store,
+        live,
+    };
+    run_breathing(
+        &inputs,
+        &config,
+        &shared.store.job_output_dir(id),
+        &mut observer,
+    )?;
+    Ok(())
+}
+
+/// Carries a run's progress into the job record (on disk at each stage).
+struct JobObserver<'a> {
+    store: &'a Store,
+    live: &'a LiveJob,
+}
+
+/// Where each stage starts in the progress fraction (solving dominates).
+fn stage_start(stage: RunStage) -> f64 {
+    match stage {
+        RunStage::LoadingScan => 0.0,
+        RunStage::Ingest => 0.05,
+        RunStage::Solving => 0.15,
+        RunStage::WritingFrames => 0.7,
+        RunStage::Finishing => 0.95,
+    }
+}
+
+fn stage_name(stage: RunStage) -> &'static str {
+    match stage {
+        RunStage::LoadingScan => "loading_scan",
+        RunStage::Ingest => "ingest",
+        RunStage::Solving => "solving",
+        RunStage::WritingFrames => "writing_frames",
+        RunStage::Finishing => "finishing",
+    }
+}
+
+impl RunObserver for JobObserver<'_> {
+    fn stage(&mut self, stage: RunStage) {
+        let mut record = lock(&self.live.record);
+        record.progress.stage = Some(stage_name(stage).to_string());
+        record.progress.stage_label = Some(stage.label().to_string());
+        record.progress.fraction = stage_start(stage);
+        if let Err(e) = self.store.save_job(&record) {
+            tracing::warn!(job = %record.job_id, "cannot record progress: {e}");
+        }
+    }
+
+    fn frame_written(&mut self, done: usize, total: usize) {
+        let mut record = lock(&self.live.record);
+        record.progress.frames_written = done;
+        record.progress.frames_total = Some(total);
+        let (a, b) = (
+            stage_start(RunStage::WritingFrames),
+            stage_start(RunStage::Finishing),
+        );
+        record.progress.fraction = a + (b - a) * done as f64 / total.max(1) as f64;
+    }
+
+    fn cancelled(&self) -> bool {
+        self.live.cancel.load(Ordering::SeqCst) != CANCEL_NONE
+    }
+}

@@ -1,0 +1,373 @@
+//! Assembling and running the server: routes, the middleware every request passes through
+//! (request id, tracing span, metrics, problem bodies, bearer authentication), listening,
+//! and a graceful shutdown that stops taking work, drains requests and gives running jobs
+//! `shutdown_grace_s` before putting them back in the queue.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::{header, HeaderName, HeaderValue, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use subtle::ConstantTimeEq;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::TraceLayer;
+
+use super::config::ServiceConfig;
+use super::jobs::{JobManager, Workers};
+use super::metrics::ServiceMetrics;
+use super::openapi::openapi_document;
+use super::problem::{ApiError, PROBLEM_JSON};
+use super::routes::{self, AppState, SharedState};
+use super::store::Store;
+use crate::{Error, Result};
+
+const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
+/// Builds the router over `state`.
+pub fn router(state: SharedState) -> Router {
+    let request_limit = state.config.max_request_bytes as usize;
+    let v1 = Router::new()
+        .route(
+            "/v1/scans",
+            // Uploads are limited while streaming, by max_upload_bytes.
+            post(routes::upload_scan).layer(DefaultBodyLimit::disable()),
+        )
+        .route(
+            "/v1/scans/{id}",
+            get(routes::get_scan).delete(routes::delete_scan),
+        )
+        .route(
+            "/v1/scans/{id}/simulations",
+            post(routes::create_simulation).layer(DefaultBodyLimit::max(request_limit)),
+        )
+        .route(
+            "/v1/jobs/{id}",
+            get(routes::get_job).delete(routes::delete_job),
+        )
+        .route("/v1/jobs/{id}/summary", get(routes::job_summary))
+        .route("/v1/jobs/{id}/frames", get(routes::job_frames))
+        .route(
+            "/v1/jobs/{id}/frames/{k}/displacement",
+            get(routes::frame_displacement),
+        )
+        .route("/v1/jobs/{id}/trajectories", get(routes::job_trajectories))
+        .route("/metrics", get(routes::metrics))
+        .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
+    Router::new()
+        .merge(v1)
+        .route("/healthz", get(routes::healthz))
+        .route("/readyz", get(routes::readyz))
+        .route("/openapi.json", get(|| async { Json(openapi_document()) }))
+        .fallback(routes::not_found)
+        .with_state(state.clone())
+        .layer(middleware::from_fn_with_state(state, observe))
+        .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+        .layer(
+            TraceLayer::new_for_http().make_span_with(|request: &Request| {
+                let id = request
+                    .headers()
+                    .get(&REQUEST_ID)
+                    .and_then(|v| v.to_str().ok())
+                    .unwrap_or("-");
+                // Paths hold only random ids, never patient data, so they may be logged.
+                tracing::info_span!(
+                    "request",
+                    request_id = %id,
+                    method = %request.method(),
+                    path = %request.uri().path(),
+                )
+            }),
+        )
+        .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+}
+
+/// Requires the bearer token when one is configured.
+async fn authenticate(State(state): State<SharedState>, request: Request, next: Next) -> Response {
+    let Some(expected) = state.config.api_token.as_deref() else {
+        return next.run(request).await;
+    };
+    let given = request
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| {
+            v.strip_prefix("Bearer ")
+                .or_else(|| v.strip_prefix("bearer "))
+        })
+        .map(str::trim);
+    match given {
+        Some(token) if bool::from(token.as_bytes().ct_eq(expected.as_bytes())) => {
+            next.run(request).await
+        }
+        Some(_) => ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "unauthorized",
+            "the bearer token is not valid for this server",
+        )
+        .into_response(),
+        None => ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "unauthorized",
+            "this server needs an `Authorization: Bearer <token>` header",
+        )
+        .into_response(),
+    }
+}
+
+/// Records metrics and turns every error answer into a complete problem document (with the
+/// request's path and id), including the framework's own (405, 413 from the body limit …).
+async fn observe(State(state): State<SharedState>, request: Request, next: Next) -> Response {
+    let started = Instant::now();
+    let method = request.method().to_string();
+    let route = request
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|p| p.as_str().to_string())
+        .unwrap_or_else(|| "unmatched".to_string());
+    let path = request.uri().path().to_string();
+    let request_id = request
+        .headers()
+        .get(&REQUEST_ID)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string);
+    let response = next.run(request).await;
+    let status = response.status();
+    let response = if status.is_client_error() || status.is_server_error() {
+        complete_problem(response, path, request_id).await
+    } else {
+        response
+    };
+    state.metrics.observe_request(
+        &method,
+        &route,
+        status.as_u16(),
+        started.elapsed().as_secs_f64(),
+    );
+    response
+}
+
+async fn complete_problem(
+    response: Response,
+    instance: String,
+    request_id: Option<String>,
+) -> Response {
+    let (mut parts, body) = response.into_parts();
+    let error = match parts.extensions.remove::<ApiError>() {
+        Some(e) => e,
+        None => {
+            let is_problem = parts
+                .headers
+                .get(header::CONTENT_TYPE)
+                .is_some_and(|v| v.as_bytes().starts_with(PROBLEM_JSON.as_bytes()));
+            if is_problem {
+                return Response::from_parts(parts, body);
+            }
+            // The framework's own answer (a rejection); its text becomes the detail.
+            let text = axum::body::to_bytes(body, 64 << 10)
+                .await
+                .map(|b| String::from_utf8_lossy(&b).into_owned())
+                .unwrap_or_default();
+            let slug = match parts.status {
+                StatusCode::PAYLOAD_TOO_LARGE => "body-too-large",
+                StatusCode::METHOD_NOT_ALLOWED => "method-not-allowed",
+                StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported-media-type",
+                _ => "bad-request",
+            };
+            let detail = if text.trim().is_empty() {
+                parts
+                    .status
+                    .canonical_reason()
+                    .unwrap_or("error")
+                    .to_string()
+            } else {
+                text.trim().to_string()
+            };
+            ApiError::new(parts.status, slug, detail)
+        }
+    };
+    let body =
+        serde_json::to_vec(&error.to_problem(Some(instance), request_id)).unwrap_or_default();
+    parts
+        .headers
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+    parts.headers.remove(header::CONTENT_LENGTH);
+    Response::from_parts(parts, axum::body::Body::from(body))
+}
+
+/// A server running on its own threads (for benchmarks and embedding).
+pub struct ServerHandle {
+    /// The address it listens on.
+    pub addr: SocketAddr,
+    /// `http://<addr>`.
+    pub base_url: String,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<Result<()>>>,
+}
+
+impl ServerHandle {
+    /// Shuts the server down gracefully and waits for it.
+    pub fn shutdown(mut self) -> Result<()> {
+        self.stop_and_join()
+    }
+
+    fn stop_and_join(&mut self) -> Result<()> {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        match self.thread.take() {
+            Some(t) => t
+                .join()
+                .map_err(|_| Error::InvalidModel("the server thread panicked".into()))?,
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for ServerHandle {
+    fn drop(&mut self) {
+        let _ = self.stop_and_join();
+    }
+}
+
+/// Opens the store, recovers its jobs, starts the workers and the HTTP state.
+fn prepare(config: ServiceConfig) -> Result<(SharedState, Workers)> {
+    config.validate()?;
+    let store = Store::open(&config.data_dir)?;
+    let (jobs, workers) = JobManager::start(
+        store.clone(),
+        config.workers,
+        config.queue_capacity,
+        config.max_attempts,
+    )?;
+    let state = Arc::new(AppState {
+        ingest_slots: tokio::sync::Semaphore::new(config.workers),
+        metrics: ServiceMetrics::default(),
+        store,
+        jobs,
+        config,
+    });
+    Ok((state, workers))
+}
+
+/// Serves on `listener` until `stop` resolves, then shuts down gracefully.
+async fn serve_on(
+    listener: tokio::net::TcpListener,
+    state: SharedState,
+    workers: Workers,
+    stop: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<()> {
+    let jobs = state.jobs.clone();
+    let grace = Duration::from_secs_f64(state.config.shutdown_grace_s);
+    let app = router(state);
+    let (begin_tx, begin_rx) = tokio::sync::oneshot::channel::<()>();
+    let jobs_for_signal = jobs.clone();
+    let shutdown_signal = async move {
+        stop.await;
+        tracing::info!("shutting down: no new work; draining requests");
+        // New submissions get 503 from here on, while requests in flight finish.
+        jobs_for_signal.begin_shutdown();
+        let _ = begin_tx.send(());
+    };
+    axum::serve(listener, app)
+        .with_graceful_shutdown(shutdown_signal)
+        .await
+        .map_err(Error::Io)?;
+    let _ = begin_rx.await;
+    tokio::task::spawn_blocking(move || jobs.shutdown(workers, grace))
+        .await
+        .map_err(|e| Error::InvalidModel(format!("shutdown: {e}")))?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+/// Starts a server on its own runtime thread; returns once it listens.
+pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
+    let (state, workers) = prepare(config)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("lungmotion-http")
+        .build()
+        .map_err(Error::Io)?;
+    let listener = runtime
+        .block_on(tokio::net::TcpListener::bind(state.config.listen))
+        .map_err(|e| bind_error(state.config.listen, e))?;
+    let addr = listener.local_addr().map_err(Error::Io)?;
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let thread = std::thread::Builder::new()
+        .name("lungmotion-server".into())
+        .spawn(move || {
+            runtime.block_on(serve_on(listener, state, workers, async move {
+                let _ = stop_rx.await;
+            }))
+        })
+        .map_err(Error::Io)?;
+    Ok(ServerHandle {
+        addr,
+        base_url: format!("http://{addr}"),
+        stop: Some(stop_tx),
+        thread: Some(thread),
+    })
+}
+
+fn bind_error(addr: SocketAddr, e: std::io::Error) -> Error {
+    Error::InvalidInput(format!("cannot listen on {addr}: {e}"))
+}
+
+/// Runs the server in the foreground until SIGTERM or Ctrl-C (the CLI's `serve`); prints the
+/// address it listens on to stdout once it does.
+pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("lungmotion-http")
+        .build()
+        .map_err(Error::Io)?;
+    runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .map_err(|e| bind_error(config.listen, e))?;
+        let addr = listener.local_addr().map_err(Error::Io)?;
+        let (state, workers) = tokio::task::block_in_place(|| prepare(config))?;
+        tracing::info!(
+            %addr,
+            data_dir = %state.config.data_dir.display(),
+            workers = state.config.workers,
+            queue_capacity = state.config.queue_capacity,
+            authentication = state.config.api_token.is_some(),
+            "listening"
+        );
+        {
+            use std::io::Write;
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(out, "lungmotion serve: listening on http://{addr}");
+            let _ = out.flush();
+        }
+        serve_on(listener, state, workers, termination()).await
+    })
+}
+
+/// Resolves on SIGTERM or Ctrl-C.
+async fn termination() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

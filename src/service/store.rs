@@ -1,0 +1,494 @@
+//! The service's on-disk store: one directory per scan and per job, every record a JSON file
+//! replaced atomically (temporary file, fsync, rename, fsync of the directory), so a crash at
+//! any instant leaves either the old or the new record, never half of one.
+//!
+//! Layout under the data directory:
+//! * `scans/<scan_id>/scan.json` ([`ScanRecord`]) and the upload as received
+//!   (`scan.nii.gz`, `scan.nii`, `scan.nrrd` or `scan.zip`);
+//! * `jobs/<job_id>/job.json` ([`JobRecord`]), `request.json` ([`JobRequest`]) and `out/`,
+//!   the run's output directory in the CLI's layout, published whole when the run succeeds;
+//! * `tmp/`: uploads in progress and directories being deleted; emptied at start.
+//!
+//! A scan or job directory appears by renaming a complete directory from `tmp/`, and
+//! disappears by renaming it back into `tmp/` before removal, so a listing never sees half of one.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+use serde::{Deserialize, Serialize};
+
+use super::ids::{JobId, ScanId};
+use crate::run::{RunConfig, TrackedPoint};
+use crate::{Error, Result};
+
+/// A scan as stored: what was uploaded and what ingest found.
+#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ScanRecord {
+    /// Its id.
+    #[schema(value_type = String)]
+    pub scan_id: ScanId,
+    /// When it was uploaded (RFC 3339, UTC).
+    pub created_at: String,
+    /// What the upload was: `nifti`, `nrrd` or `dicom-zip`.
+    pub format: String,
+    /// Bytes received.
+    pub upload_bytes: u64,
+    /// The upload's file name inside the scan directory.
+    pub file_name: String,
+    /// The ingest summary (the CLI's `ingest.json`).
+    #[schema(value_type = Object)]
+    pub ingest: serde_json::Value,
+}
+
+/// Where a job is in its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker is running it.
+    Running,
+    /// Finished; its outputs are published.
+    Done,
+    /// Stopped with an error (see `error`).
+    Failed,
+    /// Cancelled by a client.
+    Cancelled,
+}
+
+impl JobState {
+    /// Whether the job will not change any more.
+    pub fn is_terminal(self) -> bool {
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
+    }
+
+    /// The state's name as in the API.
+    pub fn name(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Done => "done",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// Every state, for metrics.
+    pub const ALL: [JobState; 5] = [
+        JobState::Queued,
+        JobState::Running,
+        JobState::Done,
+        JobState::Failed,
+        JobState::Cancelled,
+    ];
+}
+
+/// How far a job has got.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct JobProgress {
+    /// The run's current stage (`loading_scan`, `ingest`, `solving`, `writing_frames`,
+    /// `finishing`), none before it starts.
+    pub stage: Option<String>,
+    /// What the stage does.
+    pub stage_label: Option<String>,
+    /// Rough fraction of the work done, 0–1.
+    pub fraction: f64,
+    /// Frames written so far.
+    pub frames_written: usize,
+    /// Frames the run will write, once known.
+    pub frames_total: Option<usize>,
+}
+
+/// A job as stored (`job.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct JobRecord {
+    /// Its id.
+    pub job_id: JobId,
+    /// The scan it simulates.
+    pub scan_id: ScanId,
+    /// Where it is.
+    pub state: JobState,
+    /// How far it has got.
+    pub progress: JobProgress,
+    /// Why it failed or was cancelled.
+    pub error: Option<String>,
+    /// Runs started (a server stopping mid-run leads to another).
+    pub attempts: u32,
+    /// Submitted (RFC 3339, UTC).
+    pub created_at: String,
+    /// The last run started.
+    pub started_at: Option<String>,
+    /// It reached a final state.
+    pub finished_at: Option<String>,
+}
+
+/// What a job runs (`request.json`): the merged options, the trace and the points.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct JobRequest {
+    /// Options: the server's defaults with the request's merged over them.
+    pub config: RunConfig,
+    /// Trace times, s.
+    pub time_s: Vec<f64>,
+    /// Lung volume change from the scanned state, mL.
+    pub volume_ml: Vec<f64>,
+    /// Where the trace came from.
+    pub trace_source: String,
+    /// Points to track.
+    pub points: Vec<StoredPoint>,
+}
+
+/// A tracked point in `request.json`.
+#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct StoredPoint {
+    /// The client's name for it.
+    pub name: String,
+    /// Position at the scanned state, LPS mm.
+    pub lps_mm: [f64; 3],
+}
+
+impl From<&StoredPoint> for TrackedPoint {
+    fn from(p: &StoredPoint) -> Self {
+        TrackedPoint {
+            name: p.name.clone(),
+            rest_lps_mm: p.lps_mm,
+        }
+    }
+}
+
+/// Now as RFC 3339 UTC, to the second.
+pub fn now_rfc3339() -> String {
+    humantime::format_rfc3339_seconds(SystemTime::now()).to_string()
+}
+
+/// The data directory.
+#[derive(Debug, Clone)]
+pub struct Store {
+    root: PathBuf,
+}
+
+const SCAN_RECORD: &str = "scan.json";
+const JOB_RECORD: &str = "job.json";
+const JOB_REQUEST: &str = "request.json";
+/// The run's output directory inside a job's directory.
+pub const JOB_OUTPUT: &str = "out";
+
+impl Store {
+    /// Opens (creating) the store at `root` and empties `tmp/` of an earlier process's leftovers.
+    pub fn open(root: &Path) -> Result<Self> {
+        let store = Store {
+            root: root.to_path_buf(),
+        };
+        for dir in ["scans", "jobs"] {
+            std::fs::create_dir_all(root.join(dir)).map_err(|e| io_error(&root.join(dir), e))?;
+        }
+        let tmp = store.tmp_dir();
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).map_err(|e| io_error(&tmp, e))?;
+        }
+        std::fs::create_dir_all(&tmp).map_err(|e| io_error(&tmp, e))?;
+        // Proves the store is writable now rather than at the first upload.
+        write_durable(&tmp.join("writable"), b"ok")?;
+        Ok(store)
+    }
+
+    /// The data directory.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Where uploads are received and deletions happen.
+    pub fn tmp_dir(&self) -> PathBuf {
+        self.root.join("tmp")
+    }
+
+    /// A fresh, unused path in `tmp/`.
+    pub fn tmp_path(&self, what: &str) -> PathBuf {
+        self.tmp_dir()
+            .join(format!("{what}-{}", uuid::Uuid::new_v4().simple()))
+    }
+
+    /// Whether the store can be written (for readiness).
+    pub fn is_writable(&self) -> bool {
+        write_durable(&self.tmp_dir().join("writable"), b"ok").is_ok()
+    }
+
+    /// A scan's directory.
+    pub fn scan_dir(&self, id: ScanId) -> PathBuf {
+        self.root.join("scans").join(id.to_string())
+    }
+
+    /// The uploaded file of a scan.
+    pub fn scan_file(&self, record: &ScanRecord) -> PathBuf {
+        self.scan_dir(record.scan_id).join(&record.file_name)
+    }
+
+    /// Stores a scan: moves the received `upload` in and writes its record, all at once.
+    pub fn put_scan(&self, record: &ScanRecord, upload: &Path) -> Result<()> {
+        let staging = self.tmp_path("scan");
+        std::fs::create_dir_all(&staging).map_err(|e| io_error(&staging, e))?;
+        let file = staging.join(&record.file_name);
+        std::fs::rename(upload, &file).map_err(|e| io_error(upload, e))?;
+        write_json(&staging.join(SCAN_RECORD), record)?;
+        publish_dir(&staging, &self.scan_dir(record.scan_id))
+    }
+
+    /// A scan's record, `None` when there is no such scan.
+    pub fn scan(&self, id: ScanId) -> Result<Option<ScanRecord>> {
+        read_json_opt(&self.scan_dir(id).join(SCAN_RECORD))
+    }
+
+    /// Removes a scan; `false` when there was none.
+    pub fn delete_scan(&self, id: ScanId) -> Result<bool> {
+        self.remove_dir(&self.scan_dir(id))
+    }
+
+    /// A job's directory.
+    pub fn job_dir(&self, id: JobId) -> PathBuf {
+        self.root.join("jobs").join(id.to_string())
+    }
+
+    /// A job's output directory (the run's `--out`).
+    pub fn job_output_dir(&self, id: JobId) -> PathBuf {
+        self.job_dir(id).join(JOB_OUTPUT)
+    }
+
+    /// Stores a new job: its request and its record, all at once.
+    pub fn put_job(&self, record: &JobRecord, request: &JobRequest) -> Result<()> {
+        let staging = self.tmp_path("job");
+        std::fs::create_dir_all(&staging).map_err(|e| io_error(&staging, e))?;
+        write_json(&staging.join(JOB_REQUEST), request)?;
+        write_json(&staging.join(JOB_RECORD), record)?;
+        publish_dir(&staging, &self.job_dir(record.job_id))
+    }
+
+    /// Replaces a job's record.
+    pub fn save_job(&self, record: &JobRecord) -> Result<()> {
+        write_json(&self.job_dir(record.job_id).join(JOB_RECORD), record)
+    }
+
+    /// A job's record, `None` when there is no such job.
+    pub fn job(&self, id: JobId) -> Result<Option<JobRecord>> {
+        read_json_opt(&self.job_dir(id).join(JOB_RECORD))
+    }
+
+    /// A job's request.
+    pub fn job_request(&self, id: JobId) -> Result<JobRequest> {
+        let path = self.job_dir(id).join(JOB_REQUEST);
+        read_json_opt(&path)?
+            .ok_or_else(|| Error::InvalidInput(format!("{}: missing", path.display())))
+    }
+
+    /// Removes a job and its outputs; `false` when there was none.
+    pub fn delete_job(&self, id: JobId) -> Result<bool> {
+        self.remove_dir(&self.job_dir(id))
+    }
+
+    /// Every job record, for recovery at start; unreadable ones are reported, not fatal.
+    pub fn list_jobs(&self) -> Result<(Vec<JobRecord>, Vec<String>)> {
+        let dir = self.root.join("jobs");
+        let mut jobs = Vec::new();
+        let mut problems = Vec::new();
+        for entry in std::fs::read_dir(&dir).map_err(|e| io_error(&dir, e))? {
+            let entry = entry.map_err(|e| io_error(&dir, e))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let Some(id) = JobId::parse(&name) else {
+                problems.push(format!("jobs/{name}: not a job directory, ignored"));
+                continue;
+            };
+            match self.job(id) {
+                Ok(Some(record)) => jobs.push(record),
+                Ok(None) => problems.push(format!("jobs/{name}: no {JOB_RECORD}, ignored")),
+                Err(e) => problems.push(format!("jobs/{name}: {e}")),
+            }
+        }
+        jobs.sort_by(|a, b| a.created_at.cmp(&b.created_at));
+        Ok((jobs, problems))
+    }
+
+    /// Scans on disk.
+    pub fn scan_count(&self) -> usize {
+        std::fs::read_dir(self.root.join("scans"))
+            .map(|d| d.count())
+            .unwrap_or(0)
+    }
+
+    /// Removes a stopped run's partial output directories (`.out.partial-<pid>`).
+    pub fn clear_partial_outputs(&self, id: JobId) -> Result<()> {
+        let dir = self.job_dir(id);
+        for entry in std::fs::read_dir(&dir).map_err(|e| io_error(&dir, e))? {
+            let entry = entry.map_err(|e| io_error(&dir, e))?;
+            if entry
+                .file_name()
+                .to_string_lossy()
+                .starts_with(&format!(".{JOB_OUTPUT}.partial"))
+            {
+                std::fs::remove_dir_all(entry.path()).map_err(|e| io_error(&entry.path(), e))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn remove_dir(&self, dir: &Path) -> Result<bool> {
+        let doomed = self.tmp_path("deleted");
+        match std::fs::rename(dir, &doomed) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+            Err(e) => return Err(io_error(dir, e)),
+        }
+        sync_dir(dir.parent().unwrap_or(&self.root));
+        std::fs::remove_dir_all(&doomed).map_err(|e| io_error(&doomed, e))?;
+        Ok(true)
+    }
+}
+
+fn io_error(path: &Path, e: std::io::Error) -> Error {
+    Error::Io(std::io::Error::new(
+        e.kind(),
+        format!("store {}: {e}", path.display()),
+    ))
+}
+
+/// Writes `bytes` to `path` durably: temporary sibling, fsync, rename, fsync of the directory.
+pub fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+    let tmp = path.with_file_name(format!(".{}.tmp", name.unwrap_or_default()));
+    let result = (|| {
+        let mut file = std::fs::File::create(&tmp)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(io_error(path, e));
+    }
+    if let Some(parent) = path.parent() {
+        sync_dir(parent);
+    }
+    Ok(())
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    let bytes = serde_json::to_vec_pretty(value)
+        .map_err(|e| Error::InvalidInput(format!("{}: cannot serialise: {e}", path.display())))?;
+    write_durable(path, &bytes)
+}
+
+fn read_json_opt<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Option<T>> {
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(io_error(path, e)),
+    };
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| Error::InvalidInput(format!("store {}: corrupt record: {e}", path.display())))
+}
+
+fn publish_dir(staging: &Path, target: &Path) -> Result<()> {
+    sync_dir(staging);
+    std::fs::rename(staging, target).map_err(|e| io_error(target, e))?;
+    if let Some(parent) = target.parent() {
+        sync_dir(parent);
+    }
+    Ok(())
+}
+
+/// Makes a directory's entries (renames) durable; best effort where directories cannot be opened.
+fn sync_dir(dir: &Path) {
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp_store(name: &str) -> (PathBuf, Store) {
+        let dir = std::env::temp_dir().join(format!("lm-store-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Store::open(&dir).unwrap();
+        (dir, store)
+    }
+
+    #[test]
+    fn scans_and_jobs_round_trip_and_vanish_whole() {
+        let (dir, store) = temp_store("roundtrip");
+        let upload = store.tmp_path("upload");
+        std::fs::write(&upload, b"bytes").unwrap();
+        let scan = ScanRecord {
+            scan_id: ScanId::random(),
+            created_at: now_rfc3339(),
+            format: "nifti".into(),
+            upload_bytes: 5,
+            file_name: "scan.nii".into(),
+            ingest: serde_json::json!({"elements": 3}),
+        };
+        store.put_scan(&scan, &upload).unwrap();
+        let back = store.scan(scan.scan_id).unwrap().unwrap();
+        assert_eq!(back.ingest["elements"], 3);
+        assert_eq!(std::fs::read(store.scan_file(&back)).unwrap(), b"bytes");
+        assert!(store.scan(ScanId::random()).unwrap().is_none());
+
+        let job = JobRecord {
+            job_id: JobId::random(),
+            scan_id: scan.scan_id,
+            state: JobState::Queued,
+            progress: JobProgress::default(),
+            error: None,
+            attempts: 0,
+            created_at: now_rfc3339(),
+            started_at: None,
+            finished_at: None,
+        };
+        let request = JobRequest {
+            config: RunConfig::default(),
+            time_s: vec![0.0, 1.0],
+            volume_ml: vec![0.0, 100.0],
+            trace_source: "test".into(),
+            points: vec![],
+        };
+        store.put_job(&job, &request).unwrap();
+        let mut running = store.job(job.job_id).unwrap().unwrap();
+        assert_eq!(running.state, JobState::Queued);
+        running.state = JobState::Running;
+        store.save_job(&running).unwrap();
+        assert_eq!(
+            store.job(job.job_id).unwrap().unwrap().state,
+            JobState::Running
+        );
+        assert_eq!(store.job_request(job.job_id).unwrap().volume_ml[1], 100.0);
+        std::fs::create_dir_all(store.job_dir(job.job_id).join(".out.partial-1")).unwrap();
+        store.clear_partial_outputs(job.job_id).unwrap();
+        assert!(!store.job_dir(job.job_id).join(".out.partial-1").exists());
+        let (jobs, problems) = store.list_jobs().unwrap();
+        assert_eq!((jobs.len(), problems.len()), (1, 0));
+
+        assert!(store.delete_job(job.job_id).unwrap());
+        assert!(!store.delete_job(job.job_id).unwrap());
+        assert!(store.delete_scan(scan.scan_id).unwrap());
+        assert!(store.scan(scan.scan_id).unwrap().is_none());
+        // Reopening empties tmp/ and keeps nothing half-written.
+        std::fs::write(store.tmp_path("upload"), b"partial").unwrap();
+        let store = Store::open(&dir).unwrap();
+        assert_eq!(std::fs::read_dir(store.tmp_dir()).unwrap().count(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_corrupt_record_is_named_not_swallowed() {
+        let (dir, store) = temp_store("corrupt");
+        let id = JobId::random();
+        std::fs::create_dir_all(store.job_dir(id)).unwrap();
+        std::fs::write(store.job_dir(id).join(JOB_RECORD), b"{\"job_id\": ").unwrap();
+        let (jobs, problems) = store.list_jobs().unwrap();
+        assert!(jobs.is_empty());
+        assert!(problems[0].contains("corrupt record"), "{problems:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
