@@ -57,6 +57,9 @@ pub struct JobCounts {
     pub finished_runs: Vec<f64>,
 }
 
+/// How long shutdown waits for cancelled runs to reach a stopping point.
+const SHUTDOWN_JOIN_LIMIT: Duration = Duration::from_secs(60);
+
 const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
@@ -344,8 +347,18 @@ impl JobManager {
             }
         }
         drop(board);
-        for t in workers.threads {
-            let _ = t.join();
+        // A run checks for cancellation between stages and frames, not inside a solve; a
+        // worker still busy after this is left behind, and its job, still `running` on disk,
+        // is re-run at the next start.
+        let (done_tx, done_rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for t in workers.threads {
+                let _ = t.join();
+            }
+            let _ = done_tx.send(());
+        });
+        if done_rx.recv_timeout(SHUTDOWN_JOIN_LIMIT).is_err() {
+            tracing::warn!("a worker did not stop in time; its job runs again after the restart");
         }
     }
 }

@@ -9,7 +9,7 @@ use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
-use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
 use super::jobs::JobCounts;
@@ -36,6 +36,11 @@ struct StateLabels {
     state: &'static str,
 }
 
+/// Upper bounds of the latency buckets, s.
+const LATENCY_BUCKETS_S: [f64; 12] = [
+    0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1, 0.5, 2.5, 10.0,
+];
+
 type LatencyFamily = Family<RouteLabels, Histogram, fn() -> Histogram>;
 
 /// The service's metrics.
@@ -51,8 +56,8 @@ pub struct ServiceMetrics {
 }
 
 fn latency_histogram() -> Histogram {
-    // 100 µs … ~6.5 s: a status read is sub-millisecond, an upload with ingest seconds.
-    Histogram::new(exponential_buckets(1e-4, 3.0, 11))
+    // A status read is sub-millisecond, an upload with its ingest seconds.
+    Histogram::new(LATENCY_BUCKETS_S.iter().copied())
 }
 
 impl Default for ServiceMetrics {

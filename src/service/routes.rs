@@ -929,3 +929,74 @@ pub async fn not_found(request: Request) -> ApiError {
         request.uri().path()
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn two_breaths() -> (Vec<f64>, Vec<f64>) {
+        let t: Vec<f64> = (0..=80).map(|i| i as f64 * 0.1).collect();
+        let v = t
+            .iter()
+            .map(|t| 250.0 * (1.0 - (std::f64::consts::TAU * t / 4.0).cos()))
+            .collect();
+        (t, v)
+    }
+
+    #[test]
+    fn json_options_merge_over_the_server_defaults() {
+        let mut defaults = RunConfig::default();
+        defaults.material.poisson_ratio = 0.3;
+        let (t, v) = two_breaths();
+        let body = serde_json::json!({
+            "trace": {"time_s": t, "volume_ml": v},
+            "element_size_mm": 10,
+            "material": {"youngs_modulus_pa": 800.0},
+            "motion": {"instants": {"kind": "every_kth", "k": 20}},
+            "points": [{"name": "tumour", "lps_mm": [1.0, 2.0, 3.0]}],
+        });
+        let request =
+            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        assert_eq!(request.config.element_size_mm, 10.0);
+        assert_eq!(request.config.material.youngs_modulus_pa, 800.0);
+        // Keys the request leaves out keep the server's value, even inside a table.
+        assert_eq!(request.config.material.poisson_ratio, 0.3);
+        assert_eq!(
+            request.config.motion.instants,
+            crate::breathing::OutputInstants::EveryKth { k: 20 }
+        );
+        assert_eq!(request.points[0].name, "tumour");
+        assert_eq!(request.time_s.len(), 81);
+    }
+
+    #[test]
+    fn bad_requests_are_refused_with_the_right_status_and_a_named_cause() {
+        let defaults = RunConfig::default();
+        let (t, v) = two_breaths();
+        let status = |ct: &str, body: &str| {
+            let e = parse_simulation(&defaults, ct, body.as_bytes()).unwrap_err();
+            (e.status.as_u16(), e.detail)
+        };
+        let (s, d) = status("application/json", "{\"trace\": ");
+        assert_eq!(s, 400, "{d}");
+        let (s, d) = status("application/json", "[1, 2]");
+        assert_eq!(s, 422, "{d}");
+        let body =
+            serde_json::json!({"trace": {"time_s": t, "volume_ml": v}, "element_sise_mm": 8});
+        let (s, d) = status("application/json", &body.to_string());
+        assert!(s == 422 && d.contains("element_sise_mm"), "{s} {d}");
+        let body = serde_json::json!({"trace": {"time_s": [0, 1], "volume_ml": ["a", 1]}});
+        let (s, d) = status("application/json", &body.to_string());
+        assert_eq!(s, 422, "{d}");
+        let (s, d) = status("text/csv", "time_s,volume_ml\n0,0\n1,NaN\n2,3\n");
+        assert!(s == 422 && d.contains("NaN"), "{s} {d}");
+        let (s, d) = status("text/csv", "time_s,volume_ml\n0,0\n2,1\n1,3\n");
+        assert_eq!(s, 422, "{d}");
+        let (s, d) = status("application/xml", "<trace/>");
+        assert!(s == 415 && d.contains("application/json"), "{s} {d}");
+        let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": v},
+            "points": [{"name": "a,b", "lps_mm": [0, 0, 0]}]});
+        let (s, d) = status("application/json", &body.to_string());
+        assert!(s == 422 && d.contains("points[0]"), "{s} {d}");
+    }
+}
