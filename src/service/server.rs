@@ -56,12 +56,13 @@ pub fn router(state: SharedState) -> Router {
             get(routes::frame_displacement),
         )
         .route("/v1/jobs/{id}/trajectories", get(routes::job_trajectories))
-        .route("/metrics", get(routes::metrics))
         .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     Router::new()
         .merge(v1)
         .route("/healthz", get(routes::healthz))
         .route("/readyz", get(routes::readyz))
+        // Counts and route templates only, no ids or patient data: open like the probes.
+        .route("/metrics", get(routes::metrics))
         .route("/openapi.json", get(|| async { Json(openapi_document()) }))
         .fallback(routes::not_found)
         .with_state(state.clone())
