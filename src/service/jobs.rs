@@ -447,7 +447,10 @@ fn run_job(shared: &Shared, live: &LiveJob) {
         }
         Err(e) => {
             record.state = JobState::Failed;
-            record.error = Some(e.to_string());
+            // Clients see paths relative to the store, not the server's file system.
+            let root = format!("{}/", shared.store.root().display());
+            record.error = Some(e.to_string().replace(&root, ""));
+            tracing::warn!(job = %id, "run failed: {e}");
         }
     }
     if record.state.is_terminal() {

@@ -98,6 +98,12 @@ impl ApiError {
         }
     }
 
+    /// Replaces a server path in the detail with what it is to the client.
+    pub fn redact_path(mut self, path: &std::path::Path, shown_as: &str) -> Self {
+        self.detail = self.detail.replace(&path.display().to_string(), shown_as);
+        self
+    }
+
     fn title(&self) -> &'static str {
         self.status.canonical_reason().unwrap_or("Error")
     }
@@ -108,7 +114,15 @@ impl ApiError {
             type_uri: format!("urn:lungmotion:problem:{}", self.slug),
             title: self.title().to_string(),
             status: self.status.as_u16(),
-            detail: self.detail.clone(),
+            // Our own failures name server paths and internals: those stay in the log,
+            // which the request id leads to.
+            detail: if self.status == StatusCode::INTERNAL_SERVER_ERROR {
+                "an internal error occurred; the server log has the details under this \
+                 request id"
+                    .to_string()
+            } else {
+                self.detail.clone()
+            },
             instance,
             request_id,
         }

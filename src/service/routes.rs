@@ -312,8 +312,9 @@ pub async fn upload_scan(
     let settings = state.config.run.ingest_settings();
     let worker_state = state.clone();
     let record = blocking(move || {
-        let scan = load_ct(&named).map_err(ApiError::from_input_error)?;
-        let outcome = ingest_scan(&scan, &settings).map_err(ApiError::from_input_error)?;
+        let refused = |e| ApiError::from_input_error(e).redact_path(&named, "the upload");
+        let scan = load_ct(&named).map_err(refused)?;
+        let outcome = ingest_scan(&scan, &settings).map_err(refused)?;
         let record = ScanRecord {
             scan_id: ScanId::random(),
             created_at: now_rfc3339(),
