@@ -199,17 +199,7 @@ impl JobManager {
                 retry_after_s: self.retry_after_s(&board),
             }));
         }
-        let record = JobRecord {
-            job_id: JobId::random(),
-            scan_id,
-            state: JobState::Queued,
-            progress: JobProgress::default(),
-            error: None,
-            attempts: 0,
-            created_at: now_rfc3339(),
-            started_at: None,
-            finished_at: None,
-        };
+        let record = JobRecord::queued(scan_id);
         // On disk before it is acknowledged: an accepted job is never lost.
         self.shared.store.put_job(&record, request)?;
         board.jobs.insert(

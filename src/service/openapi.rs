@@ -9,7 +9,7 @@ use super::routes::{
     self, FrameEntry, FrameList, Health, JobLinks, JobStatus, ScanLinks, ScanView,
     SimulationRequest, TraceBody,
 };
-use super::store::{JobProgress, JobState, ScanRecord, StoredPoint};
+use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
 
 /// The API description.
 #[derive(OpenApi)]
@@ -36,7 +36,8 @@ use super::store::{JobProgress, JobState, ScanRecord, StoredPoint};
         routes::metrics,
     ),
     components(schemas(
-        Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobLinks, JobProgress, JobState,
+        Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
+        JobState,
         SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health
     )),
     modifiers(&BearerAuth),

@@ -19,9 +19,7 @@ use super::ids::{JobId, ScanId};
 use super::jobs::{CancelOutcome, JobManager, SubmitRefusal};
 use super::metrics::ServiceMetrics;
 use super::problem::{ApiError, ApiResult, Problem};
-use super::store::{
-    now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, ScanRecord, Store, StoredPoint,
-};
+use super::store::{now_rfc3339, JobRecord, JobRequest, JobState, ScanRecord, Store, StoredPoint};
 use super::upload::{receive_scan, TempFileGuard};
 use crate::breathing::BreathingTrace;
 use crate::ingest::pipeline::ingest_scan;
@@ -97,48 +95,25 @@ pub struct JobLinks {
 /// A job as the API shows it.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct JobStatus {
-    /// Its id.
-    pub job_id: String,
-    /// The scan it simulates.
-    pub scan_id: String,
-    /// `queued`, `running`, `done`, `failed` or `cancelled`.
-    pub state: JobState,
-    /// How far it has got.
-    pub progress: JobProgress,
-    /// Why it failed or was cancelled, or why it was re-queued.
-    pub error: Option<String>,
-    /// Runs started.
-    pub attempts: u32,
-    /// Submitted (RFC 3339).
-    pub created_at: String,
-    /// Last run started.
-    pub started_at: Option<String>,
-    /// Finished.
-    pub finished_at: Option<String>,
+    /// The record (`state`, `progress`, `error`, `attempts`, times).
+    #[serde(flatten)]
+    pub record: JobRecord,
     /// Related resources.
     pub links: JobLinks,
 }
 
 impl From<JobRecord> for JobStatus {
-    fn from(r: JobRecord) -> Self {
-        let base = format!("/v1/jobs/{}", r.job_id);
+    fn from(record: JobRecord) -> Self {
+        let base = format!("/v1/jobs/{}", record.job_id);
         JobStatus {
-            job_id: r.job_id.to_string(),
-            scan_id: r.scan_id.to_string(),
-            state: r.state,
-            progress: r.progress,
-            error: r.error,
-            attempts: r.attempts,
-            created_at: r.created_at,
-            started_at: r.started_at,
-            finished_at: r.finished_at,
             links: JobLinks {
                 summary: format!("{base}/summary"),
                 frames: format!("{base}/frames"),
                 trajectories: format!("{base}/trajectories"),
-                scan: format!("/v1/scans/{}", r.scan_id),
+                scan: format!("/v1/scans/{}", record.scan_id),
                 self_: base,
             },
+            record,
         }
     }
 }

@@ -104,11 +104,13 @@ pub struct JobProgress {
 }
 
 /// A job as stored (`job.json`).
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct JobRecord {
     /// Its id.
+    #[schema(value_type = String)]
     pub job_id: JobId,
     /// The scan it simulates.
+    #[schema(value_type = String)]
     pub scan_id: ScanId,
     /// Where it is.
     pub state: JobState,
@@ -124,6 +126,23 @@ pub struct JobRecord {
     pub started_at: Option<String>,
     /// It reached a final state.
     pub finished_at: Option<String>,
+}
+
+impl JobRecord {
+    /// A new queued job of `scan_id` with a fresh id.
+    pub fn queued(scan_id: ScanId) -> Self {
+        JobRecord {
+            job_id: JobId::random(),
+            scan_id,
+            state: JobState::Queued,
+            progress: JobProgress::default(),
+            error: None,
+            attempts: 0,
+            created_at: now_rfc3339(),
+            started_at: None,
+            finished_at: None,
+        }
+    }
 }
 
 /// What a job runs (`request.json`): the merged options, the trace and the points.
@@ -435,17 +454,7 @@ mod tests {
         assert_eq!(std::fs::read(store.scan_file(&back)).unwrap(), b"bytes");
         assert!(store.scan(ScanId::random()).unwrap().is_none());
 
-        let job = JobRecord {
-            job_id: JobId::random(),
-            scan_id: scan.scan_id,
-            state: JobState::Queued,
-            progress: JobProgress::default(),
-            error: None,
-            attempts: 0,
-            created_at: now_rfc3339(),
-            started_at: None,
-            finished_at: None,
-        };
+        let job = JobRecord::queued(scan.scan_id);
         let request = JobRequest {
             config: RunConfig::default(),
             time_s: vec![0.0, 1.0],
