@@ -57,6 +57,9 @@ pub struct MotionSettings {
     pub volume_tolerance_fraction: f64,
     /// Equilibrium solver settings.
     pub solver: QuasiStaticSettings,
+    /// Raised by another thread to stop the run before its next equilibrium solve.
+    #[serde(skip)]
+    pub cancel: Option<crate::simulation::CancelFlag>,
 }
 
 impl Default for MotionSettings {
@@ -68,6 +71,7 @@ impl Default for MotionSettings {
             solve_every_frame: false,
             volume_tolerance_fraction: 0.005,
             solver: QuasiStaticSettings::default(),
+            cancel: None,
         }
     }
 }
@@ -164,6 +168,9 @@ pub fn run_motion(
         compliance,
         settings.solver.clone(),
     )?;
+    if let Some(flag) = &settings.cancel {
+        driver.set_cancel(flag.clone());
+    }
     let rest = scene.mesh.rest_positions_m.clone();
     let keyframes = match settings.driver {
         DriverKind::Volume if !settings.solve_every_frame && times.len() > 2 => Some(
@@ -174,7 +181,10 @@ pub fn run_motion(
                 settings.interpolation_tolerance_mm,
                 volume_tolerance_ml * 0.2,
             )
-            .map_err(|e| Error::InvalidModel(format!("solving the key volumes: {e}")))?,
+            .map_err(|e| match e {
+                Error::Cancelled(_) => e,
+                e => Error::InvalidModel(format!("solving the key volumes: {e}")),
+            })?,
         ),
         _ => None,
     };
@@ -184,10 +194,11 @@ pub fn run_motion(
     let mut max_volume_error: f64 = 0.0;
     for (index, (&time_s, &target)) in times.iter().zip(&targets).enumerate() {
         let t0 = Instant::now();
-        let context = |e: Error| {
-            Error::InvalidModel(format!(
+        let context = |e: Error| match e {
+            Error::Cancelled(_) => e,
+            e => Error::InvalidModel(format!(
                 "frame {index} (t = {time_s:.3} s, target {target:.1} mL): {e}"
-            ))
+            )),
         };
         let (pressure_pa, solves, newton, linear, residual, interpolated) =
             match (&keyframes, settings.driver) {
@@ -355,6 +366,31 @@ mod tests {
         assert!(
             (f.simulated_volume_ml - 0.01 * v0).abs() < 0.03 * 0.01 * v0,
             "{f:?}"
+        );
+    }
+
+    #[test]
+    fn a_raised_cancel_flag_stops_the_solves_as_a_cancellation() {
+        let (scene, v0) = block();
+        let trace = BreathingTrace::new(vec![0.0, 1.0, 2.0], vec![0.0, 0.01 * v0, 0.0]).unwrap();
+        let flag = crate::simulation::CancelFlag::default();
+        let settings = MotionSettings {
+            instants: OutputInstants::EverySample,
+            solve_every_frame: true,
+            cancel: Some(flag.clone()),
+            ..MotionSettings::default()
+        };
+        let mut frames = 0;
+        let r = run_motion(&scene, &Material::LUNG, &trace, &settings, &mut |_, _| {
+            frames += 1;
+            // Raised from the frame callback, as another thread would between two solves.
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+            Ok(())
+        });
+        assert!(matches!(r, Err(Error::Cancelled(_))), "{r:?}");
+        assert_eq!(
+            frames, 1,
+            "the rest state needs no solve; the next one is refused"
         );
     }
 }

@@ -104,6 +104,10 @@ pub trait RunObserver {
     fn cancelled(&self) -> bool {
         false
     }
+    /// A flag that, once raised, also stops the run between equilibrium solves.
+    fn cancel_flag(&self) -> Option<crate::simulation::CancelFlag> {
+        None
+    }
 }
 
 /// An observer that ignores everything.
@@ -130,7 +134,8 @@ pub fn run_breathing(
     // Everything that can be checked without the CT is checked first.
     config.validate()?;
     inputs.trace.validate()?;
-    let settings = config.motion_settings();
+    let mut settings = config.motion_settings();
+    settings.cancel = observer.cancel_flag();
     let times = settings.instants.times(&inputs.trace)?;
     let staging = OutputStaging::new(out_dir)?;
 

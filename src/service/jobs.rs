@@ -17,6 +17,7 @@ use super::ids::{JobId, ScanId};
 use super::store::{now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, Store};
 use crate::breathing::BreathingTrace;
 use crate::run::{run_breathing, RunInputs, RunObserver, RunStage};
+use crate::simulation::CancelFlag;
 use crate::{Error, Result};
 
 /// Why a submission was refused.
@@ -64,10 +65,27 @@ const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
 
-/// A job the server knows of: its record, and its cancellation flag while it runs.
+/// A job the server knows of: its record, and while it runs why it should stop and the
+/// flag that stops its solves.
 struct LiveJob {
     record: Mutex<JobRecord>,
     cancel: AtomicU8,
+    stop: CancelFlag,
+}
+
+impl LiveJob {
+    fn new(record: JobRecord) -> Arc<Self> {
+        Arc::new(LiveJob {
+            record: Mutex::new(record),
+            cancel: AtomicU8::new(CANCEL_NONE),
+            stop: CancelFlag::default(),
+        })
+    }
+
+    fn request_stop(&self, reason: u8) {
+        self.cancel.store(reason, Ordering::SeqCst);
+        self.stop.store(true, Ordering::SeqCst);
+    }
 }
 
 struct Board {
@@ -145,13 +163,7 @@ impl JobManager {
                 }
                 _ => {}
             }
-            board.jobs.insert(
-                record.job_id,
-                Arc::new(LiveJob {
-                    record: Mutex::new(record),
-                    cancel: AtomicU8::new(CANCEL_NONE),
-                }),
-            );
+            board.jobs.insert(record.job_id, LiveJob::new(record));
         }
         if !board.queue.is_empty() {
             tracing::info!(queued = board.queue.len(), "jobs recovered from the store");
@@ -202,13 +214,9 @@ impl JobManager {
         let record = JobRecord::queued(scan_id);
         // On disk before it is acknowledged: an accepted job is never lost.
         self.shared.store.put_job(&record, request)?;
-        board.jobs.insert(
-            record.job_id,
-            Arc::new(LiveJob {
-                record: Mutex::new(record.clone()),
-                cancel: AtomicU8::new(CANCEL_NONE),
-            }),
-        );
+        board
+            .jobs
+            .insert(record.job_id, LiveJob::new(record.clone()));
         board.queue.push_back(record.job_id);
         drop(board);
         self.shared.changed.notify_all();
@@ -257,7 +265,7 @@ impl JobManager {
                 Ok(Some(CancelOutcome::Cancelled))
             }
             JobState::Running => {
-                live.cancel.store(CANCEL_CLIENT, Ordering::SeqCst);
+                live.request_stop(CANCEL_CLIENT);
                 Ok(Some(CancelOutcome::Requested))
             }
             _ => Ok(Some(CancelOutcome::AlreadyFinished)),
@@ -332,13 +340,13 @@ impl JobManager {
             );
             for live in board.jobs.values() {
                 if lock(&live.record).state == JobState::Running {
-                    live.cancel.store(CANCEL_SHUTDOWN, Ordering::SeqCst);
+                    live.request_stop(CANCEL_SHUTDOWN);
                 }
             }
         }
         drop(board);
-        // A run checks for cancellation between stages and frames, not inside a solve; a
-        // worker still busy after this is left behind, and its job, still `running` on disk,
+        // A run checks for cancellation between stages, frames and equilibrium solves, not
+        // inside one; a worker still busy after this is left behind, and its job, still `running` on disk,
         // is re-run at the next start.
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -447,6 +455,7 @@ fn run_job(shared: &Shared, live: &LiveJob) {
         record.finished_at = Some(now_rfc3339());
     }
     live.cancel.store(CANCEL_NONE, Ordering::SeqCst);
+    live.stop.store(false, Ordering::SeqCst);
     if let Err(e) = shared.store.save_job(&record) {
         tracing::error!(job = %id, "cannot record the end: {e}");
     }
@@ -541,5 +550,9 @@ impl RunObserver for JobObserver<'_> {
 
     fn cancelled(&self) -> bool {
         self.live.cancel.load(Ordering::SeqCst) != CANCEL_NONE
+    }
+
+    fn cancel_flag(&self) -> Option<CancelFlag> {
+        Some(self.live.stop.clone())
     }
 }

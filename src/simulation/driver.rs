@@ -75,7 +75,12 @@ pub struct BreathingDriver<'s> {
     slope_ml: f64,
     /// Scratch for the predicted starting positions.
     predicted: Vec<V3>,
+    /// Raised by the caller to stop before the next equilibrium solve.
+    cancel: Option<CancelFlag>,
 }
+
+/// A flag another thread raises to stop a long computation at its next check.
+pub type CancelFlag = std::sync::Arc<std::sync::atomic::AtomicBool>;
 
 impl<'s> BreathingDriver<'s> {
     /// Prepares the solver for `scene`, whose surface pressures sum to `reference_pressure_pa`
@@ -117,6 +122,7 @@ impl<'s> BreathingDriver<'s> {
             // Inflation (ΔV > 0) needs suction: dV/dλ = −C·P_ref.
             slope_ml: -compliance_ml_per_pa * reference_pressure_pa,
             predicted: Vec::new(),
+            cancel: None,
         })
     }
 
@@ -214,7 +220,21 @@ impl<'s> BreathingDriver<'s> {
 
     /// Solves at load factor `lambda` from the predicted positions, halving the step from the
     /// last equilibrium when the corrector fails; every equilibrium reached joins the path.
+    /// Stops every later solve with [`Error::Cancelled`] once `flag` is raised.
+    pub fn set_cancel(&mut self, flag: CancelFlag) {
+        self.cancel = Some(flag);
+    }
+
     fn solve_factor(&mut self, lambda: f64, reports: &mut Vec<SolveReport>) -> Result<Vec<V3>> {
+        if self
+            .cancel
+            .as_ref()
+            .is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed))
+        {
+            return Err(Error::Cancelled(
+                "stopped between equilibrium solves".into(),
+            ));
+        }
         // Unloaded, the rest state is the equilibrium when every constraint passes through
         // it; solving would only chase round-off below the residual's floor.
         if lambda == 0.0 {

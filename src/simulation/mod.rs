@@ -10,7 +10,7 @@ pub mod multigrid;
 pub mod quasistatic;
 pub mod scene;
 
-pub use driver::{BreathingDriver, DrivenState};
+pub use driver::{BreathingDriver, CancelFlag, DrivenState};
 pub use explicit::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
 pub use forces::ForceEvaluator;
 pub use quasistatic::{PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, SolveReport};
