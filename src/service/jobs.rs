@@ -374,11 +374,22 @@ fn worker_loop(shared: &Shared) {
                     return;
                 }
                 if let Some(id) = board.queue.pop_front() {
-                    if let Some(live) = board.jobs.get(&id).cloned() {
-                        board.running += 1;
-                        break live;
+                    let Some(live) = board.jobs.get(&id).cloned() else {
+                        continue;
+                    };
+                    // Marked running under the board's lock, so a cancellation sees either
+                    // a queued job it can drop or a running one it must stop, never both.
+                    let mut record = lock(&live.record);
+                    if record.state != JobState::Queued {
+                        continue;
                     }
-                    continue;
+                    record.state = JobState::Running;
+                    record.attempts += 1;
+                    record.started_at = Some(now_rfc3339());
+                    record.progress = JobProgress::default();
+                    drop(record);
+                    board.running += 1;
+                    break live;
                 }
                 board = shared
                     .changed
@@ -396,14 +407,11 @@ fn worker_loop(shared: &Shared) {
     }
 }
 
-/// Runs one job to a final state (or back to `queued` when the server stops).
+/// Runs one job, already marked running, to a final state (or back to `queued` when the
+/// server stops).
 fn run_job(shared: &Shared, live: &LiveJob) {
     let (id, scan_id) = {
-        let mut record = lock(&live.record);
-        record.state = JobState::Running;
-        record.attempts += 1;
-        record.started_at = Some(now_rfc3339());
-        record.progress = JobProgress::default();
+        let record = lock(&live.record);
         if let Err(e) = shared.store.save_job(&record) {
             tracing::error!(job = %record.job_id, "cannot record the start: {e}");
         }
