@@ -24,6 +24,7 @@ enum BenchSuite {
     Core,
     Ingest,
     Motion,
+    Service,
     All,
 }
 
@@ -159,7 +160,8 @@ enum Command {
         nlgeom: bool,
         /// Which benchmarks: `core` (mechanics), `ingest` (segmentation of the CIP case and of
         /// a 512×512×300 CT), `motion` (10-phase tidal cycle on the CIP case at 8 and 4 mm:
-        /// cycle time, fields served per second, interpolation error) or `all`.
+        /// cycle time, fields served per second, interpolation error), `service` (HTTP: upload of a
+        /// 300-slice DICOM zip, service against in-process run, requests per second) or `all`.
         #[arg(long, value_enum, default_value_t = BenchSuite::All)]
         suite: BenchSuite,
     },
@@ -627,6 +629,11 @@ fn bench(
         };
         let report = run_motion_bench(&options)?;
         write_bench_report(&out, "bench-motion", &report, &report.to_markdown())?;
+    }
+    if matches!(suite, BenchSuite::Service | BenchSuite::All) {
+        use lungmotion::bench::service::{run_service_bench, ServiceBenchOptions};
+        let report = run_service_bench(&ServiceBenchOptions { quick })?;
+        write_bench_report(&out, "bench-service", &report, &report.to_markdown())?;
     }
     Ok(())
 }

@@ -8,6 +8,7 @@
 
 pub mod ingest;
 pub mod motion;
+pub mod service;
 
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
