@@ -1061,6 +1061,13 @@ fn one_line(e: &str) -> String {
     e.lines().next().unwrap_or("").replace('|', "/")
 }
 
+/// The machine's load averages, to judge how shared it was.
+pub(crate) fn load_average() -> Option<[f64; 3]> {
+    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
+    let mut it = s.split_whitespace().map(|x| x.parse::<f64>().ok());
+    Some([it.next()??, it.next()??, it.next()??])
+}
+
 fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()

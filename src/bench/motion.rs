@@ -36,7 +36,10 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome, TimeStats};
+use super::{
+    current_rss_bytes, load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome,
+    TimeStats,
+};
 use crate::breathing::{BreathingTrace, LujanBreathing};
 use crate::datasets::cip_chest_ct64;
 use crate::ingest::lung_model::LungModelSettings;
@@ -712,13 +715,6 @@ fn bench_accuracy(
         direct_cycle_s: direct.wall_time_s,
         frames,
     })
-}
-
-/// The machine's load averages, to judge how shared it was.
-fn load_average() -> Option<[f64; 3]> {
-    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
-    let mut it = s.split_whitespace().map(|x| x.parse::<f64>().ok());
-    Some([it.next()??, it.next()??, it.next()??])
 }
 
 fn mib(b: Option<u64>) -> String {

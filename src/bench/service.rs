@@ -41,7 +41,7 @@ use serde::Serialize;
 use serde_json::Value;
 
 use super::ingest::upsample_trilinear;
-use super::{cpu_model, peak_rss_bytes, utc_now, Outcome, TimeStats};
+use super::{cpu_model, load_average, peak_rss_bytes, utc_now, Outcome, TimeStats};
 use crate::breathing::LujanBreathing;
 use crate::formats::dicom::{write_ct_series, CtSeriesMetadata};
 use crate::ingest::scan::load_ct;
@@ -1046,12 +1046,6 @@ fn socket_buffer_max_bytes() -> Option<u64> {
             .ok()
     };
     Some(max("tcp_wmem")? + max("tcp_rmem")?)
-}
-
-fn load_average() -> Option<[f64; 3]> {
-    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
-    let mut it = s.split_whitespace().map(|x| x.parse::<f64>().ok());
-    Some([it.next()??, it.next()??, it.next()??])
 }
 
 /// First line of an error message, table-safe.
