@@ -13,6 +13,9 @@ use lungmotion::formats::nifti::read_nifti;
 
 const PATIENT_NAME: &str = "QUIXOTE^DULCINEA^TOBOSO";
 const PATIENT_ID: &str = "MRN-7731-55190";
+/// A folder named after the patient, as some exports do: the uploader's own file names may
+/// come back to the uploader, but never into the server's log.
+const PATIENT_FOLDER: &str = "SANCHO-PANZA-FOLDER";
 
 fn scratch(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("lm-privacy-{name}-{}", std::process::id()));
@@ -38,15 +41,17 @@ fn identified_series_zip(dir: &Path) -> PathBuf {
     let options =
         zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
     for f in &files {
-        // Hospital exports often name folders after the patient: the name must not leak
-        // from there either.
         let name = format!(
-            "{PATIENT_NAME}/{}",
+            "{PATIENT_FOLDER}/{}",
             f.file_name().unwrap().to_string_lossy()
         );
         zip.start_file(name, options).unwrap();
         zip.write_all(&std::fs::read(f).unwrap()).unwrap();
     }
+    // A file the reader skips, so that a warning naming it is produced.
+    zip.start_file(format!("{PATIENT_FOLDER}/notes.txt"), options)
+        .unwrap();
+    zip.write_all(b"not a DICOM file").unwrap();
     zip.finish().unwrap();
     // The written files really carry the fields (else the test would prove nothing).
     let raw = std::fs::read(&files[0]).unwrap();
@@ -182,6 +187,16 @@ fn identifying_dicom_fields_never_reach_logs_responses_or_records() {
         "the log is not the server's debug log"
     );
     assert_clean("the server log", &log_text);
+    assert!(
+        !log_text.contains(PATIENT_FOLDER),
+        "the server log names the upload's folders"
+    );
+    // The skipped file was reported to the uploader, so the warning path was exercised.
+    assert!(
+        scan["ingest"]["warnings"].to_string().contains("notes.txt"),
+        "{}",
+        scan["ingest"]["warnings"]
+    );
     let mut records = 0;
     let mut stack = vec![data_dir.clone()];
     while let Some(d) = stack.pop() {

@@ -65,7 +65,9 @@ pub struct DicomSeries {
     pub volume: Volume<f32>,
     /// What was read.
     pub info: SeriesInfo,
-    /// Files skipped and oddities tolerated, one sentence each.
+    /// Files skipped and oddities tolerated, one sentence each. Not logged here: they name
+    /// files, and a hospital export may name folders after the patient, so the caller decides
+    /// where they go (the CLI prints them, the service returns them to the uploader).
     pub warnings: Vec<String>,
 }
 

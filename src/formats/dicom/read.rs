@@ -51,7 +51,6 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
             Ok(Some(f)) => files.push(f),
             Ok(None) => {}
             Err(w) => {
-                tracing::warn!("{w}");
                 warnings.push(w);
             }
         }
@@ -512,7 +511,6 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
             "{what}: {missing_rescale} slice(s) lack RescaleSlope/RescaleIntercept; stored \
              values taken as HU (slope 1, intercept 0)"
         );
-        tracing::warn!("{w}");
         warnings.push(w);
     }
 
@@ -545,7 +543,6 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
                         previous.file.name,
                         along(&slice)
                     );
-                    tracing::warn!("{w}");
                     warnings.push(w);
                     continue;
                 }
@@ -670,7 +667,6 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
             syntax_of(other),
             other.file.name
         );
-        tracing::warn!("{w}");
         warnings.push(w);
     }
     let transfer_syntax_name = TransferSyntaxRegistry
