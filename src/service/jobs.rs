@@ -39,7 +39,7 @@ pub enum SubmitRefusal {
 pub enum CancelOutcome {
     /// The job was waiting and is now cancelled.
     Cancelled,
-    /// The job is running; it stops at its next stage or frame.
+    /// The job is running; it stops at its next equilibrium solve, stage or frame.
     Requested,
     /// The job had already finished.
     AlreadyFinished,
@@ -54,9 +54,10 @@ pub struct JobCounts {
     pub queued: usize,
     /// Jobs running.
     pub running: usize,
-    /// Runs finished since start and their wall times, s (for metrics).
-    pub finished_runs: Vec<f64>,
 }
+
+/// Runs whose wall times estimate `Retry-After` (the latest; the server may run for months).
+const RECENT_RUNS: usize = 64;
 
 /// How long shutdown waits for cancelled runs to reach a stopping point.
 const SHUTDOWN_JOIN_LIMIT: Duration = Duration::from_secs(60);
@@ -65,20 +66,20 @@ const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
 
-/// A job the server knows of: its record, and while it runs why it should stop and the
-/// flag that stops its solves.
+/// A job the server knows of: its record, and while it runs the flag that stops it (seen
+/// by the run's stages, frames and solves) and why it was raised.
 struct LiveJob {
     record: Mutex<JobRecord>,
-    cancel: AtomicU8,
     stop: CancelFlag,
+    cancel: AtomicU8,
 }
 
 impl LiveJob {
     fn new(record: JobRecord) -> Arc<Self> {
         Arc::new(LiveJob {
             record: Mutex::new(record),
-            cancel: AtomicU8::new(CANCEL_NONE),
             stop: CancelFlag::default(),
+            cancel: AtomicU8::new(CANCEL_NONE),
         })
     }
 
@@ -93,7 +94,8 @@ struct Board {
     queue: VecDeque<JobId>,
     running: usize,
     shutting_down: bool,
-    run_times_s: Vec<f64>,
+    /// Wall times of the latest runs, s (at most `RECENT_RUNS`), for `Retry-After`.
+    run_times_s: VecDeque<f64>,
 }
 
 struct Shared {
@@ -132,7 +134,7 @@ impl JobManager {
             queue: VecDeque::new(),
             running: 0,
             shutting_down: false,
-            run_times_s: Vec::new(),
+            run_times_s: VecDeque::new(),
         };
         for mut record in records {
             match record.state {
@@ -225,7 +227,7 @@ impl JobManager {
 
     /// Seconds a refused client should wait: the median run time spread over the workers.
     fn retry_after_s(&self, board: &Board) -> u64 {
-        let mut times = board.run_times_s.clone();
+        let mut times: Vec<f64> = board.run_times_s.iter().copied().collect();
         times.sort_by(f64::total_cmp);
         let typical = times.get(times.len() / 2).copied().unwrap_or(10.0);
         (typical / self.shared.workers as f64)
@@ -293,7 +295,6 @@ impl JobManager {
         let mut counts = JobCounts {
             queued: board.queue.len(),
             running: board.running,
-            finished_runs: board.run_times_s.clone(),
             ..JobCounts::default()
         };
         for live in board.jobs.values() {
@@ -346,8 +347,8 @@ impl JobManager {
         }
         drop(board);
         // A run checks for cancellation between stages, frames and equilibrium solves, not
-        // inside one; a worker still busy after this is left behind, and its job, still `running` on disk,
-        // is re-run at the next start.
+        // inside one; a worker still busy after this is left behind, and its job, still
+        // `running` on disk, is re-run at the next start.
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             for t in workers.threads {
@@ -401,7 +402,10 @@ fn worker_loop(shared: &Shared) {
         run_job(shared, &live);
         let mut board = lock(&shared.board);
         board.running -= 1;
-        board.run_times_s.push(started.elapsed().as_secs_f64());
+        if board.run_times_s.len() == RECENT_RUNS {
+            board.run_times_s.pop_front();
+        }
+        board.run_times_s.push_back(started.elapsed().as_secs_f64());
         drop(board);
         shared.changed.notify_all();
     }
@@ -557,7 +561,7 @@ impl RunObserver for JobObserver<'_> {
     }
 
     fn cancelled(&self) -> bool {
-        self.live.cancel.load(Ordering::SeqCst) != CANCEL_NONE
+        self.live.stop.load(Ordering::SeqCst)
     }
 
     fn cancel_flag(&self) -> Option<CancelFlag> {

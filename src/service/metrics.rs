@@ -175,7 +175,6 @@ mod tests {
             by_state: [2, 1, 0, 0, 0],
             queued: 2,
             running: 1,
-            finished_runs: vec![],
         };
         let text = m.render(&counts);
         assert!(text.contains(

@@ -328,13 +328,6 @@ impl Store {
         Ok((jobs, problems))
     }
 
-    /// Scans on disk.
-    pub fn scan_count(&self) -> usize {
-        std::fs::read_dir(self.root.join("scans"))
-            .map(|d| d.count())
-            .unwrap_or(0)
-    }
-
     /// Removes a stopped run's partial output directories (`.out.partial-<pid>`).
     pub fn clear_partial_outputs(&self, id: JobId) -> Result<()> {
         let dir = self.job_dir(id);
