@@ -646,15 +646,14 @@ fn serve(
     workers: Option<usize>,
     queue_capacity: Option<usize>,
 ) -> ExitCode {
+    use lungmotion::service::config::parse_listen;
     use lungmotion::service::{serve_blocking, ServiceConfig};
     let env = |name: &str| std::env::var(name).ok();
-    let settings = ServiceConfig::load(config.as_deref(), &env).and_then(|mut c| {
+    // Flags override the file and the environment; the result is validated once.
+    let settings = ServiceConfig::from_sources(config.as_deref(), &env).and_then(|mut c| {
         if let Some(listen) = listen {
-            c.listen = listen.parse().map_err(|_| {
-                lungmotion::Error::InvalidInput(format!(
-                    "--listen {listen:?} is not an address:port such as 127.0.0.1:8080"
-                ))
-            })?;
+            c.listen = parse_listen(&listen)
+                .map_err(|m| lungmotion::Error::InvalidInput(format!("--listen {m}")))?;
         }
         if let Some(dir) = data_dir {
             c.data_dir = dir;

@@ -99,14 +99,21 @@ pub const ENV_VARS: [&str; 7] = [
 
 impl ServiceConfig {
     /// Reads the optional TOML file, then applies `env` (name → value, as from the process
-    /// environment); the error names the file or variable and the key.
+    /// environment) and validates; the error names the file or variable and the key.
     pub fn load(file: Option<&Path>, env: &dyn Fn(&str) -> Option<String>) -> Result<Self> {
+        let config = Self::from_sources(file, env)?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// As [`ServiceConfig::load`] without the final validation, for callers that override
+    /// more (the command line) and validate the result once.
+    pub fn from_sources(file: Option<&Path>, env: &dyn Fn(&str) -> Option<String>) -> Result<Self> {
         let mut config = ServiceConfig::default();
         if let Some(path) = file {
             config.apply_file(path)?;
         }
         config.apply_env(env)?;
-        config.validate()?;
         Ok(config)
     }
 
@@ -229,7 +236,8 @@ fn set<T>(slot: &mut T, value: Option<T>) {
     }
 }
 
-fn parse_listen(text: &str) -> std::result::Result<SocketAddr, String> {
+/// Parses a listening address; the error says what was expected.
+pub fn parse_listen(text: &str) -> std::result::Result<SocketAddr, String> {
     text.trim()
         .parse()
         .map_err(|_| format!("{text:?} is not an address:port such as 127.0.0.1:8080"))
@@ -302,6 +310,12 @@ mod tests {
             _ => None,
         };
         assert!(ServiceConfig::load(None, &env).is_ok());
+        // Unvalidated, so that a later override (the command line) can still make it valid.
+        let env = |k: &str| (k == "LUNGMOTION_LISTEN").then(|| "0.0.0.0:8080".to_string());
+        let mut c = ServiceConfig::from_sources(None, &env).unwrap();
+        assert!(c.validate().is_err());
+        c.listen = parse_listen("127.0.0.1:8080").unwrap();
+        assert!(c.validate().is_ok());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
