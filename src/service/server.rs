@@ -289,11 +289,7 @@ async fn serve_on(
 /// Starts a server on its own runtime thread; returns once it listens.
 pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
     let (state, workers) = prepare(config)?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .thread_name("lungmotion-http")
-        .build()
-        .map_err(Error::Io)?;
+    let runtime = http_runtime()?;
     let listener = runtime
         .block_on(tokio::net::TcpListener::bind(state.config.listen))
         .map_err(|e| bind_error(state.config.listen, e))?;
@@ -315,6 +311,15 @@ pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
     })
 }
 
+/// The runtime of the HTTP side (the simulations run on the job workers' own threads).
+fn http_runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("lungmotion-http")
+        .build()
+        .map_err(Error::Io)
+}
+
 fn bind_error(addr: SocketAddr, e: std::io::Error) -> Error {
     Error::InvalidInput(format!("cannot listen on {addr}: {e}"))
 }
@@ -322,11 +327,7 @@ fn bind_error(addr: SocketAddr, e: std::io::Error) -> Error {
 /// Runs the server in the foreground until SIGTERM or Ctrl-C (the CLI's `serve`); prints the
 /// address it listens on to stdout once it does.
 pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .thread_name("lungmotion-http")
-        .build()
-        .map_err(Error::Io)?;
+    let runtime = http_runtime()?;
     runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
