@@ -46,38 +46,7 @@ enum Command {
     /// end-inhale-displacement.png, and ingest/ (lung mask, groups, mesh). The directory is
     /// replaced only when the run succeeds.
     #[command(verbatim_doc_comment)]
-    Run {
-        /// The CT: a DICOM directory, a zip of one DICOM series, a NIfTI (.nii, .nii.gz) or a
-        /// NRRD file (told apart by content).
-        #[arg(long)]
-        ct: PathBuf,
-        /// The breathing trace (CSV or JSON, see above).
-        #[arg(long)]
-        trace: PathBuf,
-        /// Output directory (new, empty, or an earlier run's, which is replaced on success).
-        #[arg(long)]
-        out: PathBuf,
-        /// Edge of the cubic elements in millimetres (2–16; default 6, or the config's).
-        #[arg(long)]
-        element_size: Option<f64>,
-        /// TOML settings: material, driver, output instants, trace units, optional outputs.
-        /// The format is documented in the README; command-line options win.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Points to follow (e.g. a tumour centre): CSV with the header name,x_mm,y_mm,z_mm, in
-        /// LPS millimetres (DICOM patient coordinates, as a planning system shows them).
-        #[arg(long)]
-        points: Option<PathBuf>,
-        /// Also write each frame as MetaImage (displacement.mha).
-        #[arg(long)]
-        mha: bool,
-        /// Also write each frame's deformed mesh (mesh.vtu, for ParaView).
-        #[arg(long)]
-        vtu: bool,
-        /// No progress bar.
-        #[arg(long, short)]
-        quiet: bool,
-    },
+    Run(RunArgs),
     /// Run the whole job on the bundled phantom (sample-volumes/) with two generated 500 mL
     /// breaths, tracking the tumour, the right apex and the right base.
     Demo {
@@ -208,27 +177,7 @@ fn main() -> ExitCode {
     }
     init_logging("warn");
     let result = match cli.command {
-        Command::Run {
-            ct,
-            trace,
-            out,
-            element_size,
-            config,
-            points,
-            mha,
-            vtu,
-            quiet,
-        } => run(RunArgs {
-            ct,
-            trace,
-            out,
-            element_size,
-            config,
-            points,
-            mha,
-            vtu,
-            quiet,
-        }),
+        Command::Run(args) => run(args),
         Command::Demo {
             out,
             element_size,
@@ -292,15 +241,38 @@ fn init_logging(default_level: &str) {
     }
 }
 
+/// Options of `lungmotion run`.
+#[derive(clap::Args)]
 struct RunArgs {
+    /// The CT: a DICOM directory, a zip of one DICOM series, a NIfTI (.nii, .nii.gz) or a
+    /// NRRD file (told apart by content).
+    #[arg(long)]
     ct: PathBuf,
+    /// The breathing trace (CSV or JSON, see above).
+    #[arg(long)]
     trace: PathBuf,
+    /// Output directory (new, empty, or an earlier run's, which is replaced on success).
+    #[arg(long)]
     out: PathBuf,
+    /// Edge of the cubic elements in millimetres (2–16; default 6, or the config's).
+    #[arg(long)]
     element_size: Option<f64>,
+    /// TOML settings: material, driver, output instants, trace units, optional outputs.
+    /// The format is documented in the README; command-line options win.
+    #[arg(long)]
     config: Option<PathBuf>,
+    /// Points to follow (e.g. a tumour centre): CSV with the header name,x_mm,y_mm,z_mm, in
+    /// LPS millimetres (DICOM patient coordinates, as a planning system shows them).
+    #[arg(long)]
     points: Option<PathBuf>,
+    /// Also write each frame as MetaImage (displacement.mha).
+    #[arg(long)]
     mha: bool,
+    /// Also write each frame's deformed mesh (mesh.vtu, for ParaView).
+    #[arg(long)]
     vtu: bool,
+    /// No progress bar.
+    #[arg(long, short)]
     quiet: bool,
 }
 
