@@ -274,21 +274,13 @@ impl ServerProcess {
     pub fn upload_scan_json(&self, path: &Path) -> Value {
         let bytes = std::fs::read(path).unwrap();
         let resp = self.post_scan_bytes(bytes, "application/octet-stream");
-        let status = resp.status();
-        let location = resp
-            .headers()
-            .get("location")
-            .map(|v| v.to_str().unwrap().to_string());
-        let text = resp.text().unwrap();
-        assert_eq!(status, 201, "upload {}: {text}", path.display());
-        let body: Value = serde_json::from_str(&text).unwrap();
-        let id = body["scan_id"].as_str().expect("scan_id").to_string();
-        assert!(is_id(&id), "scan id {id:?}");
-        assert_eq!(
-            location.as_deref(),
-            Some(format!("/v1/scans/{id}").as_str())
-        );
-        body
+        assert_created(
+            resp,
+            201,
+            "scan_id",
+            "/v1/scans",
+            &format!("upload {}", path.display()),
+        )
     }
 
     /// POSTs a JSON simulation request of `scan_id`.
@@ -377,19 +369,35 @@ pub fn is_id(id: &str) -> bool {
 
 /// Expects a 202 answer with `Location: /v1/jobs/{id}` and a queued job; its id.
 pub fn accepted_job_id(resp: Response) -> String {
-    let status = resp.status();
+    let body = assert_created(resp, 202, "job_id", "/v1/jobs", "simulation refused");
+    assert_eq!(body["state"], "queued", "{body}");
+    body["job_id"].as_str().unwrap().to_string()
+}
+
+/// Expects `status` and a body naming a new resource by `id_key` (an id of 32 hex digits),
+/// with `Location: <collection>/<id>`; the body. `what` prefixes the failure message.
+fn assert_created(
+    resp: Response,
+    status: u16,
+    id_key: &str,
+    collection: &str,
+    what: &str,
+) -> Value {
+    let got = resp.status();
     let location = resp
         .headers()
         .get("location")
         .map(|v| v.to_str().unwrap().to_string());
     let text = resp.text().unwrap();
-    assert_eq!(status, 202, "simulation refused: {text}");
+    assert_eq!(got, status, "{what}: {text}");
     let body: Value = serde_json::from_str(&text).unwrap();
-    let id = body["job_id"].as_str().expect("job_id").to_string();
-    assert!(is_id(&id), "job id {id:?}");
-    assert_eq!(location.as_deref(), Some(format!("/v1/jobs/{id}").as_str()));
-    assert_eq!(body["state"], "queued", "{body}");
-    id
+    let id = body[id_key].as_str().expect(id_key).to_string();
+    assert!(is_id(&id), "{id_key} {id:?}");
+    assert_eq!(
+        location.as_deref(),
+        Some(format!("{collection}/{id}").as_str())
+    );
+    body
 }
 
 /// Checks a problem+json answer: the status, the content type, the body's `status`, `type`
