@@ -143,8 +143,8 @@ pub struct SimulationRequest {
     pub options: serde_json::Map<String, Value>,
 }
 
-/// A frame in the frame list.
-#[derive(Debug, Serialize, ToSchema)]
+/// A frame in the frame list: the fields of its record in `summary.json`, and its link.
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct FrameEntry {
     /// Frame number.
     pub index: usize,
@@ -159,6 +159,7 @@ pub struct FrameEntry {
     /// Largest node displacement, mm.
     pub max_displacement_mm: f64,
     /// Where to fetch its displacement field.
+    #[serde(default)]
     pub displacement: String,
 }
 
@@ -656,12 +657,18 @@ pub async fn job_summary(
     file_response(path, "application/json", format!("{id}-summary.json")).await
 }
 
-fn read_summary(state: &AppState, id: JobId) -> ApiResult<Value> {
+/// The frames of a finished job, read from its `summary.json`, each with its field's link.
+fn read_frames(state: &AppState, id: JobId) -> ApiResult<Vec<FrameEntry>> {
     let path = state.store.job_output_dir(id).join("summary.json");
-    let bytes = std::fs::read(&path)
-        .map_err(|e| ApiError::internal(format!("job {id}: cannot read its summary: {e}")))?;
-    serde_json::from_slice(&bytes)
-        .map_err(|e| ApiError::internal(format!("job {id}: corrupt summary: {e}")))
+    let corrupt = |e: String| ApiError::internal(format!("job {id}: summary: {e}"));
+    let bytes = std::fs::read(&path).map_err(|e| corrupt(e.to_string()))?;
+    let summary: Value = serde_json::from_slice(&bytes).map_err(|e| corrupt(e.to_string()))?;
+    let mut frames: Vec<FrameEntry> =
+        serde_json::from_value(summary["frames"].clone()).map_err(|e| corrupt(e.to_string()))?;
+    for f in &mut frames {
+        f.displacement = format!("/v1/jobs/{id}/frames/{}/displacement", f.index);
+    }
+    Ok(frames)
 }
 
 /// The frames of a finished job.
@@ -682,28 +689,7 @@ pub async fn job_frames(
     let id = job_id(&id)?;
     blocking(move || {
         finished_job(&state, id)?;
-        let summary = read_summary(&state, id)?;
-        let number = |f: &Value, k: &str| f[k].as_f64().unwrap_or(f64::NAN);
-        let frames = summary["frames"]
-            .as_array()
-            .map(|frames| {
-                frames
-                    .iter()
-                    .map(|f| {
-                        let index = f["index"].as_u64().unwrap_or(0) as usize;
-                        FrameEntry {
-                            index,
-                            time_s: number(f, "time_s"),
-                            target_volume_ml: number(f, "target_volume_ml"),
-                            simulated_volume_ml: number(f, "simulated_volume_ml"),
-                            pressure_pa: number(f, "pressure_pa"),
-                            max_displacement_mm: number(f, "max_displacement_mm"),
-                            displacement: format!("/v1/jobs/{id}/frames/{index}/displacement"),
-                        }
-                    })
-                    .collect()
-            })
-            .unwrap_or_default();
+        let frames = read_frames(&state, id)?;
         Ok(Json(FrameList { frames }))
     })
     .await
@@ -741,12 +727,7 @@ pub async fn frame_displacement(
         .join(k.to_string());
     if !frame_dir.is_dir() {
         let worker_state = state.clone();
-        let count = blocking(move || {
-            Ok(read_summary(&worker_state, id)?["frames"]
-                .as_array()
-                .map_or(0, Vec::len))
-        })
-        .await?;
+        let count = blocking(move || Ok(read_frames(&worker_state, id)?.len())).await?;
         return Err(ApiError::not_found(format!(
             "job {id} has {count} frames (0–{}); there is no frame {k}",
             count.saturating_sub(1)
