@@ -23,7 +23,7 @@
 //! ```
 //! use lungmotion::model::Material;
 //! use lungmotion::simulation::{QuasiStaticSettings, QuasiStaticSolver};
-//! use lungmotion::validation::cases::symmetric_block_under_pressure;
+//! use lungmotion::simulation::cases::symmetric_block_under_pressure;
 //!
 //! let scene = symmetric_block_under_pressure([4, 4, 4], 0.005, Material::LUNG, -20.0)?;
 //! let mut solver = QuasiStaticSolver::new(&scene, QuasiStaticSettings::default())?;
@@ -42,19 +42,25 @@
 //! Units: the mechanical core works in SI (metres, newtons, pascals, kilograms, seconds);
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
+#[cfg(feature = "bench")]
 pub mod bench;
 pub mod breathing;
 pub mod datasets;
+pub mod durable;
 pub mod error;
 pub mod formats;
 pub mod ingest;
+pub mod math;
 pub mod model;
 pub mod motion;
 pub mod outputs;
 pub mod phantom;
+pub mod process;
 pub mod run;
+#[cfg(feature = "service")]
 pub mod service;
 pub mod simulation;
+#[cfg(feature = "validation")]
 pub mod validation;
 pub mod volume;
 

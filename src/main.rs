@@ -7,7 +7,8 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 use lungmotion::bench::{run_bench, BenchOptions};
-use lungmotion::validation::report::{run_validation, write_atomic, ValidateOptions};
+use lungmotion::durable::write_atomic;
+use lungmotion::validation::report::{run_validation, ValidateOptions};
 
 /// Predicts lung motion over a breathing curve with Baudet's parameterised hexahedral
 /// mass–spring model.

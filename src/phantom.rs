@@ -903,7 +903,7 @@ pub fn write_phantom_files(settings: &PhantomSettings, out_dir: &Path) -> Result
     std::fs::rename(&staging, &dicom_dir)?;
     let json = serde_json::to_string_pretty(&phantom.description)
         .map_err(|e| Error::InvalidInput(format!("cannot serialise phantom.json: {e}")))?;
-    crate::validation::report::write_atomic(&json_path, json.as_bytes())?;
+    crate::durable::write_atomic(&json_path, json.as_bytes())?;
     Ok(vec![ct_path, dicom_dir, truth_path, json_path])
 }
 

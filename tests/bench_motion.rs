@@ -1,5 +1,6 @@
 //! Smoke test of the motion benchmark's quick mode on the CIP case (8 mm, one cycle):
 //! the report must be coherent, whatever the speed of the machine.
+#![cfg(feature = "bench")]
 
 use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
 use lungmotion::bench::Outcome;

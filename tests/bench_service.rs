@@ -1,5 +1,6 @@
 //! The service benchmark's quick run: every part measured, sane and complete (no timing
 //! thresholds: the machine is shared).
+#![cfg(feature = "bench")]
 
 use lungmotion::bench::service::{
     run_service_bench, ServiceBenchOptions, LOAD_CONCURRENCY, QUICK_SLICE_PIXELS, UPLOAD_SLICES,

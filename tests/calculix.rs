@@ -2,6 +2,7 @@
 //! where both are exact, and the composite refinement study behaves.
 //!
 //! These tests need `ccx`. Without it they fail (never skip) and say how to install it.
+#![cfg(feature = "validation")]
 
 use lungmotion::model::{
     ConstraintSet, Loads, Material, NodeConstraint, SurfacePressure, VoxelGrid,

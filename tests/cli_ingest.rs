@@ -1,5 +1,6 @@
 //! `lungmotion ingest` as scripts use it: the files and fields the command-line contract
 //! promises, on the bundled phantom, and clear refusals that leave earlier outputs intact.
+#![cfg(feature = "cli")]
 
 mod common;
 

@@ -1,5 +1,6 @@
 //! `lungmotion run` as scripts use it: a CSV trace, a points file and a TOML configuration in;
 //! the promised files out, each read back; bad inputs refused with the reason.
+#![cfg(feature = "cli")]
 
 mod common;
 

@@ -6,8 +6,8 @@ use lungmotion::breathing::{BreathingTrace, LujanBreathing};
 use lungmotion::model::Material;
 use lungmotion::motion::dynamic::{run_dynamic, DynamicReport, DynamicSettings};
 use lungmotion::motion::REFERENCE_PRESSURE_PA;
+use lungmotion::simulation::cases::symmetric_block_under_pressure;
 use lungmotion::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
-use lungmotion::validation::cases::symmetric_block_under_pressure;
 use nalgebra::Vector3;
 
 type V3 = Vector3<f64>;
@@ -183,7 +183,7 @@ fn cip_lungs_one_dynamic_cycle() {
         eprintln!("skipped: shared data not found");
         return;
     }
-    let model = lungmotion::validation::lung_calculix::cip_lung_model(8.0).unwrap();
+    let model = lungmotion::datasets::cip_lung_model(8.0).unwrap();
     let scene = lungmotion::motion::lung_scene(&model).unwrap();
     let trace = LujanBreathing::default().trace(4.0, 25.0).unwrap();
     let settings = DynamicSettings {

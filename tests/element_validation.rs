@@ -1,6 +1,7 @@
 //! Single-element validation: patch tests against the closed forms of the thesis (§3.3,
 //! extraction §1.6) and large-strain error curves against the thesis's published limits
 //! (§3.3.4, Figs. 3.42, 3.43, 3.50).
+#![cfg(feature = "validation")]
 
 use lungmotion::model::{BrickCoefficients, BrickShape, Material};
 use lungmotion::validation::patch::{

@@ -7,6 +7,7 @@
 //! solver tolerances and platform round-off, not from what we would like: the two codes model
 //! the same solid with different constitutive laws (Baudet's mass–spring element against St
 //! Venant–Kirchhoff), so they agree to about 8 % of the mean displacement, not to round-off.
+#![cfg(feature = "validation")]
 
 use lungmotion::validation::calculix::{self, ElementType, CCX_INSTALL_HINT};
 use lungmotion::validation::lung_calculix::{

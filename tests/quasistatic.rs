@@ -4,10 +4,10 @@ use lungmotion::model::{
     BrickCoefficients, BrickShape, ConstraintSet, HexMesh, Loads, Material, NodeConstraint,
     SignedDistanceField, VoxelGrid,
 };
+use lungmotion::simulation::cases::symmetric_block_under_pressure;
 use lungmotion::simulation::{
     ExplicitIntegrator, ExplicitSettings, QuasiStaticSettings, QuasiStaticSolver, Scene,
 };
-use lungmotion::validation::cases::symmetric_block_under_pressure;
 use lungmotion::Error;
 use nalgebra::Vector3;
 

@@ -1,6 +1,7 @@
 //! `lungmotion serve` over a real socket: the full journey on the bundled phantom (checked
 //! against `lungmotion run` on the same inputs), every refused input with its status and
 //! reason, bearer-token authentication, and the operational endpoints.
+#![cfg(feature = "cli")]
 
 mod service_support;
 

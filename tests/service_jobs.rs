@@ -1,6 +1,7 @@
 //! The service's jobs under stress and interruption, over a real socket: a burst of
 //! concurrent simulations against a small queue, a server killed or stopped mid-job and
 //! restarted on the same store, and cancelling or deleting jobs and scans.
+#![cfg(feature = "cli")]
 
 mod service_support;
 

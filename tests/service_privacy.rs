@@ -2,6 +2,7 @@
 //! PatientID are distinctive strings is uploaded as a zip to a real server logging at debug
 //! level, simulated, and fetched; neither string may appear in the server's log, in any
 //! response, or in any JSON record of the store.
+#![cfg(feature = "cli")]
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};

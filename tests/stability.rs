@@ -1,5 +1,6 @@
 //! Stress test of the explicit integrator's automatic time step over lung-tissue parameters,
 //! and of the blow-up detector.
+#![cfg(feature = "validation")]
 
 use lungmotion::model::Material;
 use lungmotion::simulation::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};

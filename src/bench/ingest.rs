@@ -24,12 +24,13 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome, TimeStats};
+use super::{Outcome, TimeStats};
 use crate::datasets::cip_chest_ct64;
 use crate::formats::nrrd::read_nrrd;
 use crate::ingest::segmentation::{
     dice, segment_lungs, SegmentationSettings, LEFT_LUNG, RIGHT_LUNG,
 };
+use crate::process::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 

@@ -12,16 +12,15 @@ pub mod service;
 
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
+use crate::math::V3;
 use crate::model::{HexMesh, Material, VoxelGrid};
+use crate::process::{current_rss_bytes, peak_rss_bytes, reset_peak_rss};
+use crate::simulation::cases::symmetric_block_under_pressure;
 use crate::simulation::{ForceEvaluator, QuasiStaticSettings, QuasiStaticSolver, Scene};
 use crate::validation::calculix::{self, CalculixOptions};
-use crate::validation::cases::symmetric_block_under_pressure;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Edge of the cube elements of every benchmark block, metres.
 pub const BENCH_ELEMENT_EDGE_M: f64 = 5e-3;
@@ -631,7 +630,7 @@ fn quasistatic_block(n: usize, pressure_pa: f64, runs: usize) -> Result<QuasiSta
     let rss_before = current_rss_bytes();
     reset_peak_rss();
     let (x, rep, [setup, solve, total]) = time_solves(&scene, runs)?;
-    let peak = rss_bytes("VmHWM");
+    let peak = peak_rss_bytes();
     let mesh = &scene.mesh;
     let v0 = mesh.enclosed_volume_m3(&mesh.rest_positions_m);
     let v1 = mesh.enclosed_volume_m3(&x);
@@ -1061,13 +1060,6 @@ fn one_line(e: &str) -> String {
     e.lines().next().unwrap_or("").replace('|', "/")
 }
 
-/// The machine's load averages, to judge how shared it was.
-pub(crate) fn load_average() -> Option<[f64; 3]> {
-    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
-    let mut it = s.split_whitespace().map(|x| x.parse::<f64>().ok());
-    Some([it.next()??, it.next()??, it.next()??])
-}
-
 fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()
@@ -1092,41 +1084,6 @@ fn simd_level() -> &'static str {
     {
         "portable"
     }
-}
-
-/// Resident-memory field `key` (VmRSS, VmHWM) of /proc/self/status in bytes.
-fn rss_bytes(key: &str) -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with(key))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
-/// Peak resident memory of the process so far, bytes.
-pub fn peak_rss_bytes() -> Option<u64> {
-    rss_bytes("VmHWM")
-}
-
-/// Current resident memory of the process, bytes.
-fn current_rss_bytes() -> Option<u64> {
-    rss_bytes("VmRSS")
-}
-
-/// Resets VmHWM to the current RSS (Linux `clear_refs` 5) so a phase's own peak is visible;
-/// false where the kernel refuses (the peak then includes earlier phases).
-fn reset_peak_rss() -> bool {
-    std::fs::write("/proc/self/clear_refs", "5").is_ok()
-}
-
-/// CPU time (user + system, all threads) of this process so far, s, from /proc/self/stat
-/// (fields 14–15, in clock ticks of 1/100 s, the Linux USER_HZ).
-fn process_cpu_s() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name may hold spaces; fields are counted after its closing parenthesis.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let (utime, stime): (u64, u64) = (f.get(11)?.parse().ok()?, f.get(12)?.parse().ok()?);
-    Some((utime + stime) as f64 / 100.0)
 }
 
 /// Current UTC time as ISO 8601, from the system clock (no date crate needed).

@@ -33,30 +33,28 @@
 use std::fmt::Write as _;
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
-use super::{
-    current_rss_bytes, load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss, Outcome,
-    TimeStats,
-};
+use super::{Outcome, TimeStats};
 use crate::breathing::{BreathingTrace, LujanBreathing};
 use crate::datasets::cip_chest_ct64;
 use crate::ingest::lung_model::LungModelSettings;
 use crate::ingest::pipeline::{ingest_scan, IngestSettings};
 use crate::ingest::scan::load_ct;
+use crate::math::V3;
 use crate::model::Material;
 use crate::motion::{
     elastic_compliance_ml_per_pa, lung_scene, run_motion, MotionReport, MotionSettings,
     REFERENCE_PRESSURE_PA,
 };
 use crate::outputs::displacement_field::FieldSampler;
+use crate::process::{
+    current_rss_bytes, load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss,
+};
 use crate::simulation::keyframes::VolumeKeyframes;
 use crate::simulation::{BreathingDriver, Scene};
 use crate::volume::Volume;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Target wall time of the whole 10-phase cycle at 8 mm elements, s.
 pub const CYCLE_TARGET_8MM_S: f64 = 1.0;

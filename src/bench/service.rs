@@ -41,10 +41,11 @@ use serde::Serialize;
 use serde_json::Value;
 
 use super::ingest::upsample_trilinear;
-use super::{cpu_model, load_average, peak_rss_bytes, utc_now, Outcome, TimeStats};
+use super::{cpu_model, utc_now, Outcome, TimeStats};
 use crate::breathing::LujanBreathing;
 use crate::formats::dicom::{write_ct_series, CtSeriesMetadata};
 use crate::ingest::scan::load_ct;
+use crate::process::{load_average, peak_rss_bytes};
 use crate::run::demo::sample_volumes_dir;
 use crate::run::{run_breathing, RunConfig, RunInputs, SilentObserver};
 use crate::service::{start, ServerHandle, ServiceConfig};

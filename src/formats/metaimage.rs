@@ -9,7 +9,7 @@
 
 use std::path::Path;
 
-use crate::validation::report::write_atomic;
+use crate::durable::write_atomic;
 use crate::volume::VolumeGeometry;
 use crate::{Error, Result};
 

@@ -48,7 +48,7 @@ use std::path::Path;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use crate::validation::report::write_atomic;
+use crate::durable::write_atomic;
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 

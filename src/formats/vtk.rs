@@ -29,8 +29,8 @@ use std::path::Path;
 
 use nalgebra::Vector3;
 
+use crate::durable::write_atomic;
 use crate::model::HexMesh;
-use crate::validation::report::write_atomic;
 use crate::{Error, Result};
 
 /// VTK cell type code of an 8-node hexahedron.

@@ -18,16 +18,14 @@
 
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::{elastic_compliance_ml_per_pa, REFERENCE_PRESSURE_PA};
 use crate::breathing::BreathingTrace;
+use crate::math::V3;
 use crate::simulation::explicit::BlowUpGuard;
 use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene, TimeStepBound};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Settings of a dynamic breathing run.
 #[derive(Debug, Clone, Serialize)]

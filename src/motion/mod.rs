@@ -14,16 +14,14 @@ pub use lung_scene::lung_scene;
 
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::breathing::{BreathingTrace, OutputInstants};
+use crate::math::V3;
 use crate::model::Material;
 use crate::simulation::keyframes::{KeyframeReport, VolumeKeyframes};
 use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// The pressure the scene's surface load is built with (λ = 1); frames scale it.
 pub const REFERENCE_PRESSURE_PA: f64 = -1.0;
@@ -286,7 +284,7 @@ pub fn run_motion(
 mod tests {
     use super::*;
     use crate::breathing::LujanBreathing;
-    use crate::validation::cases::symmetric_block_under_pressure;
+    use crate::simulation::cases::symmetric_block_under_pressure;
 
     fn block() -> (Scene, f64) {
         let scene = symmetric_block_under_pressure([4, 4, 4], 0.01, Material::LUNG, -1.0).unwrap();

@@ -10,14 +10,12 @@
 
 use std::collections::HashMap;
 
-use nalgebra::Vector3;
 use rayon::prelude::*;
 
+use crate::math::V3;
 use crate::model::HexMesh;
 use crate::volume::Volume;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// How far (in cells) a lung voxel outside every element looks for one of its lung.
 const SEARCH_RADIUS_CELLS: i64 = 2;

@@ -14,11 +14,11 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Vector3;
 
+use crate::durable::write_atomic;
 use crate::formats::{nifti, vtk};
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::IngestOutcome;
 use crate::outputs::quicklook::{write_overview, Overlay};
-use crate::validation::report::write_atomic;
 use crate::volume::Volume;
 use crate::Result;
 

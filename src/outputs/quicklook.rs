@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use crate::validation::report::write_atomic;
+use crate::durable::write_atomic;
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 

@@ -28,8 +28,6 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nalgebra::Vector3;
-
 pub use crate::outputs::trajectories::TrackedPoint;
 pub use config::{MotionConfig, OutputConfig, RunConfig};
 pub use summary::{
@@ -38,20 +36,19 @@ pub use summary::{
 };
 
 use crate::breathing::BreathingTrace;
+use crate::durable::write_atomic;
 use crate::formats::{metaimage, nifti, vtk};
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::ingest_scan;
 use crate::ingest::scan::load_ct;
+use crate::math::V3;
 use crate::motion::dynamic::run_dynamic;
 use crate::motion::{lung_scene, run_motion, FrameSummary};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
 use crate::outputs::trajectories::TrajectoryFile;
-use crate::validation::report::write_atomic;
 use crate::{Error, Result};
 use staging::{OutputStaging, SUMMARY_FILE};
-
-type V3 = Vector3<f64>;
 
 /// The inputs of one run.
 #[derive(Debug, Clone)]
@@ -294,7 +291,7 @@ pub fn run_breathing(
     summary
         .timings_s
         .insert("total".to_string(), t_total.elapsed().as_secs_f64());
-    summary.peak_memory_mib = crate::bench::peak_rss_bytes().map(|b| b as f64 / (1 << 20) as f64);
+    summary.peak_memory_mib = crate::process::peak_rss_bytes().map(|b| b as f64 / (1 << 20) as f64);
     write_atomic(
         &staging.dir().join(SUMMARY_FILE),
         serde_json::to_string_pretty(&summary)

@@ -2,18 +2,16 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::{group_name, RunConfig, RunInputs};
 use crate::ingest::lung_model::{ConstraintGroup, DiaphragmMotion, LungModel, SlidingMode};
 use crate::ingest::pipeline::{IngestOutcome, IngestSummary};
+use crate::math::V3;
 use crate::model::{Material, NodeConstraint};
 use crate::motion::dynamic::DynamicReport;
 use crate::motion::{FrameSummary, MotionReport};
 use crate::simulation::Scene;
-
-type V3 = Vector3<f64>;
 
 /// The machine-readable record of a run (`summary.json`); scripts rely on its field names.
 #[derive(Debug, Clone, Serialize)]

@@ -12,13 +12,13 @@
 //! A scan or job directory appears by renaming a complete directory from `tmp/`, and
 //! disappears by renaming it back into `tmp/` before removal, so a listing never sees half of one.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
 use super::ids::{JobId, ScanId};
+use crate::durable::{sync_dir, write_durable as write_durable_unlabelled};
 use crate::run::{RunConfig, TrackedPoint};
 use crate::{Error, Result};
 
@@ -364,24 +364,12 @@ fn io_error(path: &Path, e: std::io::Error) -> Error {
     ))
 }
 
-/// Writes `bytes` to `path` durably: temporary sibling, fsync, rename, fsync of the directory.
-pub fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
-    let tmp = path.with_file_name(format!(".{}.tmp", name.unwrap_or_default()));
-    let result = (|| {
-        let mut file = std::fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(io_error(path, e));
-    }
-    if let Some(parent) = path.parent() {
-        sync_dir(parent);
-    }
-    Ok(())
+/// [`write_durable_unlabelled`] with the store's path in the error.
+fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_durable_unlabelled(path, bytes).map_err(|e| match e {
+        Error::Io(io) => io_error(path, io),
+        other => other,
+    })
 }
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
@@ -411,12 +399,6 @@ fn publish_dir(staging: &Path, target: &Path) -> Result<()> {
 }
 
 /// Makes a directory's entries (renames) durable; best effort where directories cannot be opened.
-fn sync_dir(dir: &Path) {
-    if let Ok(d) = std::fs::File::open(dir) {
-        let _ = d.sync_all();
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

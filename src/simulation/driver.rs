@@ -12,14 +12,12 @@
 //! Sign convention (as [`crate::model::SurfacePressure`]): positive pressure pushes inward,
 //! so inhalation is a negative surface pressure.
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::quasistatic::{QuasiStaticSettings, QuasiStaticSolver, SolveReport};
 use super::scene::Scene;
+use crate::math::V3;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Most pressure solves the volume driver spends on one frame before giving up.
 pub const MAX_VOLUME_SOLVES: usize = 12;
@@ -367,7 +365,7 @@ impl<'s> BreathingDriver<'s> {
 mod tests {
     use super::*;
     use crate::model::Material;
-    use crate::validation::cases::symmetric_block_under_pressure;
+    use crate::simulation::cases::symmetric_block_under_pressure;
 
     fn block() -> Scene {
         symmetric_block_under_pressure([4, 4, 4], 0.01, Material::LUNG, -1.0).unwrap()

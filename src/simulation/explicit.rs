@@ -4,14 +4,12 @@
 //! Damping forces use the half-step velocity v(t + h/2), the only velocity available when
 //! a(t + h) is computed without an implicit solve.
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::scene::Scene;
+use crate::math::V3;
 use crate::model::element::SPRINGS;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// The stable time step of a scene and the bounds it came from.
 #[derive(Debug, Clone, Copy, Serialize)]

@@ -16,14 +16,13 @@
 //! mesh's element colouring. The schedule depends only on the mesh, and chunks run in the same
 //! order on any number of threads, so results are bit-for-bit independent of the thread count.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 use rayon::prelude::*;
 
 use super::lanes::{add3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
+use crate::math::V3;
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
 use crate::model::HexMesh;
-
-type V3 = Vector3<f64>;
 
 /// Per-class constants laid out for the force kernel.
 #[derive(Debug, Clone)]

@@ -18,13 +18,11 @@
 //! as an interpolation error that no number of keys removed. Checking within one sweep keeps
 //! that property without solving the coarse keys twice.
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::driver::{BreathingDriver, DrivenState};
+use crate::math::V3;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Largest number of key volumes before the interpolation is declared not worth it.
 pub const MAX_KEYS: usize = 65;
@@ -248,8 +246,8 @@ impl Spent {
 mod tests {
     use super::*;
     use crate::model::Material;
+    use crate::simulation::cases::symmetric_block_under_pressure;
     use crate::simulation::QuasiStaticSettings;
-    use crate::validation::cases::symmetric_block_under_pressure;
 
     #[test]
     fn interpolated_frames_match_direct_solves_within_the_measured_error() {

@@ -1,5 +1,6 @@
 //! Simulation: force evaluation, explicit dynamics, quasi-static equilibrium, blow-up checks.
 
+pub mod cases;
 pub mod driver;
 pub mod explicit;
 pub mod forces;

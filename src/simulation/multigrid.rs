@@ -31,17 +31,17 @@
 
 use std::collections::HashMap;
 
-use nalgebra::{DMatrix, Matrix3, SMatrix, Vector3};
+use nalgebra::{DMatrix, Matrix3, SMatrix};
 use rayon::prelude::*;
 
 use super::forces::{ChunkSchedule, PARALLEL_MIN_ELEMENTS};
 use super::lanes::{ElementSource, LaneV3, Lanes, LANES};
 use super::linalg::{nodes, nodes_mut};
+use crate::math::V3;
 use crate::model::element::CORNER_SIGNS;
 use crate::model::HexMesh;
 
 type M24 = SMatrix<f64, 24, 24>;
-type V3 = Vector3<f64>;
 
 /// Lattice coordinates of a mesh whose elements are equal bricks on one regular grid.
 ///

@@ -11,16 +11,15 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 use serde::Serialize;
 
 use super::linalg::{self, flat, nodes, nodes_mut};
 use super::multigrid::{project_flat, sparse, Lattice, Multigrid};
 use super::scene::Scene;
+use crate::math::V3;
 use crate::model::{ConstraintSet, NodeConstraint};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Settings of the quasi-static solver.
 #[derive(Debug, Clone, Serialize)]

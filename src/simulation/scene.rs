@@ -1,12 +1,9 @@
 //! A scene: a mesh with its constraints and loads, and the total force on it.
 
-use nalgebra::Vector3;
-
 use super::forces::ForceEvaluator;
+use crate::math::V3;
 use crate::model::{ConstraintSet, HexMesh, Loads};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Everything the solvers need: mesh, constraints, loads, and the packed force kernels.
 #[derive(Debug, Clone)]

@@ -15,15 +15,13 @@ use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
+use crate::math::V3;
 use crate::model::mesh::HEX_FACES;
 use crate::model::{Material, NodeConstraint};
 use crate::simulation::Scene;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Environment variable naming the `ccx` executable, overriding the search of `PATH`.
 pub const CCX_ENV: &str = "LUNGMOTION_CCX";

@@ -12,16 +12,15 @@ use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::time::Instant;
 
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, SymmetricEigen};
 use serde::Serialize;
 
 use super::calculix::{self, CalculixOptions, ElementType};
+use crate::math::V3;
 use crate::model::element::CORNER_SIGNS;
 use crate::model::{ConstraintSet, HexMesh, Loads, Material, VoxelGrid};
 use crate::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene, SolveReport};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Gravitational acceleration used for the self-weight case, m/s².
 pub const GRAVITY_M_PER_S2: f64 = 9.81;

@@ -17,18 +17,16 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::calculix::{self, CalculixOptions, ElementType};
-use super::report::write_atomic;
-use crate::ingest::lung_model::{build_lung_model, ConstraintGroup, LungModel, LungModelSettings};
+use crate::durable::write_atomic;
+use crate::ingest::lung_model::{ConstraintGroup, LungModel};
+use crate::math::V3;
 use crate::model::{Material, NodeConstraint};
 use crate::motion::{elastic_compliance_ml_per_pa, lung_scene, REFERENCE_PRESSURE_PA};
 use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Settings of the end-inhale comparison.
 #[derive(Debug, Clone, Serialize)]
@@ -202,30 +200,11 @@ pub struct LungCalculixReport {
     pub wall_time_s: f64,
 }
 
-/// Builds the CIP chest CT's lung model (expert lung labels, airways for the hilum) at
-/// `element_size_mm`; fails naming the directory when the shared data is missing.
-pub fn cip_lung_model(element_size_mm: f64) -> Result<LungModel> {
-    let (lungs, airways) = crate::datasets::cip_expert_lung_masks().ok_or_else(|| {
-        Error::InvalidInput(format!(
-            "the CIP chest CT (cip-chest-ct64) was not found; set {} to the shared data directory",
-            crate::datasets::SHARED_DATA_ENV
-        ))
-    })??;
-    build_lung_model(
-        &lungs,
-        &airways,
-        &LungModelSettings {
-            element_size_mm,
-            ..Default::default()
-        },
-    )
-}
-
 /// The CIP lungs' end-inhale frame against CalculiX (see the module doc).
 pub fn compare_end_inhale_with_calculix(
     settings: &LungCalculixSettings,
 ) -> Result<LungCalculixReport> {
-    let model = cip_lung_model(settings.element_size_mm)?;
+    let model = crate::datasets::cip_lung_model(settings.element_size_mm)?;
     compare_model_with_calculix(&model, "CIP chest CT ct-64, expert lung labels", settings)
 }
 

@@ -2,7 +2,6 @@
 //! thesis's published results (strain sweeps, composite cases) and CalculiX.
 
 pub mod calculix;
-pub mod cases;
 pub mod composite;
 pub mod lung_calculix;
 pub mod patch;

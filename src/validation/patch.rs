@@ -7,9 +7,10 @@
 //! single-element mesh, axis-aligned symmetry constraints, a dense Newton solver on the real
 //! force kernel and a dense solve on the linearised stiffness.
 
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
+use crate::math::V3;
 use crate::model::element::CORNER_SIGNS;
 use crate::model::{
     BrickCoefficients, BrickShape, ConstraintSet, HexMesh, Loads, Material, NodeConstraint,
@@ -17,8 +18,6 @@ use crate::model::{
 };
 use crate::simulation::Scene;
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// Builds a one-element mesh with corner 0 at the origin and edges along +x, +y, +z.
 pub fn single_element_mesh(edges_m: [f64; 3], material: Material) -> Result<HexMesh> {

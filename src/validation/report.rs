@@ -9,6 +9,7 @@ use super::composite::{run_composite, CompositeOptions, CompositeReport};
 use super::patch::{run_patch_tests, PatchConfig, PatchReport};
 use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
 use super::sweep::{run_strain_sweeps, SweepConfig, SweepReport};
+use crate::durable::write_atomic;
 use crate::Result;
 
 /// Which studies to run.
@@ -112,15 +113,4 @@ impl ValidationReport {
         write_atomic(&dir.join("validation.md"), self.to_markdown().as_bytes())?;
         Ok(())
     }
-}
-
-/// Writes `bytes` to `path` through a temporary sibling and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension(format!(
-        "{}.tmp",
-        path.extension().and_then(|e| e.to_str()).unwrap_or("")
-    ));
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(&tmp, path)?;
-    Ok(())
 }

@@ -24,10 +24,11 @@
 //! to 1/(2 − 4ν)) shows up as a damping mismatch of order one and as a linearised limit that
 //! disagrees with the empirical one.
 
-use nalgebra::{DMatrix, Vector3};
+use nalgebra::DMatrix;
 use serde::Serialize;
 
 use super::patch::{assemble_linear_stiffness, free_dofs, DenseNewton};
+use crate::math::V3;
 use crate::model::element::SPRINGS;
 use crate::model::{ConstraintSet, HexMesh, Loads, Material, SurfacePressure, VoxelGrid};
 use crate::simulation::{
@@ -35,8 +36,6 @@ use crate::simulation::{
     TimeStepBound,
 };
 use crate::{Error, Result};
-
-type V3 = Vector3<f64>;
 
 /// What the stability study runs.
 #[derive(Debug, Clone, Serialize)]

@@ -6,19 +6,17 @@
 //! model's, not the solver's: every point is a converged equilibrium of the production force
 //! kernel (dense Newton on the 24 DOFs).
 
-use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::patch::{
     face_corners, face_mean, hold_axes, positive_faces, single_element_mesh, symmetry_constraints,
     DenseNewton, Equilibrium,
 };
+use crate::math::V3;
 use crate::model::element::CORNER_SIGNS;
 use crate::model::{Loads, Material, SurfacePressure};
 use crate::simulation::{QuasiStaticSettings, QuasiStaticSolver, Scene};
 use crate::Result;
-
-type V3 = Vector3<f64>;
 
 /// The thesis's stated limits for a cube (§3.3.4), for side-by-side tables.
 pub mod thesis {

@@ -10,7 +10,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::CtSeriesMetadata;
-use crate::validation::report::write_atomic;
+use crate::durable::write_atomic;
 use crate::volume::Volume;
 use crate::{Error, Result};
 

@@ -1,0 +1,67 @@
+//! Figures about this process and the machine it runs on (resident memory, CPU time, load),
+//! read from Linux's `/proc`; `None` where the platform does not offer them.
+//!
+//! The run summary reports peak memory and the benchmarks time phases with them, so they live
+//! below both.
+
+/// Resident-memory field `key` (VmRSS, VmHWM) of /proc/self/status in bytes.
+fn rss_bytes(key: &str) -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with(key))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// Peak resident memory of the process so far, bytes.
+pub fn peak_rss_bytes() -> Option<u64> {
+    rss_bytes("VmHWM")
+}
+
+/// Current resident memory of the process, bytes.
+pub fn current_rss_bytes() -> Option<u64> {
+    rss_bytes("VmRSS")
+}
+
+/// Resets VmHWM to the current RSS (Linux `clear_refs` 5) so a phase's own peak is visible;
+/// false where the kernel refuses (the peak then includes earlier phases).
+pub fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// CPU time (user + system, all threads) of this process so far, s, from /proc/self/stat
+/// (fields 14–15, in clock ticks of 1/100 s, the Linux USER_HZ).
+pub fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name may hold spaces; fields are counted after its closing parenthesis.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let (utime, stime): (u64, u64) = (f.get(11)?.parse().ok()?, f.get(12)?.parse().ok()?);
+    Some((utime + stime) as f64 / 100.0)
+}
+
+/// The machine's load averages over 1, 5 and 15 minutes, to judge how shared it was.
+pub fn load_average() -> Option<[f64; 3]> {
+    let s = std::fs::read_to_string("/proc/loadavg").ok()?;
+    let mut it = s.split_whitespace().map(|x| x.parse::<f64>().ok());
+    Some([it.next()??, it.next()??, it.next()??])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn figures_are_plausible_on_linux() {
+        if !std::path::Path::new("/proc/self/status").exists() {
+            return;
+        }
+        let current = current_rss_bytes().expect("VmRSS");
+        let peak = peak_rss_bytes().expect("VmHWM");
+        assert!(
+            current > 0 && peak >= current,
+            "current {current}, peak {peak}"
+        );
+        assert!(process_cpu_s().expect("stat") >= 0.0);
+        assert!(load_average().expect("loadavg").iter().all(|l| *l >= 0.0));
+    }
+}
