@@ -6,7 +6,9 @@
 //! * [`store`]: the on-disk store with atomic records;
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
-//! * [`routes`]: the endpoints; [`openapi`]: their description; [`problem`]: error bodies;
+//! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
+//! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
+//!   [`problem`]: error bodies;
 //! * [`metrics`]: Prometheus series; [`server`]: middleware, listening, graceful shutdown.
 //!
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
@@ -17,6 +19,7 @@ pub mod jobs;
 pub mod metrics;
 pub mod openapi;
 pub mod problem;
+pub mod request;
 pub mod routes;
 pub mod server;
 pub mod store;
