@@ -1,7 +1,7 @@
 //! The HTTP service (`lungmotion serve`): the breathing pipeline offered to planning systems
 //! and scripts. A thin shell over [`crate::run::run_breathing`] and the ingest stage:
 //!
-//! * [`config`]: file, environment and command-line settings;
+//! * [`config`]: file, environment and command-line settings, merged in one place;
 //! * [`ids`]: unguessable scan and job ids;
 //! * [`store`]: the on-disk store with atomic records;
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart;
@@ -25,5 +25,5 @@ pub mod server;
 pub mod store;
 pub mod upload;
 
-pub use config::ServiceConfig;
+pub use config::{ServeOverrides, ServiceConfig};
 pub use server::{router, serve_blocking, start, ServerHandle};
