@@ -186,3 +186,88 @@ fn help_explains_the_trace_and_the_field_convention() {
         );
     }
 }
+
+/// Runs `command` to its end, killing it (and failing) if it is still running after a minute:
+/// a refused `serve` must not start listening.
+fn exit_code_within_a_minute(command: &mut std::process::Command) -> (Option<i32>, String) {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let mut child = command
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{command:?} kept running");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut stderr).unwrap();
+    (status.code(), stderr)
+}
+
+#[test]
+fn exit_status_is_2_for_refused_input_in_every_subcommand_and_1_for_failures_while_working() {
+    let dir = temp_dir("exit");
+    let out = dir.join("out");
+    std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,10\n2,0\n").unwrap();
+    std::fs::write(dir.join("nan.csv"), "time_s,volume_ml\n0,0\n1,NaN\n2,0\n").unwrap();
+    std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
+    std::fs::write(dir.join("service.toml"), "wokers = 3\n").unwrap();
+    let refused_runs: [&[&str]; 2] = [
+        &["--trace", "{dir}/nan.csv"],
+        &["--trace", "{dir}/trace.csv", "--config", "{dir}/typo.toml"],
+    ];
+    for args in refused_runs {
+        let o = run(args, &dir, &out);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "run {args:?}: {stderr}");
+    }
+    // A usage error (clap's own) is the same 2.
+    let o = bin().args(["run", "--no-such-option"]).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+
+    let service_toml = dir.join("service.toml").display().to_string();
+    let refused_serves: [&[&str]; 3] = [
+        &["--workers", "0"],
+        &["--listen", "localhost"],
+        &["--config", &service_toml],
+    ];
+    for args in refused_serves {
+        let mut serve = bin();
+        serve.arg("serve").arg("--data-dir").arg(dir.join("data"));
+        for name in lungmotion::service::config::ENV_VARS {
+            serve.env_remove(name);
+        }
+        let (code, stderr) = exit_code_within_a_minute(serve.args(args));
+        assert_eq!(code, Some(2), "serve {args:?}: {stderr}");
+    }
+
+    // An output directory that cannot be created is refused as `run` refuses one (2), by
+    // `phantom` too; writing a file fails while working (1): the CT's name is taken by a
+    // directory (which stops root too).
+    let phantom = |out: &Path| bin().arg("phantom").arg("--out").arg(out).output().unwrap();
+    let o = phantom(&dir.join("trace.csv").join("phantom"));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("output directory"), "{stderr}");
+    let blocked = dir.join("phantom");
+    std::fs::create_dir_all(blocked.join("phantom-ct.nii.gz").join("taken")).unwrap();
+    let o = phantom(&blocked);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("cannot write"), "{stderr}");
+
+    let o = bin().arg("--help").output().unwrap();
+    let help = String::from_utf8_lossy(&o.stdout);
+    assert!(help.contains("Exit status"), "{help}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

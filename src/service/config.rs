@@ -1,5 +1,6 @@
 //! How the service is set up: a TOML file, then the environment, then the command line, each
-//! overriding the one before. Every key is optional; unknown keys are refused by name.
+//! overriding the one before, merged in one place ([`ServiceConfig::resolve`]). Every key is
+//! optional; unknown keys are refused by name.
 //!
 //! ```toml
 //! listen = "127.0.0.1:8080"
@@ -86,6 +87,20 @@ struct ServiceFile {
     run: Option<toml::Value>,
 }
 
+/// What the command line (`lungmotion serve`) may override, each over the file and the
+/// environment; `None` leaves the setting as they made it.
+#[derive(Debug, Clone, Default)]
+pub struct ServeOverrides {
+    /// `--listen`: address and port, as text (checked when merged).
+    pub listen: Option<String>,
+    /// `--data-dir`: root of the on-disk store.
+    pub data_dir: Option<PathBuf>,
+    /// `--workers`: simulations at once.
+    pub workers: Option<usize>,
+    /// `--queue-capacity`: simulations that may wait.
+    pub queue_capacity: Option<usize>,
+}
+
 /// Environment variables the service reads (each overrides the file's key).
 pub const ENV_VARS: [&str; 7] = [
     "LUNGMOTION_LISTEN",
@@ -106,8 +121,22 @@ impl ServiceConfig {
         Ok(config)
     }
 
+    /// The service's settings from all three sources: the optional TOML `file`, then `env`
+    /// (name → value, as from the process environment), then the command line's
+    /// `overrides`; the result is validated once. Errors name the source and the key.
+    pub fn resolve(
+        file: Option<&Path>,
+        env: &dyn Fn(&str) -> Option<String>,
+        overrides: &ServeOverrides,
+    ) -> Result<Self> {
+        let mut config = Self::from_sources(file, env)?;
+        config.apply_overrides(overrides)?;
+        config.validate()?;
+        Ok(config)
+    }
+
     /// As [`ServiceConfig::load`] without the final validation, for callers that override
-    /// more (the command line) and validate the result once.
+    /// more and validate the result once (as [`ServiceConfig::resolve`] does).
     pub fn from_sources(file: Option<&Path>, env: &dyn Fn(&str) -> Option<String>) -> Result<Self> {
         let mut config = ServiceConfig::default();
         if let Some(path) = file {
@@ -190,6 +219,20 @@ impl ServiceConfig {
         if let Some(v) = env("LUNGMOTION_API_TOKEN") {
             self.api_token = Some(v.trim().to_string());
         }
+        Ok(())
+    }
+
+    /// Applies the command line's values over the file's and the environment's.
+    fn apply_overrides(&mut self, overrides: &ServeOverrides) -> Result<()> {
+        if let Some(listen) = &overrides.listen {
+            self.listen =
+                parse_listen(listen).map_err(|m| Error::InvalidInput(format!("--listen {m}")))?;
+        }
+        if let Some(dir) = &overrides.data_dir {
+            self.data_dir = dir.clone();
+        }
+        set(&mut self.workers, overrides.workers);
+        set(&mut self.queue_capacity, overrides.queue_capacity);
         Ok(())
     }
 
@@ -316,6 +359,22 @@ mod tests {
         assert!(c.validate().is_err());
         c.listen = parse_listen("127.0.0.1:8080").unwrap();
         assert!(c.validate().is_ok());
+        // The command line's overrides win over the environment, then the whole is validated.
+        let loopback = ServeOverrides {
+            listen: Some("127.0.0.1:0".into()),
+            workers: Some(2),
+            ..ServeOverrides::default()
+        };
+        let c = ServiceConfig::resolve(None, &env, &loopback).unwrap();
+        assert_eq!((c.listen.port(), c.workers), (0, 2));
+        let e = ServiceConfig::resolve(None, &env, &ServeOverrides::default()).unwrap_err();
+        assert!(e.to_string().contains("LUNGMOTION_API_TOKEN"), "{e}");
+        let typo = ServeOverrides {
+            listen: Some("localhost".into()),
+            ..ServeOverrides::default()
+        };
+        let e = ServiceConfig::resolve(None, &no_env, &typo).unwrap_err();
+        assert!(e.to_string().contains("--listen"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -1,12 +1,14 @@
 //! The HTTP service (`lungmotion serve`): the breathing pipeline offered to planning systems
 //! and scripts. A thin shell over [`crate::run::run_breathing`] and the ingest stage:
 //!
-//! * [`config`]: file, environment and command-line settings;
+//! * [`config`]: file, environment and command-line settings, merged in one place;
 //! * [`ids`]: unguessable scan and job ids;
 //! * [`store`]: the on-disk store with atomic records;
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
-//! * [`routes`]: the endpoints; [`openapi`]: their description; [`problem`]: error bodies;
+//! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
+//! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
+//!   [`problem`]: error bodies;
 //! * [`metrics`]: Prometheus series; [`server`]: middleware, listening, graceful shutdown.
 //!
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
@@ -17,10 +19,11 @@ pub mod jobs;
 pub mod metrics;
 pub mod openapi;
 pub mod problem;
+pub mod request;
 pub mod routes;
 pub mod server;
 pub mod store;
 pub mod upload;
 
-pub use config::ServiceConfig;
+pub use config::{ServeOverrides, ServiceConfig};
 pub use server::{router, serve_blocking, start, ServerHandle};

@@ -1,0 +1,83 @@
+//! The exit status of every subcommand: 0 success, 2 the usage or the input was refused,
+//! 1 a failure while working. The one place that decides between 2 and 1.
+
+use std::process::ExitCode;
+
+/// The exit status, as `lungmotion --help` documents it (also in the README).
+pub const EXIT_STATUS_HELP: &str = "\
+Exit status (the same for every subcommand):
+  0  success
+  1  a failure while working: the solver diverged or did not converge, writing an output
+     failed, an external tool (CalculiX) failed
+  2  the usage or the input was refused: an unknown or malformed option; an unreadable or
+     unusable configuration, breathing trace, points file, scan, material or output
+     directory; no usable lungs in the CT; service settings it cannot serve with (such as
+     an address it cannot listen on)";
+
+/// A refusal the command line finds itself rather than the library (an output directory
+/// that cannot be created); shown as its message, it exits 2.
+#[derive(Debug)]
+pub struct Refusal(pub String);
+
+impl std::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// Exit status when the usage or the input was refused (as clap's own usage errors).
+pub const REFUSED: u8 = 2;
+
+/// Exit status of a failure while working.
+pub const FAILED: u8 = 1;
+
+/// Whether the library refused what it was given (exit 2) rather than failing while working
+/// on it (exit 1). Exhaustive, so a new error variant must be placed here; it mirrors the
+/// service's 422 against 500 (`ApiError::from_input_error`).
+pub fn is_refusal(error: &lungmotion::Error) -> bool {
+    use lungmotion::Error;
+    match error {
+        Error::InvalidInput(_)
+        | Error::InvalidScan(_)
+        | Error::InvalidMaterial(_)
+        | Error::Ingest(_) => true,
+        Error::InadmissibleElement(_)
+        | Error::InvalidModel(_)
+        | Error::Diverged { .. }
+        | Error::NotConverged { .. }
+        | Error::External(_)
+        | Error::Cancelled(_)
+        | Error::Io(_) => false,
+    }
+}
+
+/// The exit status of a library error.
+pub fn exit_code(error: &lungmotion::Error) -> ExitCode {
+    ExitCode::from(if is_refusal(error) { REFUSED } else { FAILED })
+}
+
+/// The exit status of a subcommand's error: a [`Refusal`] of the command line's own, else
+/// decided by the outermost library error in its chain; anything else failed while working.
+pub fn exit_code_of_chain(error: &anyhow::Error) -> ExitCode {
+    if error.downcast_ref::<Refusal>().is_some() {
+        return ExitCode::from(REFUSED);
+    }
+    match error
+        .chain()
+        .find_map(|cause| cause.downcast_ref::<lungmotion::Error>())
+    {
+        Some(e) => exit_code(e),
+        None => ExitCode::from(FAILED),
+    }
+}
+
+/// Ends a subcommand: its error (if any) on stderr, and the documented exit status.
+pub fn finish(result: anyhow::Result<()>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lungmotion: error: {e:#}");
+            exit_code_of_chain(&e)
+        }
+    }
+}

@@ -1,0 +1,28 @@
+//! The subcommands of `lungmotion`, one module each: its options as one `clap::Args` struct,
+//! resolved once into the library's settings, and the call into the library. What they share
+//! (logging, exit status, the output directory) is here and in [`exit`] and [`logging`].
+
+pub mod bench;
+pub mod exit;
+pub mod ingest;
+pub mod logging;
+pub mod phantom;
+pub mod progress;
+pub mod run;
+pub mod serve;
+pub mod validate;
+
+use anyhow::Context;
+
+use exit::Refusal;
+
+/// Creates the report directory before any work, so a bad `--out` fails at once, by name
+/// (refused, exit 2, as `run` refuses an output directory it cannot use).
+pub fn prepare_out(out: &std::path::Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| {
+        Refusal(format!(
+            "cannot create the output directory {}",
+            out.display()
+        ))
+    })
+}

@@ -1,0 +1,95 @@
+//! Operations: liveness and readiness probes, Prometheus metrics, and the answer to unknown
+//! routes.
+
+use axum::extract::{Request, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::SharedState;
+use crate::service::problem::ApiError;
+
+/// Liveness or readiness.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Health {
+    /// `ok`, `ready` or why not.
+    pub status: String,
+    /// Worker threads.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub workers: Option<usize>,
+    /// Jobs waiting.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub queued: Option<usize>,
+    /// Jobs running.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub running: Option<usize>,
+}
+
+/// Liveness: the process answers.
+#[utoipa::path(get, path = "/healthz", tag = "operations",
+    responses((status = 200, description = "Alive", body = Health)))]
+pub async fn healthz() -> Json<Health> {
+    Json(Health {
+        status: "ok".into(),
+        workers: None,
+        queued: None,
+        running: None,
+    })
+}
+
+/// Readiness: the store is writable and the server is not shutting down.
+#[utoipa::path(get, path = "/readyz", tag = "operations",
+    responses((status = 200, description = "Ready", body = Health),
+              (status = 503, description = "Shutting down or store not writable", body = Health)))]
+pub async fn readyz(State(state): State<SharedState>) -> Response {
+    let counts = state.jobs.counts();
+    let worker_state = state.clone();
+    let writable = tokio::task::spawn_blocking(move || worker_state.store.is_writable())
+        .await
+        .unwrap_or(false);
+    let status = if state.jobs.shutting_down() {
+        "shutting down"
+    } else if !writable {
+        "store not writable"
+    } else {
+        "ready"
+    };
+    let code = if status == "ready" {
+        StatusCode::OK
+    } else {
+        StatusCode::SERVICE_UNAVAILABLE
+    };
+    let body = Health {
+        status: status.into(),
+        workers: Some(state.config.workers),
+        queued: Some(counts.queued),
+        running: Some(counts.running),
+    };
+    (code, Json(body)).into_response()
+}
+
+/// Prometheus metrics.
+#[utoipa::path(get, path = "/metrics", tag = "operations",
+    responses((status = 200, description = "OpenMetrics text", content_type = "application/openmetrics-text", body = String)))]
+pub async fn metrics(State(state): State<SharedState>) -> Response {
+    let text = state.metrics.render(&state.jobs.counts());
+    (
+        [(
+            header::CONTENT_TYPE,
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )],
+        text,
+    )
+        .into_response()
+}
+
+/// Unknown routes.
+pub async fn not_found(request: Request) -> ApiError {
+    ApiError::not_found(format!(
+        "no route {} {}; see /openapi.json",
+        request.method(),
+        request.uri().path()
+    ))
+}

@@ -1,0 +1,180 @@
+//! Scans: upload (stored and ingested at once), fetch and delete.
+
+use std::path::PathBuf;
+
+use axum::extract::{Path, Request, State};
+use axum::http::StatusCode;
+use axum::response::Response;
+use axum::Json;
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
+use crate::ingest::pipeline::ingest_scan;
+use crate::ingest::scan::load_ct;
+use crate::service::ids::ScanId;
+use crate::service::problem::{ApiError, ApiResult, Problem};
+use crate::service::store::{now_rfc3339, ScanRecord};
+use crate::service::upload::{receive_scan, TempFileGuard};
+
+/// Links of a scan.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ScanLinks {
+    /// This scan.
+    #[serde(rename = "self")]
+    pub self_: String,
+    /// Where to POST simulations of it.
+    pub simulations: String,
+}
+
+/// A stored scan as the API shows it.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ScanView {
+    /// The record.
+    #[serde(flatten)]
+    pub record: ScanRecord,
+    /// Related resources.
+    pub links: ScanLinks,
+}
+
+impl From<ScanRecord> for ScanView {
+    fn from(record: ScanRecord) -> Self {
+        let base = format!("/v1/scans/{}", record.scan_id);
+        ScanView {
+            links: ScanLinks {
+                simulations: format!("{base}/simulations"),
+                self_: base,
+            },
+            record,
+        }
+    }
+}
+
+/// Upload a scan and ingest it.
+#[utoipa::path(
+    post, path = "/v1/scans", tag = "scans",
+    request_body(description = "A NIfTI file (.nii, .nii.gz) or a zip of one DICOM series, raw \
+        or as the part `file` of a multipart form; told apart by content",
+        content(("application/octet-stream"), ("application/zip"), ("application/gzip"),
+                ("multipart/form-data"))),
+    responses(
+        (status = 201, description = "Stored and ingested", body = ScanView,
+         headers(("location" = String, description = "The scan's URL"))),
+        (status = 400, description = "Empty or broken upload", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Over max_upload_mib", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "JSON or text instead of a scan", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Not a CT, truncated, unsafe zip, or no lungs found", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn upload_scan(
+    State(state): State<SharedState>,
+    request: Request,
+) -> ApiResult<Response> {
+    if state.jobs.shutting_down() {
+        return Err(shutting_down());
+    }
+    let dest = state.store.tmp_path("upload");
+    let mut guard = TempFileGuard(Some(dest.clone()));
+    let received = receive_scan(request, &dest, state.config.max_upload_bytes).await?;
+    let (file_name, format_name) = received.stored_name();
+    // The readers tell .nii from .nii.gz by name, so the file gets its proper one.
+    let named = PathBuf::from(format!("{}-{file_name}", dest.display()));
+    std::fs::rename(&dest, &named)
+        .map_err(|e| ApiError::internal(format!("cannot move the upload: {e}")))?;
+    guard.0 = Some(named.clone());
+    let _slot = state
+        .ingest_slots
+        .acquire()
+        .await
+        .map_err(|_| shutting_down())?;
+    let bytes = received.bytes;
+    let settings = state.config.run.ingest_settings();
+    let worker_state = state.clone();
+    let record = blocking(move || {
+        let refused = |e| ApiError::from_input_error(e).redact_path(&named, "the upload");
+        let scan = load_ct(&named).map_err(refused)?;
+        let outcome = ingest_scan(&scan, &settings).map_err(refused)?;
+        let record = ScanRecord {
+            scan_id: ScanId::random(),
+            created_at: now_rfc3339(),
+            format: format_name.to_string(),
+            upload_bytes: bytes,
+            file_name: file_name.to_string(),
+            ingest: serde_json::to_value(&outcome.summary)
+                .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))?,
+        };
+        worker_state
+            .store
+            .put_scan(&record, &named)
+            .map_err(store_error)?;
+        Ok(record)
+    })
+    .await?;
+    guard.0 = None;
+    state.metrics.observe_upload(bytes);
+    tracing::info!(
+        scan = %record.scan_id,
+        format = format_name,
+        bytes,
+        elements = record.ingest["elements"].as_u64().unwrap_or(0),
+        "scan stored"
+    );
+    let location = format!("/v1/scans/{}", record.scan_id);
+    Ok(created(
+        location,
+        ScanView::from(record),
+        StatusCode::CREATED,
+    ))
+}
+
+/// A stored scan and its ingest summary.
+#[utoipa::path(
+    get, path = "/v1/scans/{id}", tag = "scans",
+    params(("id" = String, Path, description = "Scan id (32 hex digits)")),
+    responses(
+        (status = 200, description = "The scan", body = ScanView),
+        (status = 404, description = "No such scan", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn get_scan(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<ScanView>> {
+    let id = scan_id(&id)?;
+    let record = blocking(move || load_scan(&state, id)).await?;
+    Ok(Json(record.into()))
+}
+
+/// Delete a scan (its finished jobs keep their outputs).
+#[utoipa::path(
+    delete, path = "/v1/scans/{id}", tag = "scans",
+    params(("id" = String, Path, description = "Scan id")),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 404, description = "No such scan", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "A job of this scan is queued or running", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn delete_scan(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+) -> ApiResult<StatusCode> {
+    let id = scan_id(&id)?;
+    blocking(move || {
+        if state.jobs.scan_in_use(id) {
+            return Err(ApiError::conflict(
+                "scan-in-use",
+                format!("scan {id} has queued or running jobs; cancel them first"),
+            ));
+        }
+        if !state.store.delete_scan(id).map_err(store_error)? {
+            return Err(ApiError::not_found(format!("no scan {id}")));
+        }
+        tracing::info!(scan = %id, "scan deleted");
+        Ok(StatusCode::NO_CONTENT)
+    })
+    .await
+}

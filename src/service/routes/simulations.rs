@@ -1,0 +1,185 @@
+//! Simulations and their jobs: submit one for a scan, follow it, cancel or delete it.
+
+use axum::body::Bytes;
+use axum::extract::{Path, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::{
+    blocking, created, job_id, load_job, load_scan, scan_id, shutting_down, store_error,
+    SharedState,
+};
+use crate::service::jobs::{CancelOutcome, SubmitRefusal};
+use crate::service::problem::{ApiError, ApiResult, Problem};
+use crate::service::request::{parse_simulation, SimulationRequest};
+use crate::service::store::JobRecord;
+
+/// Links of a job.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobLinks {
+    /// This job.
+    #[serde(rename = "self")]
+    pub self_: String,
+    /// The run's summary.json (when done).
+    pub summary: String,
+    /// The frame list (when done).
+    pub frames: String,
+    /// Tracked points per frame, CSV (when done and points were given).
+    pub trajectories: String,
+    /// The scan.
+    pub scan: String,
+}
+
+/// A job as the API shows it.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobStatus {
+    /// The record (`state`, `progress`, `error`, `attempts`, times).
+    #[serde(flatten)]
+    pub record: JobRecord,
+    /// Related resources.
+    pub links: JobLinks,
+}
+
+impl From<JobRecord> for JobStatus {
+    fn from(record: JobRecord) -> Self {
+        let base = format!("/v1/jobs/{}", record.job_id);
+        JobStatus {
+            links: JobLinks {
+                summary: format!("{base}/summary"),
+                frames: format!("{base}/frames"),
+                trajectories: format!("{base}/trajectories"),
+                scan: format!("/v1/scans/{}", record.scan_id),
+                self_: base,
+            },
+            record,
+        }
+    }
+}
+
+/// Submit a simulation of a scan over a breathing trace.
+#[utoipa::path(
+    post, path = "/v1/scans/{id}/simulations", tag = "jobs",
+    params(("id" = String, Path, description = "Scan id")),
+    request_body(description = "JSON (trace, points and any `lungmotion run` option) or the \
+        CLI's CSV trace (time_s,volume_ml; volume as change from the scanned state)",
+        content((SimulationRequest = "application/json"), (String = "text/csv"))),
+    responses(
+        (status = 202, description = "Queued", body = JobStatus,
+         headers(("location" = String, description = "The job's URL"))),
+        (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such scan", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn create_simulation(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult<Response> {
+    let scan = scan_id(&id)?;
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let worker_state = state.clone();
+    let record = blocking(move || {
+        load_scan(&worker_state, scan)?;
+        let request = parse_simulation(&worker_state.config.run, &content_type, &body)?;
+        match worker_state
+            .jobs
+            .submit(scan, &request)
+            .map_err(store_error)?
+        {
+            Ok(record) => Ok(record),
+            Err(SubmitRefusal::ShuttingDown) => Err(shutting_down()),
+            Err(SubmitRefusal::QueueFull {
+                queued,
+                retry_after_s,
+            }) => Err(ApiError::new(
+                StatusCode::TOO_MANY_REQUESTS,
+                "queue-full",
+                format!("{queued} simulations are already waiting; retry later"),
+            )
+            .retry_after(retry_after_s)),
+        }
+    })
+    .await?;
+    tracing::info!(job = %record.job_id, scan = %scan, "job queued");
+    let location = format!("/v1/jobs/{}", record.job_id);
+    Ok(created(
+        location,
+        JobStatus::from(record),
+        StatusCode::ACCEPTED,
+    ))
+}
+
+/// A job's state and progress.
+#[utoipa::path(
+    get, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "The job", body = JobStatus),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn get_job(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<JobStatus>> {
+    let id = job_id(&id)?;
+    Ok(Json(load_job(&state, id)?.into()))
+}
+
+/// Cancel a queued or running job, or delete a finished one with its outputs.
+#[utoipa::path(
+    delete, path = "/v1/jobs/{id}", tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 202, description = "Cancelled (queued) or cancellation requested (running)", body = JobStatus),
+        (status = 204, description = "A finished job and its outputs were deleted"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn delete_job(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    blocking(move || {
+        let outcome = state
+            .jobs
+            .cancel(id)
+            .map_err(store_error)?
+            .ok_or_else(|| ApiError::not_found(format!("no job {id}")))?;
+        match outcome {
+            CancelOutcome::Cancelled | CancelOutcome::Requested => {
+                tracing::info!(job = %id, ?outcome, "job cancelled by a client");
+                let status = JobStatus::from(load_job(&state, id)?);
+                Ok((StatusCode::ACCEPTED, Json(status)).into_response())
+            }
+            CancelOutcome::AlreadyFinished => {
+                if !state.jobs.remove(id).map_err(store_error)? {
+                    return Err(ApiError::conflict(
+                        "job-busy",
+                        format!("job {id} changed state; retry"),
+                    ));
+                }
+                tracing::info!(job = %id, "job deleted");
+                Ok(StatusCode::NO_CONTENT.into_response())
+            }
+        }
+    })
+    .await
+}
