@@ -42,6 +42,8 @@
 //! Units: the mechanical core works in SI (metres, newtons, pascals, kilograms, seconds);
 //! names carry the unit (`_m`, `_pa`, `_kg`) wherever a value crosses a module boundary.
 
+#![warn(missing_docs)]
+
 #[cfg(feature = "bench")]
 pub mod bench;
 pub mod breathing;
