@@ -22,6 +22,58 @@ pub fn read_nrrd(path: &Path) -> Result<Volume<f32>> {
 
 /// Parses NRRD bytes; `what` names the source in errors.
 pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
+    let header = read_header(bytes, what)?;
+    let dims = read_sizes(&header)?;
+    let geometry = read_geometry(&header, dims)?;
+    geometry.validate(what)?;
+    let (size, decode) = sample_decoder(header.require("type")?).map_err(|m| header.error(m))?;
+    let little = header.field("endian").unwrap_or("little") == "little";
+    let expected = geometry.voxel_count() * size;
+    let raw = read_payload(&header, &bytes[header.data_start..], expected)?;
+    let data = raw[..expected]
+        .chunks_exact(size)
+        .map(|c| {
+            let mut b = [0u8; 8];
+            b[..size].copy_from_slice(c);
+            decode(b, little)
+        })
+        .collect();
+    Volume::from_data(geometry, data)
+}
+
+/// The header's `key: value` fields (keys lower-cased) and where the data starts.
+struct Header<'a> {
+    /// Names the source in errors.
+    what: &'a str,
+    fields: Vec<(String, String)>,
+    /// Offset of the first data byte, just after the empty line ending the header.
+    data_start: usize,
+}
+
+impl Header<'_> {
+    /// The error for this file with message `m`.
+    fn error(&self, m: String) -> Error {
+        Error::InvalidScan(format!("{}: {m}", self.what))
+    }
+
+    /// The value of field `name` (lower case), if present.
+    fn field(&self, name: &str) -> Option<&str> {
+        self.fields
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// The value of field `name`, which the reader cannot do without.
+    fn require(&self, name: &str) -> Result<&str> {
+        self.field(name)
+            .ok_or_else(|| self.error(format!("missing field '{name}'")))
+    }
+}
+
+/// Checks the magic and reads the header up to its first empty line; comments and the magic
+/// line are skipped.
+fn read_header<'a>(bytes: &[u8], what: &'a str) -> Result<Header<'a>> {
     let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
     if !bytes.starts_with(b"NRRD000") {
         return Err(bad("not a NRRD file (no NRRD000x magic)".into()));
@@ -49,39 +101,52 @@ pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
             fields.push((k.trim().to_ascii_lowercase(), v.trim().to_string()));
         }
     }
-    let field = |name: &str| {
-        fields
-            .iter()
-            .find(|(k, _)| k == name)
-            .map(|(_, v)| v.as_str())
-    };
-    let require = |name: &str| field(name).ok_or_else(|| bad(format!("missing field '{name}'")));
+    Ok(Header {
+        what,
+        fields,
+        data_start: pos,
+    })
+}
 
-    if require("dimension")?.trim() != "3" {
+/// The grid size, after refusing what this reader does not support: other than 3-D, and
+/// detached data files (it reads the data attached to the header only).
+fn read_sizes(header: &Header) -> Result<[usize; 3]> {
+    let bad = |m: String| header.error(m);
+    if header.require("dimension")?.trim() != "3" {
         return Err(bad(format!(
             "only 3-D images are supported, dimension is {}",
-            require("dimension")?
+            header.require("dimension")?
         )));
     }
-    if field("data file").or(field("datafile")).is_some() {
+    if header
+        .field("data file")
+        .or(header.field("datafile"))
+        .is_some()
+    {
         return Err(bad("detached data files are not supported".into()));
     }
-    let sizes: Vec<usize> = require("sizes")?
+    let sizes: Vec<usize> = header
+        .require("sizes")?
         .split_whitespace()
         .map(|s| s.parse().map_err(|_| bad(format!("bad size '{s}'"))))
         .collect::<Result<_>>()?;
-    let dims: [usize; 3] = sizes
+    sizes
         .try_into()
-        .map_err(|_| bad("'sizes' must have 3 values".into()))?;
+        .map_err(|_| bad("'sizes' must have 3 values".into()))
+}
 
-    let space = field("space").unwrap_or("left-posterior-superior");
+/// Spacing, direction and origin from `space directions` and `space origin`, converted to
+/// LPS (RAS files have x and y negated).
+fn read_geometry(header: &Header, dims: [usize; 3]) -> Result<VolumeGeometry> {
+    let bad = |m: String| header.error(m);
+    let space = header.field("space").unwrap_or("left-posterior-superior");
     let flip = match space {
         "left-posterior-superior" | "LPS" => Vector3::new(1.0, 1.0, 1.0),
         "right-anterior-superior" | "RAS" => Vector3::new(-1.0, -1.0, 1.0),
         other => return Err(bad(format!("unsupported space '{other}'"))),
     };
-    let vectors = parse_vectors(require("space directions")?).map_err(bad)?;
-    let origin = match field("space origin") {
+    let vectors = parse_vectors(header.require("space directions")?).map_err(bad)?;
+    let origin = match header.field("space origin") {
         Some(o) => parse_vectors(o)
             .map_err(bad)?
             .first()
@@ -102,7 +167,7 @@ pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
         }
     }
     let origin = origin.component_mul(&flip);
-    let geometry = VolumeGeometry {
+    Ok(VolumeGeometry {
         dims,
         spacing_mm: spacing,
         origin_lps_mm: origin.into(),
@@ -111,10 +176,12 @@ pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
             direction.column(1).into_owned().into(),
             direction.column(2).into_owned().into(),
         ],
-    };
-    geometry.validate(what)?;
+    })
+}
 
-    let (size, decode): (usize, SampleDecoder) = match require("type")? {
+/// Bytes per sample and the decoder of NRRD sample type `name` (teem's spellings).
+fn sample_decoder(name: &str) -> std::result::Result<(usize, SampleDecoder), String> {
+    Ok(match name {
         "short" | "int16" | "signed short" | "short int" | "int16_t" => (2, |b, le| {
             (if le {
                 i16::from_le_bytes([b[0], b[1]])
@@ -149,12 +216,15 @@ pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
                 f32::from_be_bytes(a)
             }
         }),
-        other => return Err(bad(format!("unsupported sample type '{other}'"))),
-    };
-    let little = field("endian").unwrap_or("little") == "little";
-    let expected = geometry.voxel_count() * size;
-    let payload = &bytes[pos..];
-    let raw: Vec<u8> = match require("encoding")? {
+        other => return Err(format!("unsupported sample type '{other}'")),
+    })
+}
+
+/// The data bytes, gunzipped if so encoded; gzip output is capped one byte past `expected`
+/// so a bomb cannot fill memory, and fewer than `expected` bytes is truncation.
+fn read_payload(header: &Header, payload: &[u8], expected: usize) -> Result<Vec<u8>> {
+    let bad = |m: String| header.error(m);
+    let raw: Vec<u8> = match header.require("encoding")? {
         "raw" => payload.to_vec(),
         "gzip" | "gz" => {
             let mut out = Vec::with_capacity(expected);
@@ -172,15 +242,7 @@ pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
             raw.len()
         )));
     }
-    let data = raw[..expected]
-        .chunks_exact(size)
-        .map(|c| {
-            let mut b = [0u8; 8];
-            b[..size].copy_from_slice(c);
-            decode(b, little)
-        })
-        .collect();
-    Volume::from_data(geometry, data)
+    Ok(raw)
 }
 
 /// Decodes one sample from its first bytes; the flag says little endian.

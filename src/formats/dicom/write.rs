@@ -24,23 +24,61 @@ pub fn write_ct_series(
     meta: &CtSeriesMetadata,
 ) -> Result<Vec<PathBuf>> {
     let what = dir.display().to_string();
-    let bad = |m: String| Error::InvalidInput(format!("DICOM series {what}: {m}"));
+    check_volume_fits(volume, &what)?;
+    let intercept = shared_rescale_intercept(volume, &what)?;
+    std::fs::create_dir_all(dir)
+        .map_err(|e| series_error(&what, format!("cannot create the directory: {e}")))?;
+    let series = SeriesLayout::new(volume, meta, intercept);
+    let g = volume.geometry;
+    let width = g.dims[2].to_string().len().max(4);
+    (0..g.dims[2])
+        .into_par_iter()
+        .map(|k| {
+            let mut obj = InMemDicomObject::new_empty();
+            put_identity_elements(&mut obj, volume, meta, &series, k);
+            put_image_plane_elements(&mut obj, volume, &series, k);
+            put_image_pixel_elements(&mut obj, volume, &series, k);
+            let bytes = encode_slice_file(obj, volume, k, &what)?;
+            let path = dir.join(format!("IMG{:0width$}.dcm", k + 1));
+            write_atomic(&path, &bytes)?;
+            Ok(path)
+        })
+        .collect()
+}
+
+/// The error for series `what` with message `m`.
+fn series_error(what: &str, m: String) -> Error {
+    Error::InvalidInput(format!("DICOM series {what}: {m}"))
+}
+
+/// Refuses an invalid grid, a volume that does not fill it, and slices larger than DICOM's
+/// 16-bit Rows/Columns can describe.
+fn check_volume_fits(volume: &Volume<f32>, what: &str) -> Result<()> {
     let g = volume.geometry;
     g.validate(&format!("DICOM series {what}"))?;
     if volume.data.len() != g.voxel_count() {
-        return Err(bad(format!(
-            "volume holds {} voxels, its grid {:?} needs {}",
-            volume.data.len(),
-            g.dims,
-            g.voxel_count()
-        )));
+        return Err(series_error(
+            what,
+            format!(
+                "volume holds {} voxels, its grid {:?} needs {}",
+                volume.data.len(),
+                g.dims,
+                g.voxel_count()
+            ),
+        ));
     }
     if g.dims[0] > u16::MAX as usize || g.dims[1] > u16::MAX as usize {
-        return Err(bad(format!(
-            "slices of {:?} exceed DICOM's 65535 rows/columns",
-            g.dims
-        )));
+        return Err(series_error(
+            what,
+            format!("slices of {:?} exceed DICOM's 65535 rows/columns", g.dims),
+        ));
     }
+    Ok(())
+}
+
+/// The RescaleIntercept shared by all slices: 0 when the rounded HU fit in int16, else the
+/// shift that puts the minimum at −32768; values must be finite and span at most 16 bits.
+fn shared_rescale_intercept(volume: &Volume<f32>, what: &str) -> Result<f64> {
     let (min_hu, max_hu) = volume
         .data
         .par_iter()
@@ -52,153 +90,234 @@ pub fn write_ct_series(
             || (f32::INFINITY, f32::NEG_INFINITY),
             |a, b| Some((a.0.min(b.0), a.1.max(b.1))),
         )
-        .ok_or_else(|| bad("the volume holds non-finite values".into()))?;
+        .ok_or_else(|| series_error(what, "the volume holds non-finite values".into()))?;
     let (min_hu, max_hu) = (min_hu.round() as f64, max_hu.round() as f64);
     if max_hu - min_hu > 65_535.0 {
-        return Err(bad(format!(
-            "values span {min_hu}…{max_hu} HU, more than 16 bits can hold"
-        )));
+        return Err(series_error(
+            what,
+            format!("values span {min_hu}…{max_hu} HU, more than 16 bits can hold"),
+        ));
     }
-    let intercept = if min_hu >= i16::MIN as f64 && max_hu <= i16::MAX as f64 {
+    Ok(if min_hu >= i16::MIN as f64 && max_hu <= i16::MAX as f64 {
         0.0
     } else {
         min_hu - i16::MIN as f64
-    };
+    })
+}
 
-    std::fs::create_dir_all(dir).map_err(|e| bad(format!("cannot create the directory: {e}")))?;
+/// What every slice of the series shares: orientation, UIDs and the rescale intercept.
+struct SeriesLayout {
+    row_direction: Vector3<f64>,
+    column_direction: Vector3<f64>,
+    /// Direction of increasing k (the slice positions step along it).
+    k_axis: Vector3<f64>,
+    /// Row × column direction: SliceLocation is the position along it.
+    normal: Vector3<f64>,
+    uid_root: UidRoot,
+    study_uid: String,
+    series_uid: String,
+    frame_of_reference_uid: String,
+    intercept: f64,
+}
 
-    let direction = g.direction();
-    let row_direction: Vector3<f64> = direction.column(0).into();
-    let column_direction: Vector3<f64> = direction.column(1).into();
-    let k_axis: Vector3<f64> = direction.column(2).into();
-    let normal = row_direction.cross(&column_direction);
-    let uid_root = UidRoot::new(meta.uid_seed, volume);
-    let study_uid = uid_root.uid(1, 0);
-    let series_uid = uid_root.uid(2, 0);
-    let frame_of_reference_uid = uid_root.uid(3, 0);
-    let width = g.dims[2].to_string().len().max(4);
+impl SeriesLayout {
+    /// The layout of `volume` written with `meta`'s UID seed and the shared `intercept`.
+    fn new(volume: &Volume<f32>, meta: &CtSeriesMetadata, intercept: f64) -> Self {
+        let direction = volume.geometry.direction();
+        let row_direction: Vector3<f64> = direction.column(0).into();
+        let column_direction: Vector3<f64> = direction.column(1).into();
+        let k_axis: Vector3<f64> = direction.column(2).into();
+        let normal = row_direction.cross(&column_direction);
+        let uid_root = UidRoot::new(meta.uid_seed, volume);
+        let study_uid = uid_root.uid(1, 0);
+        let series_uid = uid_root.uid(2, 0);
+        let frame_of_reference_uid = uid_root.uid(3, 0);
+        SeriesLayout {
+            row_direction,
+            column_direction,
+            k_axis,
+            normal,
+            uid_root,
+            study_uid,
+            series_uid,
+            frame_of_reference_uid,
+            intercept,
+        }
+    }
+
+    /// ImagePositionPatient of slice `k`, LPS mm.
+    fn position_lps_mm(&self, volume: &Volume<f32>, k: usize) -> Vector3<f64> {
+        let g = &volume.geometry;
+        g.origin() + self.k_axis * (k as f64 * g.spacing_mm[2])
+    }
+}
+
+/// Puts a text element (every VR but US and OW here).
+fn put_text(obj: &mut InMemDicomObject, tag: Tag, vr: VR, value: String) {
+    obj.put(DataElement::new(tag, vr, PrimitiveValue::from(value)));
+}
+
+/// SOP, study, series, patient and instance elements of slice `k` (the patient's are
+/// fictitious, from `meta`).
+fn put_identity_elements(
+    obj: &mut InMemDicomObject,
+    volume: &Volume<f32>,
+    meta: &CtSeriesMetadata,
+    series: &SeriesLayout,
+    k: usize,
+) {
+    let mut put = |tag: Tag, vr: VR, value: String| put_text(obj, tag, vr, value);
+    let sop_uid = series.uid_root.uid(4, k as u64 + 1);
+    put(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 100".into());
+    put(tags::IMAGE_TYPE, VR::CS, "DERIVED\\SECONDARY\\AXIAL".into());
+    put(tags::SOP_CLASS_UID, VR::UI, uids::CT_IMAGE_STORAGE.into());
+    put(tags::SOP_INSTANCE_UID, VR::UI, sop_uid);
+    put(tags::STUDY_DATE, VR::DA, String::new());
+    put(tags::STUDY_TIME, VR::TM, String::new());
+    put(tags::ACCESSION_NUMBER, VR::SH, String::new());
+    put(tags::MODALITY, VR::CS, "CT".into());
+    put(tags::MANUFACTURER, VR::LO, meta.manufacturer.clone());
+    put(tags::REFERRING_PHYSICIAN_NAME, VR::PN, String::new());
+    put(
+        tags::STUDY_DESCRIPTION,
+        VR::LO,
+        meta.study_description.clone(),
+    );
+    put(
+        tags::SERIES_DESCRIPTION,
+        VR::LO,
+        meta.series_description.clone(),
+    );
+    put(tags::PATIENT_NAME, VR::PN, meta.patient_name.clone());
+    put(tags::PATIENT_ID, VR::LO, meta.patient_id.clone());
+    put(tags::PATIENT_BIRTH_DATE, VR::DA, String::new());
+    put(tags::PATIENT_SEX, VR::CS, "O".into());
+    put(tags::KVP, VR::DS, String::new());
+    put(
+        tags::SLICE_THICKNESS,
+        VR::DS,
+        ds(volume.geometry.spacing_mm[2]),
+    );
+    put(
+        tags::PATIENT_POSITION,
+        VR::CS,
+        meta.patient_position.clone(),
+    );
+    put(tags::STUDY_INSTANCE_UID, VR::UI, series.study_uid.clone());
+    put(tags::SERIES_INSTANCE_UID, VR::UI, series.series_uid.clone());
+    put(tags::STUDY_ID, VR::SH, "1".into());
+    put(tags::SERIES_NUMBER, VR::IS, meta.series_number.to_string());
+    put(tags::ACQUISITION_NUMBER, VR::IS, "1".into());
+    put(tags::INSTANCE_NUMBER, VR::IS, (k + 1).to_string());
+}
+
+/// Image plane elements of slice `k`: position, orientation, frame of reference and
+/// SliceLocation.
+fn put_image_plane_elements(
+    obj: &mut InMemDicomObject,
+    volume: &Volume<f32>,
+    series: &SeriesLayout,
+    k: usize,
+) {
+    let position = series.position_lps_mm(volume, k);
+    let (row, column) = (series.row_direction, series.column_direction);
+    let mut put = |tag: Tag, vr: VR, value: String| put_text(obj, tag, vr, value);
+    put(
+        tags::IMAGE_POSITION_PATIENT,
+        VR::DS,
+        ds_list(position.as_slice()),
+    );
+    put(
+        tags::IMAGE_ORIENTATION_PATIENT,
+        VR::DS,
+        ds_list(&[row.x, row.y, row.z, column.x, column.y, column.z]),
+    );
+    put(
+        tags::FRAME_OF_REFERENCE_UID,
+        VR::UI,
+        series.frame_of_reference_uid.clone(),
+    );
+    put(tags::POSITION_REFERENCE_INDICATOR, VR::LO, String::new());
+    put(
+        tags::SLICE_LOCATION,
+        VR::DS,
+        ds(position.dot(&series.normal)),
+    );
+}
+
+/// Image pixel elements of slice `k`: spacing, rescale, window, the int16 layout and the
+/// pixels (rounded HU minus the shared intercept).
+fn put_image_pixel_elements(
+    obj: &mut InMemDicomObject,
+    volume: &Volume<f32>,
+    series: &SeriesLayout,
+    k: usize,
+) {
+    let g = volume.geometry;
     let frame_len = g.dims[0] * g.dims[1];
+    let intercept = series.intercept;
+    let pixels: Vec<u16> = volume.data[k * frame_len..(k + 1) * frame_len]
+        .iter()
+        .map(|&hu| ((hu.round() as f64 - intercept) as i16) as u16)
+        .collect();
+    let mut put = |tag: Tag, vr: VR, value: String| put_text(obj, tag, vr, value);
+    put(
+        tags::PHOTOMETRIC_INTERPRETATION,
+        VR::CS,
+        "MONOCHROME2".into(),
+    );
+    put(
+        tags::PIXEL_SPACING,
+        VR::DS,
+        ds_list(&[g.spacing_mm[1], g.spacing_mm[0]]),
+    );
+    put(tags::RESCALE_INTERCEPT, VR::DS, ds(intercept));
+    put(tags::RESCALE_SLOPE, VR::DS, "1".into());
+    put(tags::RESCALE_TYPE, VR::LO, "HU".into());
+    put(tags::WINDOW_CENTER, VR::DS, "-600".into());
+    put(tags::WINDOW_WIDTH, VR::DS, "1500".into());
+    let mut put_us = |tag: Tag, v: u16| {
+        obj.put(DataElement::new(tag, VR::US, PrimitiveValue::from(v)));
+    };
+    put_us(tags::SAMPLES_PER_PIXEL, 1);
+    put_us(tags::ROWS, g.dims[1] as u16);
+    put_us(tags::COLUMNS, g.dims[0] as u16);
+    put_us(tags::BITS_ALLOCATED, 16);
+    put_us(tags::BITS_STORED, 16);
+    put_us(tags::HIGH_BIT, 15);
+    put_us(tags::PIXEL_REPRESENTATION, 1);
+    obj.put(DataElement::new(
+        tags::PIXEL_DATA,
+        VR::OW,
+        PrimitiveValue::U16(SmallVec::from_vec(pixels)),
+    ));
+}
 
-    (0..g.dims[2])
-        .into_par_iter()
-        .map(|k| {
-            let position = g.origin() + k_axis * (k as f64 * g.spacing_mm[2]);
-            let pixels: Vec<u16> = volume.data[k * frame_len..(k + 1) * frame_len]
-                .iter()
-                .map(|&hu| ((hu.round() as f64 - intercept) as i16) as u16)
-                .collect();
-            let mut obj = InMemDicomObject::new_empty();
-            let mut put = |tag: Tag, vr: VR, value: String| {
-                obj.put(DataElement::new(tag, vr, PrimitiveValue::from(value)));
-            };
-            let sop_uid = uid_root.uid(4, k as u64 + 1);
-            put(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 100".into());
-            put(tags::IMAGE_TYPE, VR::CS, "DERIVED\\SECONDARY\\AXIAL".into());
-            put(tags::SOP_CLASS_UID, VR::UI, uids::CT_IMAGE_STORAGE.into());
-            put(tags::SOP_INSTANCE_UID, VR::UI, sop_uid.clone());
-            put(tags::STUDY_DATE, VR::DA, String::new());
-            put(tags::STUDY_TIME, VR::TM, String::new());
-            put(tags::ACCESSION_NUMBER, VR::SH, String::new());
-            put(tags::MODALITY, VR::CS, "CT".into());
-            put(tags::MANUFACTURER, VR::LO, meta.manufacturer.clone());
-            put(tags::REFERRING_PHYSICIAN_NAME, VR::PN, String::new());
-            put(
-                tags::STUDY_DESCRIPTION,
-                VR::LO,
-                meta.study_description.clone(),
-            );
-            put(
-                tags::SERIES_DESCRIPTION,
-                VR::LO,
-                meta.series_description.clone(),
-            );
-            put(tags::PATIENT_NAME, VR::PN, meta.patient_name.clone());
-            put(tags::PATIENT_ID, VR::LO, meta.patient_id.clone());
-            put(tags::PATIENT_BIRTH_DATE, VR::DA, String::new());
-            put(tags::PATIENT_SEX, VR::CS, "O".into());
-            put(tags::KVP, VR::DS, String::new());
-            put(tags::SLICE_THICKNESS, VR::DS, ds(g.spacing_mm[2]));
-            put(
-                tags::PATIENT_POSITION,
-                VR::CS,
-                meta.patient_position.clone(),
-            );
-            put(tags::STUDY_INSTANCE_UID, VR::UI, study_uid.clone());
-            put(tags::SERIES_INSTANCE_UID, VR::UI, series_uid.clone());
-            put(tags::STUDY_ID, VR::SH, "1".into());
-            put(tags::SERIES_NUMBER, VR::IS, meta.series_number.to_string());
-            put(tags::ACQUISITION_NUMBER, VR::IS, "1".into());
-            put(tags::INSTANCE_NUMBER, VR::IS, (k + 1).to_string());
-            put(
-                tags::IMAGE_POSITION_PATIENT,
-                VR::DS,
-                ds_list(position.as_slice()),
-            );
-            put(
-                tags::IMAGE_ORIENTATION_PATIENT,
-                VR::DS,
-                ds_list(&[
-                    row_direction.x,
-                    row_direction.y,
-                    row_direction.z,
-                    column_direction.x,
-                    column_direction.y,
-                    column_direction.z,
-                ]),
-            );
-            put(
-                tags::FRAME_OF_REFERENCE_UID,
-                VR::UI,
-                frame_of_reference_uid.clone(),
-            );
-            put(tags::POSITION_REFERENCE_INDICATOR, VR::LO, String::new());
-            put(tags::SLICE_LOCATION, VR::DS, ds(position.dot(&normal)));
-            put(
-                tags::PHOTOMETRIC_INTERPRETATION,
-                VR::CS,
-                "MONOCHROME2".into(),
-            );
-            put(
-                tags::PIXEL_SPACING,
-                VR::DS,
-                ds_list(&[g.spacing_mm[1], g.spacing_mm[0]]),
-            );
-            put(tags::RESCALE_INTERCEPT, VR::DS, ds(intercept));
-            put(tags::RESCALE_SLOPE, VR::DS, "1".into());
-            put(tags::RESCALE_TYPE, VR::LO, "HU".into());
-            put(tags::WINDOW_CENTER, VR::DS, "-600".into());
-            put(tags::WINDOW_WIDTH, VR::DS, "1500".into());
-            let mut put_us = |tag: Tag, v: u16| {
-                obj.put(DataElement::new(tag, VR::US, PrimitiveValue::from(v)));
-            };
-            put_us(tags::SAMPLES_PER_PIXEL, 1);
-            put_us(tags::ROWS, g.dims[1] as u16);
-            put_us(tags::COLUMNS, g.dims[0] as u16);
-            put_us(tags::BITS_ALLOCATED, 16);
-            put_us(tags::BITS_STORED, 16);
-            put_us(tags::HIGH_BIT, 15);
-            put_us(tags::PIXEL_REPRESENTATION, 1);
-            obj.put(DataElement::new(
-                tags::PIXEL_DATA,
-                VR::OW,
-                PrimitiveValue::U16(SmallVec::from_vec(pixels)),
-            ));
-            let file = obj
-                .with_meta(
-                    FileMetaTableBuilder::new()
-                        .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
-                        .implementation_class_uid(IMPLEMENTATION_CLASS_UID)
-                        .implementation_version_name("LUNGMOTION"),
-                )
-                .map_err(|e| bad(format!("slice {k}: cannot build the file meta group ({e})")))?;
-            let mut bytes = Vec::with_capacity(frame_len * 2 + 4096);
-            file.write_all(&mut bytes)
-                .map_err(|e| bad(format!("slice {k}: cannot encode ({e})")))?;
-            let path = dir.join(format!("IMG{:0width$}.dcm", k + 1));
-            write_atomic(&path, &bytes)?;
-            Ok(path)
-        })
-        .collect()
+/// Adds the file meta group (Explicit VR Little Endian) and encodes slice `k` to bytes.
+fn encode_slice_file(
+    obj: InMemDicomObject,
+    volume: &Volume<f32>,
+    k: usize,
+    what: &str,
+) -> Result<Vec<u8>> {
+    let frame_len = volume.geometry.dims[0] * volume.geometry.dims[1];
+    let file = obj
+        .with_meta(
+            FileMetaTableBuilder::new()
+                .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
+                .implementation_class_uid(IMPLEMENTATION_CLASS_UID)
+                .implementation_version_name("LUNGMOTION"),
+        )
+        .map_err(|e| {
+            series_error(
+                what,
+                format!("slice {k}: cannot build the file meta group ({e})"),
+            )
+        })?;
+    let mut bytes = Vec::with_capacity(frame_len * 2 + 4096);
+    file.write_all(&mut bytes)
+        .map_err(|e| series_error(what, format!("slice {k}: cannot encode ({e})")))?;
+    Ok(bytes)
 }
 
 /// Implementation Class UID of files written by lungmotion (under the UUID-derived 2.25 root).

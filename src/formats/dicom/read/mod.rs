@@ -1,12 +1,13 @@
 //! Reading a CT series: gather files, group by series, check geometry, decode in parallel.
 
+mod pixels;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use dicom_core::Tag;
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{DefaultDicomObject, OpenFileOptions};
-use dicom_pixeldata::PixelDecoder;
 use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -15,6 +16,8 @@ use super::{DicomReadOptions, DicomSeries, SeriesInfo};
 use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
 use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
 use crate::{Error, Result};
+
+use pixels::decode_slice;
 
 /// Two slices closer than this along the normal are at the same position.
 const DUPLICATE_TOLERANCE_MM: f64 = 0.01;
@@ -448,10 +451,70 @@ fn rescale(file: &ParsedFile, tag: Tag, tag_name: &str, default: f64) -> Result<
     Ok(Some(if v.is_finite() { v } else { default }))
 }
 
+/// Names the series in its errors: "{what}: series {uid}: …".
+struct SeriesLabel<'a> {
+    what: &'a str,
+    uid: &'a str,
+}
+
+impl SeriesLabel<'_> {
+    /// The error for this series with message `m`.
+    fn error(&self, m: String) -> Error {
+        Error::InvalidScan(format!("{}: series {}: {m}", self.what, self.uid))
+    }
+}
+
+impl Slice {
+    /// Position along the slice normal, mm: the slices' order and spacing.
+    fn along_mm(&self, normal: &Vector3<f64>) -> f64 {
+        self.position_lps_mm.dot(normal)
+    }
+}
+
+/// Turns the chosen series into a volume: checks, orders and decodes its slices.
 fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> Result<DicomSeries> {
     let SeriesFiles { uid, files } = series;
-    let bad = |m: String| Error::InvalidScan(format!("{what}: series {uid}: {m}"));
-    for f in &files {
+    let label = SeriesLabel { what, uid: &uid };
+    refuse_multi_frame(&files, &label)?;
+    let (layout, slices) = read_slice_attributes(files, &label, &mut warnings)?;
+    let normal = layout
+        .row_direction
+        .cross(&layout.column_direction)
+        .normalize();
+    let slices = order_along_normal(slices, &normal);
+    let slices = drop_duplicate_slices(slices, &normal, &label, &mut warnings)?;
+    check_no_gantry_tilt(&slices, &normal, &label)?;
+    let slice_spacing_mm = uniform_slice_spacing_mm(&slices, &normal, &label)?;
+
+    let geometry = VolumeGeometry {
+        dims: [layout.columns, layout.rows, slices.len()],
+        spacing_mm: [
+            layout.pixel_spacing_mm[1],
+            layout.pixel_spacing_mm[0],
+            slice_spacing_mm,
+        ],
+        origin_lps_mm: slices[0].position_lps_mm.into(),
+        direction_lps: [
+            layout.row_direction.into(),
+            layout.column_direction.into(),
+            normal.into(),
+        ],
+    };
+    geometry.validate(&format!("{what}: series {uid}"))?;
+    let data = decode_slices(&slices, &layout, geometry.voxel_count())?;
+    let info = describe_series(&label, &slices, &layout, &mut warnings);
+    let volume = Volume::from_data(geometry, data)?;
+    Ok(DicomSeries {
+        volume,
+        info,
+        warnings,
+    })
+}
+
+/// Refuses multi-frame (Enhanced CT) files, whose frames carry their own geometry, and a
+/// series of a single slice.
+fn refuse_multi_frame(files: &[ParsedFile], label: &SeriesLabel) -> Result<()> {
+    for f in files {
         let frames = match f.object.get(tags::NUMBER_OF_FRAMES) {
             Some(e) => e.to_int::<u32>().unwrap_or(1),
             None => 1,
@@ -460,7 +523,7 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         let enhanced = sop_class == uids::ENHANCED_CT_IMAGE_STORAGE
             || sop_class == uids::LEGACY_CONVERTED_ENHANCED_CT_IMAGE_STORAGE;
         if frames > 1 || enhanced {
-            return Err(bad(format!(
+            return Err(label.error(format!(
                 "{} holds {frames} frames: multi-frame (Enhanced CT) images are not supported; \
                  export the series as single-frame CT images",
                 f.name
@@ -468,13 +531,22 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         }
     }
     if files.len() < 2 {
-        return Err(bad(format!(
+        return Err(label.error(format!(
             "only {} slice ({}): a volume needs at least 2",
             files.len(),
             files[0].name
         )));
     }
+    Ok(())
+}
 
+/// Reads each file's frame layout (checked against the first file's), position and rescale;
+/// a missing rescale is taken as HU with one warning for the series.
+fn read_slice_attributes(
+    files: Vec<ParsedFile>,
+    label: &SeriesLabel,
+    warnings: &mut Vec<String>,
+) -> Result<(FrameLayout, Vec<Slice>)> {
     let layout = frame_layout(&files[0])?;
     let mut slices = Vec::with_capacity(files.len());
     let mut missing_rescale = 0usize;
@@ -497,7 +569,7 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         }
         let slope = slope.unwrap_or(1.0);
         if slope == 0.0 {
-            return Err(bad(format!("{}: RescaleSlope is 0", file.name)));
+            return Err(label.error(format!("{}: RescaleSlope is 0", file.name)));
         }
         slices.push(Slice {
             file,
@@ -508,21 +580,31 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
     }
     if missing_rescale > 0 {
         let w = format!(
-            "{what}: {missing_rescale} slice(s) lack RescaleSlope/RescaleIntercept; stored \
-             values taken as HU (slope 1, intercept 0)"
+            "{}: {missing_rescale} slice(s) lack RescaleSlope/RescaleIntercept; stored \
+             values taken as HU (slope 1, intercept 0)",
+            label.what
         );
         warnings.push(w);
     }
+    Ok((layout, slices))
+}
 
-    // Order along the slice normal.
-    let normal = layout
-        .row_direction
-        .cross(&layout.column_direction)
-        .normalize();
-    let along = |s: &Slice| s.position_lps_mm.dot(&normal);
-    slices.sort_by(|a, b| along(a).total_cmp(&along(b)));
+/// Sorts the slices by their position along the normal, never by file name or
+/// InstanceNumber, which exports do not keep in anatomical order.
+fn order_along_normal(mut slices: Vec<Slice>, normal: &Vector3<f64>) -> Vec<Slice> {
+    slices.sort_by(|a, b| a.along_mm(normal).total_cmp(&b.along_mm(normal)));
+    slices
+}
 
-    // Duplicates: identical pixels and rescale are dropped, anything else is refused.
+/// Duplicates: identical pixels and rescale are dropped (exports repeat files), anything else
+/// at the same position is refused; at least 2 distinct positions must remain.
+fn drop_duplicate_slices(
+    slices: Vec<Slice>,
+    normal: &Vector3<f64>,
+    label: &SeriesLabel,
+    warnings: &mut Vec<String>,
+) -> Result<Vec<Slice>> {
+    let along = |s: &Slice| s.along_mm(normal);
     let mut kept: Vec<Slice> = Vec::with_capacity(slices.len());
     for slice in slices {
         if let Some(previous) = kept.last() {
@@ -546,7 +628,7 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
                     warnings.push(w);
                     continue;
                 }
-                return Err(bad(format!(
+                return Err(label.error(format!(
                     "{} and {} are both at {:.3} mm along the slice normal but hold different \
                      images (duplicate slice position)",
                     previous.file.name,
@@ -557,20 +639,24 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         }
         kept.push(slice);
     }
-    let slices = kept;
-    let n = slices.len();
-    if n < 2 {
-        return Err(bad(
-            "only 1 distinct slice position: a volume needs at least 2".into(),
-        ));
+    if kept.len() < 2 {
+        return Err(label.error("only 1 distinct slice position: a volume needs at least 2".into()));
     }
+    Ok(kept)
+}
 
-    // Gantry tilt: positions must move along the normal only.
+/// Gantry tilt: positions must move along the normal only, since a sheared stack does not
+/// fit a volume's orthogonal grid; the worst slice is named.
+fn check_no_gantry_tilt(
+    slices: &[Slice],
+    normal: &Vector3<f64>,
+    label: &SeriesLabel,
+) -> Result<()> {
     let first_position = slices[0].position_lps_mm;
     let mut worst: Option<(f64, f64, usize)> = None;
     for (k, s) in slices.iter().enumerate().skip(1) {
         let step = s.position_lps_mm - first_position;
-        let along_mm = step.dot(&normal);
+        let along_mm = step.dot(normal);
         let lateral_mm = (step - normal * along_mm).norm();
         if lateral_mm > TILT_TOLERANCE_MM + TILT_TOLERANCE_SLOPE * along_mm.abs()
             && worst.is_none_or(|(l, _, _)| lateral_mm > l)
@@ -583,15 +669,24 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         let declared = text(&slices[k].file.object, tags::GANTRY_DETECTOR_TILT)
             .map(|t| format!(" (GantryDetectorTilt says {t}°)"))
             .unwrap_or_default();
-        return Err(bad(format!(
+        return Err(label.error(format!(
             "slice positions leave the slice normal by {lateral_mm:.2} mm over {along_mm:.2} mm \
              ({} vs {}): gantry tilt of about {tilt_deg:.2}°{declared}; sheared volumes are not \
              supported, resample the series first",
             slices[k].file.name, slices[0].file.name
         )));
     }
+    Ok(())
+}
 
-    // Uniform spacing.
+/// Uniform spacing: every gap must match the median one (a missing slice is named); the
+/// spacing is the mean over the whole stack.
+fn uniform_slice_spacing_mm(
+    slices: &[Slice],
+    normal: &Vector3<f64>,
+    label: &SeriesLabel,
+) -> Result<f64> {
+    let along = |s: &Slice| s.along_mm(normal);
     let gaps: Vec<f64> = slices
         .windows(2)
         .map(|w| along(&w[1]) - along(&w[0]))
@@ -613,37 +708,35 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         })
         .collect();
     if !irregular.is_empty() {
-        return Err(bad(format!(
+        return Err(label.error(format!(
             "non-uniform slice spacing (typical {typical_gap:.3} mm; missing slice?): {} gap(s) \
              differ: {}",
             irregular.len(),
             summarize(&irregular, 8)
         )));
     }
-    let slice_spacing_mm = (along(&slices[n - 1]) - along(&slices[0])) / (n - 1) as f64;
+    let n = slices.len();
+    Ok((along(&slices[n - 1]) - along(&slices[0])) / (n - 1) as f64)
+}
 
-    let geometry = VolumeGeometry {
-        dims: [layout.columns, layout.rows, n],
-        spacing_mm: [
-            layout.pixel_spacing_mm[1],
-            layout.pixel_spacing_mm[0],
-            slice_spacing_mm,
-        ],
-        origin_lps_mm: first_position.into(),
-        direction_lps: [
-            layout.row_direction.into(),
-            layout.column_direction.into(),
-            normal.into(),
-        ],
-    };
-    geometry.validate(&format!("{what}: series {uid}"))?;
-
+/// Decodes every slice in parallel into its frame of the volume, HU after rescale.
+fn decode_slices(slices: &[Slice], layout: &FrameLayout, voxel_count: usize) -> Result<Vec<f32>> {
     let frame_len = layout.columns * layout.rows;
-    let mut data = vec![0f32; geometry.voxel_count()];
+    let mut data = vec![0f32; voxel_count];
     data.par_chunks_mut(frame_len)
         .zip(slices.par_iter())
-        .try_for_each(|(out, slice)| decode_slice(slice, &layout, out))?;
+        .try_for_each(|(out, slice)| decode_slice(slice, layout, out))?;
+    Ok(data)
+}
 
+/// The non-identifying description of the series, from its first slice; a series mixing
+/// transfer syntaxes is worth a warning (usually a partial re-export).
+fn describe_series(
+    label: &SeriesLabel,
+    slices: &[Slice],
+    layout: &FrameLayout,
+    warnings: &mut Vec<String>,
+) -> SeriesInfo {
     let first = &slices[0].file;
     let transfer_syntax_uid = first
         .object
@@ -661,7 +754,8 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
     };
     if let Some(other) = slices.iter().find(|s| syntax_of(s) != transfer_syntax_uid) {
         let w = format!(
-            "{what}: the series mixes transfer syntaxes ({} in {}, {} in {})",
+            "{}: the series mixes transfer syntaxes ({} in {}, {} in {})",
+            label.what,
             transfer_syntax_uid,
             first.name,
             syntax_of(other),
@@ -673,200 +767,18 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         .get(&transfer_syntax_uid)
         .map(|ts| ts.name().to_string())
         .unwrap_or_else(|| "unknown transfer syntax".into());
-    let info = SeriesInfo {
-        series_instance_uid: uid.clone(),
+    SeriesInfo {
+        series_instance_uid: label.uid.to_string(),
         modality: first.modality.clone(),
         series_description: first.description.clone(),
         manufacturer: text(&first.object, tags::MANUFACTURER),
         transfer_syntax_uid,
         transfer_syntax_name,
-        slice_count: n,
+        slice_count: slices.len(),
         rows: layout.rows,
         columns: layout.columns,
         patient_position: text(&first.object, tags::PATIENT_POSITION),
-    };
-    let volume = Volume::from_data(geometry, data)?;
-    Ok(DicomSeries {
-        volume,
-        info,
-        warnings,
-    })
-}
-
-/// How stored pixel values are laid out (PS3.3 C.7.6.3.1).
-#[derive(Debug, Clone, Copy)]
-struct PixelFormat {
-    bits_allocated: u16,
-    bits_stored: u16,
-    high_bit: u16,
-    signed: bool,
-}
-
-impl PixelFormat {
-    fn check(self, name: &str) -> Result<Self> {
-        let PixelFormat {
-            bits_allocated,
-            bits_stored,
-            high_bit,
-            ..
-        } = self;
-        if !matches!(bits_allocated, 8 | 16 | 32) {
-            return Err(Error::InvalidScan(format!(
-                "{name}: BitsAllocated {bits_allocated} is not supported (8, 16 or 32)"
-            )));
-        }
-        if bits_stored == 0
-            || bits_stored > bits_allocated
-            || high_bit + 1 < bits_stored
-            || high_bit >= bits_allocated
-        {
-            return Err(Error::InvalidScan(format!(
-                "{name}: inconsistent BitsAllocated {bits_allocated}, BitsStored \
-                 {bits_stored}, HighBit {high_bit}"
-            )));
-        }
-        Ok(self)
     }
-
-    /// Converts raw samples to HU; `out.len()` samples are taken from `raw`.
-    fn fill_hu(self, raw: impl Iterator<Item = u32>, slope: f64, intercept: f64, out: &mut [f32]) {
-        let shift = u32::from(self.high_bit + 1 - self.bits_stored);
-        let mask: u64 = (1u64 << self.bits_stored) - 1;
-        let sign_bit: u64 = 1u64 << (self.bits_stored - 1);
-        let wrap: i64 = 1i64 << self.bits_stored;
-        let signed = self.signed;
-        for (o, stored) in out.iter_mut().zip(raw) {
-            let bits = (u64::from(stored) >> shift) & mask;
-            let value = if signed && bits & sign_bit != 0 {
-                bits as i64 - wrap
-            } else {
-                bits as i64
-            };
-            *o = (value as f64 * slope + intercept) as f32;
-        }
-    }
-}
-
-/// Decodes one slice into `out` (rows × columns HU values, i fastest).
-fn decode_slice(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
-    let name = &slice.file.name;
-    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
-    let (slope, intercept) = (slice.rescale_slope, slice.rescale_intercept);
-    let object = &slice.file.object;
-    let tag_u16 = |tag: Tag| object.get(tag).and_then(|e| e.to_int::<u16>().ok());
-    if let Some(samples) = tag_u16(tags::SAMPLES_PER_PIXEL) {
-        if samples != 1 {
-            return Err(bad(format!(
-                "{samples} samples per pixel: a CT image has 1"
-            )));
-        }
-    }
-
-    // Native pixel data is converted straight from the parsed values: decoding through
-    // dicom-pixeldata would copy every slice twice.
-    let native = object
-        .get(tags::PIXEL_DATA)
-        .and_then(|e| e.value().primitive());
-    if let Some(values) = native {
-        let format = PixelFormat {
-            bits_allocated: tag_u16(tags::BITS_ALLOCATED)
-                .ok_or_else(|| bad("BitsAllocated (0028,0100) is missing".into()))?,
-            bits_stored: tag_u16(tags::BITS_STORED)
-                .ok_or_else(|| bad("BitsStored (0028,0101) is missing".into()))?,
-            high_bit: tag_u16(tags::HIGH_BIT)
-                .ok_or_else(|| bad("HighBit (0028,0102) is missing".into()))?,
-            signed: tag_u16(tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
-        }
-        .check(name)?;
-        let short = |have: usize| {
-            bad(format!(
-                "pixel data holds {have} samples, {} expected (truncated?)",
-                out.len()
-            ))
-        };
-        use dicom_core::PrimitiveValue as V;
-        let n = out.len();
-        match (values, format.bits_allocated) {
-            (V::U16(v), 16) if v.len() < n => return Err(short(v.len())),
-            (V::I16(v), 16) if v.len() < n => return Err(short(v.len())),
-            (V::U8(v), 8) if v.len() < n => return Err(short(v.len())),
-            (V::U16(v), 16) => {
-                format.fill_hu(v.iter().map(|&x| u32::from(x)), slope, intercept, out)
-            }
-            (V::I16(v), 16) => format.fill_hu(
-                v.iter().map(|&x| u32::from(x as u16)),
-                slope,
-                intercept,
-                out,
-            ),
-            (V::U8(v), 8) => format.fill_hu(v.iter().map(|&x| u32::from(x)), slope, intercept, out),
-            _ => return decode_with_pixeldata(slice, layout, out),
-        }
-        return Ok(());
-    }
-    decode_with_pixeldata(slice, layout, out)
-}
-
-/// Decodes through dicom-pixeldata (every encapsulated syntax, unusual native layouts).
-fn decode_with_pixeldata(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
-    let name = &slice.file.name;
-    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
-    let pixels = slice
-        .file
-        .object
-        .decode_pixel_data()
-        .map_err(|e| bad(format!("cannot decode pixel data ({e})")))?;
-    if pixels.rows() as usize != layout.rows || pixels.columns() as usize != layout.columns {
-        return Err(bad(format!(
-            "decoded image is {}×{}, header says {}×{}",
-            pixels.rows(),
-            pixels.columns(),
-            layout.rows,
-            layout.columns
-        )));
-    }
-    if pixels.samples_per_pixel() != 1 {
-        return Err(bad(format!(
-            "{} samples per pixel: a CT image has 1",
-            pixels.samples_per_pixel()
-        )));
-    }
-    let format = PixelFormat {
-        bits_allocated: pixels.bits_allocated(),
-        bits_stored: pixels.bits_stored(),
-        high_bit: pixels.high_bit(),
-        signed: pixels.pixel_representation() == dicom_pixeldata::PixelRepresentation::Signed,
-    }
-    .check(name)?;
-    let bytes_per_sample = usize::from(format.bits_allocated / 8);
-    let raw = pixels.data();
-    let needed = out.len() * bytes_per_sample;
-    if raw.len() < needed {
-        return Err(bad(format!(
-            "pixel data holds {} bytes, {needed} expected (truncated?)",
-            raw.len()
-        )));
-    }
-    let (slope, intercept) = (slice.rescale_slope, slice.rescale_intercept);
-    // Decoded samples are in the machine's byte order.
-    match bytes_per_sample {
-        1 => format.fill_hu(raw.iter().map(|&b| u32::from(b)), slope, intercept, out),
-        2 => format.fill_hu(
-            raw.chunks_exact(2)
-                .map(|b| u32::from(u16::from_ne_bytes([b[0], b[1]]))),
-            slope,
-            intercept,
-            out,
-        ),
-        _ => format.fill_hu(
-            raw.chunks_exact(4)
-                .map(|b| u32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
-            slope,
-            intercept,
-            out,
-        ),
-    }
-    Ok(())
 }
 
 fn summarize(items: &[String], max: usize) -> String {
