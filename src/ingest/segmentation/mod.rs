@@ -53,7 +53,7 @@
 //! `min_lung_ml`, "only one lung found: …" unless `allow_single_lung` is set (then a warning).
 
 mod components;
-mod morphology;
+pub(crate) mod morphology;
 
 use std::collections::BinaryHeap;
 use std::time::Instant;
