@@ -56,7 +56,7 @@ mod airways;
 mod components;
 mod crop;
 mod left_right;
-mod morphology;
+pub(crate) mod morphology;
 mod refine;
 mod report;
 mod settings;

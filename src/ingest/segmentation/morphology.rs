@@ -35,10 +35,15 @@ fn row_groups<T>(data: &mut [T], dims: [usize; 3], axis: usize) -> Vec<Vec<&mut 
     out
 }
 
-/// Applies `f(line, scratch)` to every line of `data` along `axis`; the line is a contiguous
-/// copy written back afterwards.
-fn for_each_line<T, S, I, F>(data: &mut [T], dims: [usize; 3], axis: usize, init: I, f: F)
-where
+/// Applies `f(line, scratch)` to every line of `data` along `axis`, in parallel; the line is a
+/// contiguous copy written back afterwards (rows along i are passed in place).
+pub(crate) fn for_each_line<T, S, I, F>(
+    data: &mut [T],
+    dims: [usize; 3],
+    axis: usize,
+    init: I,
+    f: F,
+) where
     T: Copy + Send + Sync + Default,
     S: Send,
     I: Fn() -> S + Sync + Send,
@@ -334,6 +339,29 @@ mod tests {
         }
         let none = squared_distance_mm2(&vec![0u8; n], dims, sp, true, None);
         assert!(none.iter().all(|d| d.is_infinite()));
+    }
+
+    #[test]
+    fn unit_spacing_distances_to_set_and_to_unset_voxels_equal_brute_force_exactly() {
+        // The lung model's wall measures in samples (unit spacing) on both sides of the
+        // surface: the squared distances are whole numbers, so they must match bit for bit.
+        let dims = [11, 8, 9];
+        let n = dims.iter().product();
+        // A ball with pseudo-random holes, so both sides have near and far voxels.
+        let mask: Vec<u8> = (0..n)
+            .map(|x: usize| {
+                let (i, j, k) = (x % 11, x / 11 % 8, x / 88);
+                let r2 = (i as i64 - 5).pow(2) + (j as i64 - 4).pow(2) + (k as i64 - 4).pow(2);
+                u8::from(r2 <= 12 && !x.wrapping_mul(2_654_435_761).is_multiple_of(13))
+            })
+            .collect();
+        assert!(mask.contains(&0) && mask.contains(&1));
+        let unit = [1.0; 3];
+        let to_set = squared_distance_mm2(&mask, dims, unit, true, None);
+        assert_eq!(to_set, brute(&mask, dims, unit));
+        let inverted: Vec<u8> = mask.iter().map(|&m| u8::from(m == 0)).collect();
+        let to_unset = squared_distance_mm2(&mask, dims, unit, false, None);
+        assert_eq!(to_unset, brute(&inverted, dims, unit));
     }
 
     #[test]

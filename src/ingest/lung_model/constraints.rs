@@ -1,0 +1,105 @@
+//! The constraint set the solvers use, from the groups: hilum fixed, sliding nodes on the
+//! wall, the diaphragmatic face as [`DiaphragmMotion`] says; and how far the sliding nodes
+//! sit off the wall at rest.
+
+use nalgebra::Vector3;
+
+use super::groups::{BoundaryCondition, ConstraintGroup};
+use super::mesh::LungMeshes;
+use super::settings::{DiaphragmMotion, LungModelSettings, SlidingMode};
+use crate::model::{ConstraintSet, HexMesh, NodeConstraint, SignedDistanceField};
+use crate::Result;
+
+/// The constraint set and its sliding nodes.
+pub(super) struct NodeConstraints {
+    /// Every constrained surface node; the wall is field 0.
+    pub(super) constraints: ConstraintSet,
+    /// Nodes held on the wall, in surface order.
+    pub(super) sliding: Vec<u32>,
+}
+
+/// Constrains each grouped surface node of `meshes` by its group's boundary condition.
+pub(super) fn constrain_nodes(
+    meshes: &LungMeshes,
+    node_group: &[u8],
+    wall: &SignedDistanceField,
+    settings: &LungModelSettings,
+) -> Result<NodeConstraints> {
+    let (mesh, surface) = (&meshes.grid_mesh.mesh, &meshes.surface);
+    let mut constraints = ConstraintSet::new(mesh.node_count());
+    let wall_field = constraints.add_surface(wall.clone());
+    let mut sliding = Vec::new();
+    for &n in surface {
+        let Some(group) = ConstraintGroup::from_code(node_group[n as usize]) else {
+            continue;
+        };
+        match group.boundary_condition() {
+            BoundaryCondition::Fixed => {
+                constraints.fix(n, mesh.rest_positions_m[n as usize])?;
+            }
+            BoundaryCondition::SlidingOnWall => {
+                let rest = mesh.rest_positions_m[n as usize];
+                let constraint = match settings.sliding {
+                    SlidingMode::TangentPlane => NodeConstraint::Plane {
+                        point_m: rest,
+                        normal: wall.normal(rest),
+                    },
+                    SlidingMode::WallSurface => NodeConstraint::Surface { field: wall_field },
+                };
+                constraints.set(n, constraint)?;
+                sliding.push(n);
+            }
+            BoundaryCondition::FollowsDiaphragm => match settings.diaphragm {
+                DiaphragmMotion::CranioCaudal => constraints.set(
+                    n,
+                    NodeConstraint::Line {
+                        point_m: mesh.rest_positions_m[n as usize],
+                        direction: Vector3::z(),
+                    },
+                )?,
+                DiaphragmMotion::Free => {}
+            },
+        }
+    }
+    constraints.validate(&mesh.rest_positions_m)?;
+    Ok(NodeConstraints {
+        constraints,
+        sliding,
+    })
+}
+
+/// How the sliding nodes' rest positions sit on the wall.
+pub(super) struct WallRestFit {
+    /// Largest |wall distance| at a sliding node's rest position in mm.
+    pub(super) offset_max_mm: f64,
+    /// Mean |wall distance| at the sliding nodes' rest positions in mm.
+    pub(super) offset_mean_mm: f64,
+    /// Smallest |∇ wall| at a sliding node's rest position.
+    pub(super) min_gradient_norm: f64,
+}
+
+/// Measures the wall at the rest positions of the `sliding` nodes of `mesh`.
+pub(super) fn wall_rest_fit(
+    mesh: &HexMesh,
+    sliding: &[u32],
+    wall: &SignedDistanceField,
+) -> WallRestFit {
+    let rest_offsets_mm: Vec<f64> = sliding
+        .iter()
+        .map(|&n| wall.evaluate(mesh.rest_positions_m[n as usize]).0.abs() * 1e3)
+        .collect();
+    let offset_max_mm = rest_offsets_mm.iter().cloned().fold(0.0, f64::max);
+    let offset_mean_mm = rest_offsets_mm.iter().sum::<f64>() / rest_offsets_mm.len().max(1) as f64;
+    let min_gradient_norm = sliding
+        .iter()
+        .map(|&n| {
+            wall.smooth_gradient(mesh.rest_positions_m[n as usize])
+                .norm()
+        })
+        .fold(f64::INFINITY, f64::min);
+    WallRestFit {
+        offset_max_mm,
+        offset_mean_mm,
+        min_gradient_norm,
+    }
+}
