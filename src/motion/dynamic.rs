@@ -20,7 +20,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::{elastic_compliance_ml_per_pa, REFERENCE_PRESSURE_PA};
+use super::{displacement_extent_mm, elastic_compliance_ml_per_pa, REFERENCE_PRESSURE_PA};
 use crate::breathing::BreathingTrace;
 use crate::math::V3;
 use crate::simulation::explicit::BlowUpGuard;
@@ -219,15 +219,7 @@ pub fn run_dynamic(
     let t_end = trace.time_s[trace.time_s.len() - 1];
     check_output_times(output_times_s, t_start, t_end)?;
 
-    // The dampers live in the element classes the force kernels are packed from: one
-    // rebuilt scene for the whole run.
-    let mut mesh = scene.mesh.clone();
-    mesh.classes = mesh
-        .classes
-        .into_iter()
-        .map(|c| c.with_damping_ratio(settings.voigt_damping_ratio))
-        .collect();
-    let damped = Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?;
+    let damped = damped_scene(scene, settings.voigt_damping_ratio)?;
     let rest = &damped.mesh.rest_positions_m;
     let rest_volume_m3 = damped.mesh.enclosed_volume_m3(rest);
     let p_ref = settings.reference_pressure_pa;
@@ -237,6 +229,74 @@ pub fn run_dynamic(
         elastic_compliance_ml_per_pa(rest_volume_m3 * 1e6, &c.material)
     });
     let mut driver = BreathingDriver::new(&damped, p_ref, seed, settings.solver.clone())?;
+    let (compliance, calibrated) = bellows_compliance(&mut driver, trace, settings)?;
+    let bellows = |t: f64| {
+        bellows_state(
+            trace,
+            t,
+            compliance,
+            settings.resistance_pa_s_per_ml,
+            settings.inertance_pa_s2_per_ml,
+            settings.derivative_half_window_s,
+        )
+    };
+
+    let initial = bellows(t_start);
+    let x = initial_equilibrium(&damped, &mut driver, initial.pressure_pa)?;
+    drop(driver);
+    let setup_wall_time_s = setup_start.elapsed().as_secs_f64();
+
+    let time_step = explicit_time_step(&damped, settings.time_step_safety)?;
+    let h_max = time_step.step_s;
+
+    let start = Instant::now();
+    let load_factor = |t: f64| -bellows(t).pressure_pa / p_ref;
+    let mut state = ExplicitState::start(&damped, x, t_start, load_factor(t_start));
+    let mut frames = Vec::with_capacity(output_times_s.len());
+    let mut max_volume_difference: f64 = 0.0;
+    for (index, &t_out) in output_times_s.iter().enumerate() {
+        state.advance_to(t_out, h_max, &load_factor, settings)?;
+        let frame = state.frame(index, t_out, bellows(t_out), rest_volume_m3)?;
+        max_volume_difference =
+            max_volume_difference.max((frame.simulated_volume_ml - frame.bellows.volume_ml).abs());
+        on_frame(&frame, &state.x)?;
+        frames.push(frame);
+    }
+    Ok(DynamicReport {
+        settings: settings.clone(),
+        compliance_ml_per_pa: compliance,
+        compliance_calibrated: calibrated,
+        rest_volume_ml: rest_volume_m3 * 1e6,
+        time_step,
+        start_time_s: t_start,
+        initial_pressure_pa: initial.pressure_pa,
+        steps: state.steps,
+        max_volume_difference_ml: max_volume_difference,
+        frames,
+        setup_wall_time_s,
+        integration_wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// `scene` with a Voigt damper of `damping_ratio` on every spring. The dampers live in the
+/// element classes the force kernels are packed from: one rebuilt scene for the whole run.
+fn damped_scene(scene: &Scene, damping_ratio: f64) -> Result<Scene> {
+    let mut mesh = scene.mesh.clone();
+    mesh.classes = mesh
+        .classes
+        .into_iter()
+        .map(|c| c.with_damping_ratio(damping_ratio))
+        .collect();
+    Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())
+}
+
+/// The bellows law's compliance, mL/Pa, and whether it was calibrated: the given one, else
+/// the scene's secant compliance at the trace's extreme volume (one quasi-static solve).
+fn bellows_compliance(
+    driver: &mut BreathingDriver,
+    trace: &BreathingTrace,
+    settings: &DynamicSettings,
+) -> Result<(f64, bool)> {
     let (compliance, calibrated) = match settings.compliance_ml_per_pa {
         Some(c) => (c, false),
         None => {
@@ -270,95 +330,112 @@ pub fn run_dynamic(
             "dynamic breathing: compliance {compliance} mL/Pa is not positive"
         )));
     }
-    let bellows = |t: f64| {
-        bellows_state(
-            trace,
-            t,
-            compliance,
-            settings.resistance_pa_s_per_ml,
-            settings.inertance_pa_s2_per_ml,
-            settings.derivative_half_window_s,
-        )
-    };
+    Ok((compliance, calibrated))
+}
 
-    let initial = bellows(t_start);
-    let mut x = if initial.pressure_pa == 0.0 {
+/// Node positions of the quasi-static equilibrium under the bellows pressure at the start
+/// (the rest state when that pressure is zero).
+fn initial_equilibrium(
+    damped: &Scene,
+    driver: &mut BreathingDriver,
+    initial_pressure_pa: f64,
+) -> Result<Vec<V3>> {
+    Ok(if initial_pressure_pa == 0.0 {
         damped.initial_positions()
     } else {
         driver
-            .solve_pressure(-initial.pressure_pa)
+            .solve_pressure(-initial_pressure_pa)
             .map_err(|e| {
                 Error::InvalidModel(format!(
-                    "initial equilibrium at {:.2} Pa: {e}",
-                    initial.pressure_pa
+                    "initial equilibrium at {initial_pressure_pa:.2} Pa: {e}"
                 ))
             })?
             .positions_m
-    };
-    drop(driver);
-    let setup_wall_time_s = setup_start.elapsed().as_secs_f64();
+    })
+}
 
-    let time_step = TimeStepBound::new(&damped, settings.time_step_safety);
+/// The stable explicit time step of the damped scene; refuses one that is not positive.
+fn explicit_time_step(damped: &Scene, safety: f64) -> Result<TimeStepBound> {
+    let time_step = TimeStepBound::new(damped, safety);
     let h_max = time_step.step_s;
     if !(h_max.is_finite() && h_max > 0.0) {
         return Err(Error::InvalidModel(format!(
             "dynamic breathing: time step {h_max} s is not positive"
         )));
     }
+    Ok(time_step)
+}
 
-    let start = Instant::now();
-    let n = damped.node_count();
-    let mut v = vec![V3::zeros(); n];
-    let mut a = vec![V3::zeros(); n];
-    let mut force = vec![V3::zeros(); n];
-    let mut external = vec![V3::zeros(); n];
-    let inv_mass: Vec<f64> = damped.mesh.node_mass_kg.iter().map(|m| 1.0 / m).collect();
-    let load_factor = |t: f64| -bellows(t).pressure_pa / p_ref;
-    accelerations(
-        &damped,
-        &x,
-        &v,
-        load_factor(t_start),
-        &inv_mass,
-        (&mut force, &mut external),
-        &mut a,
-    );
-    let mut guard = BlowUpGuard::new(rest);
-    let mut t = t_start;
-    let mut steps = 0usize;
-    let mut frames = Vec::with_capacity(output_times_s.len());
-    let mut max_volume_difference: f64 = 0.0;
-    for (index, &t_out) in output_times_s.iter().enumerate() {
-        // Steps land exactly on the output instant: the last one is shortened.
-        while t_out - t > 1e-9 * h_max {
+/// The explicit integration's state: node positions, velocities and accelerations at `t_s`,
+/// with the scratch buffers of the force evaluation.
+struct ExplicitState<'s> {
+    scene: &'s Scene,
+    x: Vec<V3>,
+    v: Vec<V3>,
+    a: Vec<V3>,
+    force: Vec<V3>,
+    external: Vec<V3>,
+    inv_mass: Vec<f64>,
+    guard: BlowUpGuard,
+    t_s: f64,
+    /// Time steps taken since the start of the run.
+    steps: usize,
+}
+
+impl<'s> ExplicitState<'s> {
+    /// At rest in positions `x` at `t_s`, accelerated by the loads scaled by `load_factor`.
+    fn start(scene: &'s Scene, x: Vec<V3>, t_s: f64, load_factor: f64) -> Self {
+        let n = scene.node_count();
+        let mut state = ExplicitState {
+            scene,
+            x,
+            v: vec![V3::zeros(); n],
+            a: vec![V3::zeros(); n],
+            force: vec![V3::zeros(); n],
+            external: vec![V3::zeros(); n],
+            inv_mass: scene.mesh.node_mass_kg.iter().map(|m| 1.0 / m).collect(),
+            guard: BlowUpGuard::new(&scene.mesh.rest_positions_m),
+            t_s,
+            steps: 0,
+        };
+        state.update_accelerations(load_factor);
+        state
+    }
+
+    /// Velocity-Verlet steps of at most `h_max` up to `t_out`, the loads scaled by
+    /// `load_factor(t)`; steps land exactly on `t_out`: the last one is shortened.
+    fn advance_to(
+        &mut self,
+        t_out: f64,
+        h_max: f64,
+        load_factor: &impl Fn(f64) -> f64,
+        settings: &DynamicSettings,
+    ) -> Result<()> {
+        let constraints = &self.scene.constraints;
+        while t_out - self.t_s > 1e-9 * h_max {
+            let t = self.t_s;
             let h = h_max.min(t_out - t);
-            for ((xi, vi), ai) in x.iter_mut().zip(v.iter_mut()).zip(&a) {
+            for ((xi, vi), ai) in self.x.iter_mut().zip(self.v.iter_mut()).zip(&self.a) {
                 *vi += ai * (0.5 * h);
                 *xi += *vi * h;
             }
-            damped.constraints.project_positions(&mut x);
-            damped.constraints.project_field(&x, &mut v);
-            t = if t_out - (t + h) <= 1e-9 * h_max {
+            constraints.project_positions(&mut self.x);
+            constraints.project_field(&self.x, &mut self.v);
+            self.t_s = if t_out - (t + h) <= 1e-9 * h_max {
                 t_out
             } else {
                 t + h
             };
-            accelerations(
-                &damped,
-                &x,
-                &v,
-                load_factor(t),
-                &inv_mass,
-                (&mut force, &mut external),
-                &mut a,
-            );
-            for (vi, ai) in v.iter_mut().zip(&a) {
+            self.update_accelerations(load_factor(self.t_s));
+            for (vi, ai) in self.v.iter_mut().zip(&self.a) {
                 *vi += ai * (0.5 * h);
             }
-            damped.constraints.project_field(&x, &mut v);
-            steps += 1;
+            constraints.project_field(&self.x, &mut self.v);
+            self.steps += 1;
+            let steps = self.steps;
             if steps.is_multiple_of(settings.check_every) {
-                guard.check(&damped, &x, kinetic_energy_j(&damped, &v), steps)?;
+                let ke = kinetic_energy_j(self.scene, &self.v);
+                self.guard.check(self.scene, &self.x, ke, steps)?;
             }
             if steps >= settings.max_steps {
                 return Err(Error::InvalidInput(format!(
@@ -367,44 +444,47 @@ pub fn run_dynamic(
                 )));
             }
         }
-        let ke = kinetic_energy_j(&damped, &v);
-        guard.check(&damped, &x, ke, steps)?;
-        let b = bellows(t_out);
-        let simulated = (damped.mesh.enclosed_volume_m3(&x) - rest_volume_m3) * 1e6;
-        max_volume_difference = max_volume_difference.max((simulated - b.volume_ml).abs());
-        let (max_d, sum_d) = x
-            .iter()
-            .zip(rest)
-            .map(|(p, r)| (p - r).norm() * 1e3)
-            .fold((0.0f64, 0.0), |(m, s), d| (m.max(d), s + d));
-        let frame = DynamicFrame {
+        Ok(())
+    }
+
+    /// The output frame at `time_s` of the current state (checked for blow-up) under `bellows`.
+    fn frame(
+        &mut self,
+        index: usize,
+        time_s: f64,
+        bellows: BellowsState,
+        rest_volume_m3: f64,
+    ) -> Result<DynamicFrame> {
+        let scene = self.scene;
+        let ke = kinetic_energy_j(scene, &self.v);
+        self.guard.check(scene, &self.x, ke, self.steps)?;
+        let simulated = (scene.mesh.enclosed_volume_m3(&self.x) - rest_volume_m3) * 1e6;
+        let (max_d, sum_d) = displacement_extent_mm(&self.x, &scene.mesh.rest_positions_m);
+        Ok(DynamicFrame {
             index,
-            time_s: t_out,
-            bellows: b,
-            surface_pressure_pa: -b.pressure_pa,
+            time_s,
+            bellows,
+            surface_pressure_pa: -bellows.pressure_pa,
             simulated_volume_ml: simulated,
             max_displacement_mm: max_d,
-            mean_displacement_mm: sum_d / n as f64,
+            mean_displacement_mm: sum_d / scene.node_count() as f64,
             kinetic_energy_j: ke,
-            steps,
-        };
-        on_frame(&frame, &x)?;
-        frames.push(frame);
+            steps: self.steps,
+        })
     }
-    Ok(DynamicReport {
-        settings: settings.clone(),
-        compliance_ml_per_pa: compliance,
-        compliance_calibrated: calibrated,
-        rest_volume_ml: rest_volume_m3 * 1e6,
-        time_step,
-        start_time_s: t_start,
-        initial_pressure_pa: initial.pressure_pa,
-        steps,
-        max_volume_difference_ml: max_volume_difference,
-        frames,
-        setup_wall_time_s,
-        integration_wall_time_s: start.elapsed().as_secs_f64(),
-    })
+
+    /// Accelerations at the current positions and velocities.
+    fn update_accelerations(&mut self, load_factor: f64) {
+        accelerations(
+            self.scene,
+            &self.x,
+            &self.v,
+            load_factor,
+            &self.inv_mass,
+            (&mut self.force, &mut self.external),
+            &mut self.a,
+        );
+    }
 }
 
 fn check_output_times(times: &[f64], t_start: f64, t_end: f64) -> Result<()> {

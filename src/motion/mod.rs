@@ -170,21 +170,19 @@ pub fn run_motion(
         driver.set_cancel(flag.clone());
     }
     let rest = scene.mesh.rest_positions_m.clone();
-    let keyframes = match settings.driver {
-        DriverKind::Volume if !settings.solve_every_frame && times.len() > 2 => Some(
-            VolumeKeyframes::build(
-                &mut driver,
-                lo,
-                hi,
-                settings.interpolation_tolerance_mm,
-                volume_tolerance_ml * 0.2,
-            )
-            .map_err(|e| match e {
-                Error::Cancelled(_) => e,
-                e => Error::InvalidModel(format!("solving the key volumes: {e}")),
-            })?,
-        ),
-        _ => None,
+    let keyframes = solve_key_volumes(
+        &mut driver,
+        settings,
+        times.len(),
+        (lo, hi),
+        volume_tolerance_ml,
+    )?;
+    let mut solver = FrameSolver {
+        driver,
+        keyframes,
+        kind: settings.driver,
+        volume_tolerance_ml,
+        compliance_ml_per_pa: compliance,
     };
 
     let mut frames = Vec::with_capacity(times.len());
@@ -198,63 +196,28 @@ pub fn run_motion(
                 "frame {index} (t = {time_s:.3} s, target {target:.1} mL): {e}"
             )),
         };
-        let (pressure_pa, solves, newton, linear, residual, interpolated) =
-            match (&keyframes, settings.driver) {
-                (Some(keys), _) => {
-                    keys.positions_at(&rest, target, &mut positions);
-                    let nearest = keys
-                        .states
-                        .iter()
-                        .min_by(|a, b| {
-                            (a.volume_change_ml - target)
-                                .abs()
-                                .total_cmp(&(b.volume_change_ml - target).abs())
-                        })
-                        .expect("keyframes hold at least one state");
-                    (keys.pressure_at(target), 0, 0, 0, nearest.residual, true)
-                }
-                (None, kind) => {
-                    let s = match kind {
-                        DriverKind::Volume => driver.solve_volume(target, volume_tolerance_ml),
-                        DriverKind::Compliance { .. } => {
-                            driver.solve_pressure(-target / compliance)
-                        }
-                    }
-                    .map_err(context)?;
-                    positions.copy_from_slice(&s.positions_m);
-                    (
-                        s.pressure_pa,
-                        s.solves,
-                        s.newton_iterations,
-                        s.linear_iterations,
-                        s.residual,
-                        false,
-                    )
-                }
-            };
+        let solve = solver
+            .positions_at(&rest, target, &mut positions)
+            .map_err(context)?;
         scene.check_finite(&positions, index).map_err(context)?;
-        let simulated = driver.volume_change_ml(&positions);
+        let simulated = solver.driver.volume_change_ml(&positions);
         if settings.driver == DriverKind::Volume {
             max_volume_error = max_volume_error.max((simulated - target).abs());
         }
-        let (max_d, sum_d) = positions
-            .iter()
-            .zip(&rest)
-            .map(|(x, r)| (x - r).norm() * 1e3)
-            .fold((0.0f64, 0.0), |(m, s), d| (m.max(d), s + d));
+        let (max_d, sum_d) = displacement_extent_mm(&positions, &rest);
         let frame = FrameSummary {
             index,
             time_s,
             target_volume_ml: target,
             simulated_volume_ml: simulated,
-            pressure_pa,
+            pressure_pa: solve.pressure_pa,
             max_displacement_mm: max_d,
             mean_displacement_mm: sum_d / rest.len() as f64,
-            interpolated,
-            solves,
-            newton_iterations: newton,
-            linear_iterations: linear,
-            residual,
+            interpolated: solve.interpolated,
+            solves: solve.solves,
+            newton_iterations: solve.newton_iterations,
+            linear_iterations: solve.linear_iterations,
+            residual: solve.residual,
             wall_time_s: t0.elapsed().as_secs_f64(),
         };
         on_frame(&frame, &positions)?;
@@ -273,11 +236,120 @@ pub fn run_motion(
         rest_volume_ml,
         tidal_volume_ml: tidal,
         volume_tolerance_ml,
-        keyframes: keyframes.map(|k| k.report),
+        keyframes: solver.keyframes.map(|k| k.report),
         max_volume_error_ml: max_volume_error,
         frames,
         wall_time_s: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The key volumes frames are interpolated from, spanning `volume_range_ml`: only with the
+/// volume driver, more than two frames and interpolation allowed.
+fn solve_key_volumes(
+    driver: &mut BreathingDriver,
+    settings: &MotionSettings,
+    frame_count: usize,
+    volume_range_ml: (f64, f64),
+    volume_tolerance_ml: f64,
+) -> Result<Option<VolumeKeyframes>> {
+    let (lo, hi) = volume_range_ml;
+    Ok(match settings.driver {
+        DriverKind::Volume if !settings.solve_every_frame && frame_count > 2 => Some(
+            VolumeKeyframes::build(
+                driver,
+                lo,
+                hi,
+                settings.interpolation_tolerance_mm,
+                volume_tolerance_ml * 0.2,
+            )
+            .map_err(|e| match e {
+                Error::Cancelled(_) => e,
+                e => Error::InvalidModel(format!("solving the key volumes: {e}")),
+            })?,
+        ),
+        _ => None,
+    })
+}
+
+/// Finds each frame's node positions: interpolated between key volumes when there are
+/// some, else solved by the driver.
+struct FrameSolver<'s> {
+    driver: BreathingDriver<'s>,
+    keyframes: Option<VolumeKeyframes>,
+    kind: DriverKind,
+    volume_tolerance_ml: f64,
+    compliance_ml_per_pa: f64,
+}
+
+/// How a frame's positions were found.
+struct FrameSolve {
+    pressure_pa: f64,
+    solves: usize,
+    newton_iterations: usize,
+    linear_iterations: usize,
+    residual: f64,
+    interpolated: bool,
+}
+
+impl FrameSolver<'_> {
+    /// Writes the positions of the frame whose volume change is `target` mL into `positions`.
+    fn positions_at(
+        &mut self,
+        rest: &[V3],
+        target: f64,
+        positions: &mut [V3],
+    ) -> Result<FrameSolve> {
+        match (&self.keyframes, self.kind) {
+            (Some(keys), _) => {
+                keys.positions_at(rest, target, positions);
+                let nearest = keys
+                    .states
+                    .iter()
+                    .min_by(|a, b| {
+                        (a.volume_change_ml - target)
+                            .abs()
+                            .total_cmp(&(b.volume_change_ml - target).abs())
+                    })
+                    .expect("keyframes hold at least one state");
+                Ok(FrameSolve {
+                    pressure_pa: keys.pressure_at(target),
+                    solves: 0,
+                    newton_iterations: 0,
+                    linear_iterations: 0,
+                    residual: nearest.residual,
+                    interpolated: true,
+                })
+            }
+            (None, kind) => {
+                let s = match kind {
+                    DriverKind::Volume => {
+                        self.driver.solve_volume(target, self.volume_tolerance_ml)
+                    }
+                    DriverKind::Compliance { .. } => self
+                        .driver
+                        .solve_pressure(-target / self.compliance_ml_per_pa),
+                }?;
+                positions.copy_from_slice(&s.positions_m);
+                Ok(FrameSolve {
+                    pressure_pa: s.pressure_pa,
+                    solves: s.solves,
+                    newton_iterations: s.newton_iterations,
+                    linear_iterations: s.linear_iterations,
+                    residual: s.residual,
+                    interpolated: false,
+                })
+            }
+        }
+    }
+}
+
+/// Largest and summed node displacement from `rest`, mm.
+fn displacement_extent_mm(positions: &[V3], rest: &[V3]) -> (f64, f64) {
+    positions
+        .iter()
+        .zip(rest)
+        .map(|(x, r)| (x - r).norm() * 1e3)
+        .fold((0.0f64, 0.0), |(m, s), d| (m.max(d), s + d))
 }
 
 #[cfg(test)]

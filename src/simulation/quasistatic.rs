@@ -258,18 +258,11 @@ impl<'s> QuasiStaticSolver<'s> {
         report: &mut SolveReport,
     ) -> Result<()> {
         let scene = self.scene;
-        let h_scale = scene
-            .mesh
-            .classes
-            .iter()
-            .map(|c| {
-                c.shape
-                    .edges_m
-                    .iter()
-                    .cloned()
-                    .fold(f64::INFINITY, f64::min)
-            })
-            .fold(f64::INFINITY, f64::min);
+        let increment = LoadIncrement {
+            constraints,
+            lambda,
+            h_scale: shortest_edge_m(scene),
+        };
         let mut sigma = 0.0;
         let mut res = residual(scene, constraints, lambda, x, w);
         for it in 0..self.settings.max_newton_iterations {
@@ -283,59 +276,14 @@ impl<'s> QuasiStaticSolver<'s> {
                 report.residual = res;
                 return Ok(());
             }
-            // Inexact Newton: the step cuts the residual by about the linear tolerance η (the
-            // lung's forces are nearly linear over one warm-started step), so ask for what
-            // reaches `tol` (half of it, for margin), but never below 1e-2, where each digit of
-            // GMRES costs more than another Newton step. On the CIP 8 mm cycle this took
-            // 124 Krylov iterations against 136 for η = √(tol/res) ∈ [1e-3, 0.1].
-            let eta = if sigma > 0.0 {
-                0.1
-            } else {
-                (0.5 * tol / res).clamp(1e-2, 0.1)
+            let base = NewtonBase {
+                b: flat(&w.r).to_vec(),
+                x: x.to_vec(),
+                f: w.f.clone(),
+                residual: res,
+                eta: linear_tolerance(sigma, tol, res),
             };
-            let b = flat(&w.r).to_vec();
-            let x_base = x.to_vec();
-            let f_base = w.f.clone();
-            let mut accepted = None;
-            let mut taken = (0.0, 0usize, 0.0);
-            // Plain Newton first (σ = 0), then pseudo-time steps with growing σ if needed.
-            for attempt in 0..12 {
-                self.set_shift(sigma);
-                let (delta, lin, lin_res) =
-                    self.linear_solve(lambda, sigma, &x_base, &f_base, &b, eta, h_scale, report);
-                let dn = nodes(&delta);
-                // Newton: backtrack until the residual falls. Pseudo-time: take the step if it
-                // does not blow the residual up (non-monotone, as pseudo-transient methods are).
-                let (mut alpha, trials) = if sigma == 0.0 { (1.0, 8) } else { (1.0, 1) };
-                for _ in 0..trials {
-                    for ((xi, b), d) in x.iter_mut().zip(&x_base).zip(dn) {
-                        *xi = b + d * alpha;
-                    }
-                    constraints.project_positions(x);
-                    let new_res = residual(scene, constraints, lambda, x, w);
-                    let ok = new_res.is_finite()
-                        && if sigma == 0.0 {
-                            new_res < res
-                        } else {
-                            new_res < 2.0 * res
-                        };
-                    if ok {
-                        accepted = Some(new_res);
-                        taken = (alpha, lin, lin_res);
-                        break;
-                    }
-                    alpha *= 0.5;
-                }
-                if accepted.is_some() {
-                    break;
-                }
-                sigma = if sigma == 0.0 {
-                    self.shift_scale * 1e-2
-                } else {
-                    sigma * 10.0
-                };
-                report.pseudo_time_steps += usize::from(attempt == 0);
-            }
+            let (accepted, taken) = self.newton_step(&increment, &base, &mut sigma, x, w, report);
             report.newton_iterations += 1;
             tracing::debug!(
                 it,
@@ -343,14 +291,14 @@ impl<'s> QuasiStaticSolver<'s> {
                 new_res = accepted.unwrap_or(f64::NAN),
                 alpha = taken.0,
                 sigma,
-                eta,
+                eta = base.eta,
                 gmres = taken.1,
                 gmres_res = taken.2,
                 "newton"
             );
             let Some(new_res) = accepted else {
-                x.copy_from_slice(&x_base);
-                w.f = f_base;
+                x.copy_from_slice(&base.x);
+                w.f = base.f;
                 res = residual(scene, constraints, lambda, x, w);
                 report.residual = res;
                 return Err(Error::NotConverged {
@@ -380,6 +328,50 @@ impl<'s> QuasiStaticSolver<'s> {
                 tolerance: tol,
             })
         }
+    }
+
+    /// One Newton iteration from `base`: plain Newton first (σ = 0), then pseudo-time steps
+    /// with growing σ if needed. Returns the accepted residual (none if every attempt failed)
+    /// and the step taken (α, GMRES iterations, GMRES residual); `x` and `w` hold the last
+    /// trial state.
+    fn newton_step(
+        &mut self,
+        increment: &LoadIncrement,
+        base: &NewtonBase,
+        sigma: &mut f64,
+        x: &mut [V3],
+        w: &mut Work,
+        report: &mut SolveReport,
+    ) -> (Option<f64>, (f64, usize, f64)) {
+        let mut accepted = None;
+        let mut taken = (0.0, 0usize, 0.0);
+        for attempt in 0..12 {
+            self.set_shift(*sigma);
+            let (delta, lin, lin_res) = self.linear_solve(
+                increment.lambda,
+                *sigma,
+                &base.x,
+                &base.f,
+                &base.b,
+                base.eta,
+                increment.h_scale,
+                report,
+            );
+            if let Some((alpha, new_res)) =
+                line_search(self.scene, increment, base, *sigma, &delta, x, w)
+            {
+                accepted = Some(new_res);
+                taken = (alpha, lin, lin_res);
+                break;
+            }
+            *sigma = if *sigma == 0.0 {
+                self.shift_scale * 1e-2
+            } else {
+                *sigma * 10.0
+            };
+            report.pseudo_time_steps += usize::from(attempt == 0);
+        }
+        (accepted, taken)
     }
 
     /// Fallback: damped explicit dynamics from `x` to equilibrium. Runs on a copy of the scene
@@ -523,6 +515,99 @@ impl<'s> QuasiStaticSolver<'s> {
         report.linear_iterations += lin;
         (delta, lin, lin_res)
     }
+}
+
+/// One load increment's equilibrium problem: its constraints, load factor λ and the length
+/// scale of the finite-difference Jacobian (the shortest element edge).
+struct LoadIncrement<'c> {
+    constraints: &'c ConstraintSet,
+    lambda: f64,
+    h_scale: f64,
+}
+
+/// The state a Newton iteration starts from (restored when no step is accepted), with the
+/// right-hand side and tolerance of its linear solve.
+struct NewtonBase {
+    /// Free part of the total force at `x`, flattened: the right-hand side.
+    b: Vec<f64>,
+    x: Vec<V3>,
+    /// Total force at `x`.
+    f: Vec<V3>,
+    /// Relative residual at `x`.
+    residual: f64,
+    /// Relative tolerance η of the linear solve.
+    eta: f64,
+}
+
+/// The shortest element edge of the scene, m.
+fn shortest_edge_m(scene: &Scene) -> f64 {
+    scene
+        .mesh
+        .classes
+        .iter()
+        .map(|c| {
+            c.shape
+                .edges_m
+                .iter()
+                .cloned()
+                .fold(f64::INFINITY, f64::min)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// Relative tolerance η of the Krylov solve of a Newton step at residual `res`.
+fn linear_tolerance(sigma: f64, tol: f64, res: f64) -> f64 {
+    // Inexact Newton: the step cuts the residual by about the linear tolerance η (the
+    // lung's forces are nearly linear over one warm-started step), so ask for what
+    // reaches `tol` (half of it, for margin), but never below 1e-2, where each digit of
+    // GMRES costs more than another Newton step. On the CIP 8 mm cycle this took
+    // 124 Krylov iterations against 136 for η = √(tol/res) ∈ [1e-3, 0.1].
+    if sigma > 0.0 {
+        0.1
+    } else {
+        (0.5 * tol / res).clamp(1e-2, 0.1)
+    }
+}
+
+/// Moves `x` along `delta` from `base.x`: Newton backtracks until the residual falls;
+/// pseudo-time takes the step if it does not blow the residual up (non-monotone, as
+/// pseudo-transient methods are). Returns the step length α and the new residual, if
+/// accepted; `x` and `w` hold the last trial either way.
+fn line_search(
+    scene: &Scene,
+    increment: &LoadIncrement,
+    base: &NewtonBase,
+    sigma: f64,
+    delta: &[f64],
+    x: &mut [V3],
+    w: &mut Work,
+) -> Option<(f64, f64)> {
+    let LoadIncrement {
+        constraints,
+        lambda,
+        ..
+    } = *increment;
+    let res = base.residual;
+    let dn = nodes(delta);
+    let (mut alpha, trials) = if sigma == 0.0 { (1.0, 8) } else { (1.0, 1) };
+    for _ in 0..trials {
+        for ((xi, b), d) in x.iter_mut().zip(&base.x).zip(dn) {
+            *xi = b + d * alpha;
+        }
+        constraints.project_positions(x);
+        let new_res = residual(scene, constraints, lambda, x, w);
+        let ok = new_res.is_finite()
+            && if sigma == 0.0 {
+                new_res < res
+            } else {
+                new_res < 2.0 * res
+            };
+        if ok {
+            return Some((alpha, new_res));
+        }
+        alpha *= 0.5;
+    }
+    None
 }
 
 /// Scratch buffers of a solve.

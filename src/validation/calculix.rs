@@ -19,7 +19,7 @@ use serde::Serialize;
 
 use crate::math::V3;
 use crate::model::mesh::HEX_FACES;
-use crate::model::{Material, NodeConstraint};
+use crate::model::{HexMesh, Material, NodeConstraint};
 use crate::simulation::Scene;
 use crate::{Error, Result};
 
@@ -223,12 +223,26 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
     // Numbers carry 13 significant digits: CalculiX reads at most 20 characters per field.
     let mut d = String::new();
     d.push_str("** lungmotion: mass-spring scene exported for CalculiX, SI units\n");
+    write_nodes(&mut d, mesh);
+    let material_count = write_element_sets(&mut d, mesh, options);
+    let constraints = DeckConstraints::of(scene)?;
+    write_transforms(&mut d, &constraints.transforms);
+    let loads = DeckLoads::of(scene, options.nlgeom)?;
+    write_step(&mut d, scene, options, material_count, &constraints, &loads);
+    Ok(d)
+}
+
+/// `*NODE`: every node at rest, 1-based ids.
+fn write_nodes(d: &mut String, mesh: &HexMesh) {
     d.push_str("*NODE, NSET=NALL\n");
     for (i, p) in mesh.rest_positions_m.iter().enumerate() {
         writeln!(d, "{}, {:.12e}, {:.12e}, {:.12e}", i + 1, p.x, p.y, p.z).unwrap();
     }
+}
 
-    // One element set per distinct material, in order of first appearance.
+/// One element set per distinct material, in order of first appearance, each with its
+/// `*MATERIAL` and `*SOLID SECTION`; returns how many sets there are.
+fn write_element_sets(d: &mut String, mesh: &HexMesh, options: &CalculixOptions) -> usize {
     let mut materials: Vec<Material> = Vec::new();
     let mut group_of_class = Vec::with_capacity(mesh.classes.len());
     for c in &mesh.classes {
@@ -269,60 +283,87 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
         writeln!(d, "*DENSITY\n{:.12e}", m.density_kg_per_m3).unwrap();
         writeln!(d, "*SOLID SECTION, ELSET=E{}, MATERIAL=M{}", g + 1, g + 1).unwrap();
     }
+    materials.len()
+}
 
-    // Constraints: per node, the imposed DOFs (1-based, in the node's frame) and values.
-    let mut transforms: Vec<([V3; 3], Vec<u32>)> = Vec::new();
-    let mut frame_of_node: HashMap<u32, usize> = HashMap::new();
-    let mut boundary: Vec<(u32, usize, f64)> = Vec::new();
-    for &(node, c) in &scene.constraints.entries {
-        let rest = mesh.rest_positions_m[node as usize];
-        match c {
-            NodeConstraint::Fixed { target_m } => {
-                let u = target_m - rest;
-                for i in 0..3 {
-                    boundary.push((node, i + 1, u[i]));
-                }
-            }
-            NodeConstraint::Plane { point_m, normal } => {
-                // The node is projected onto the plane: its normal displacement is imposed.
-                let u = normal * (point_m - rest).dot(&normal);
-                match axis_of(&normal) {
-                    Some(i) => boundary.push((node, i + 1, u[i])),
-                    None => {
-                        let f = frame_with_x(normal);
-                        add_to_frame(&mut transforms, &mut frame_of_node, f, node);
-                        boundary.push((node, 1, u.dot(&f[0])));
+/// The scene's constraints as CalculiX boundary conditions: per node, the imposed DOFs
+/// (1-based, in the node's frame) and values, and the local frames of nodes constrained
+/// along a direction that is not a coordinate axis.
+struct DeckConstraints {
+    /// Each distinct local frame with the nodes that use it.
+    transforms: Vec<([V3; 3], Vec<u32>)>,
+    /// Index into `transforms` of each transformed node.
+    frame_of_node: HashMap<u32, usize>,
+    /// (node, DOF, imposed displacement).
+    boundary: Vec<(u32, usize, f64)>,
+}
+
+impl DeckConstraints {
+    /// Translates every constraint of `scene`; refuses nodes sliding on implicit surfaces.
+    fn of(scene: &Scene) -> Result<Self> {
+        let mesh = &scene.mesh;
+        let mut transforms: Vec<([V3; 3], Vec<u32>)> = Vec::new();
+        let mut frame_of_node: HashMap<u32, usize> = HashMap::new();
+        let mut boundary: Vec<(u32, usize, f64)> = Vec::new();
+        for &(node, c) in &scene.constraints.entries {
+            let rest = mesh.rest_positions_m[node as usize];
+            match c {
+                NodeConstraint::Fixed { target_m } => {
+                    let u = target_m - rest;
+                    for i in 0..3 {
+                        boundary.push((node, i + 1, u[i]));
                     }
                 }
-            }
-            NodeConstraint::Line { point_m, direction } => {
-                let off = point_m - rest;
-                let u = off - direction * off.dot(&direction);
-                match axis_of(&direction) {
-                    Some(i) => {
-                        for j in (0..3).filter(|&j| j != i) {
-                            boundary.push((node, j + 1, u[j]));
+                NodeConstraint::Plane { point_m, normal } => {
+                    // The node is projected onto the plane: its normal displacement is imposed.
+                    let u = normal * (point_m - rest).dot(&normal);
+                    match axis_of(&normal) {
+                        Some(i) => boundary.push((node, i + 1, u[i])),
+                        None => {
+                            let f = frame_with_x(normal);
+                            add_to_frame(&mut transforms, &mut frame_of_node, f, node);
+                            boundary.push((node, 1, u.dot(&f[0])));
                         }
                     }
-                    None => {
-                        let f = frame_with_x(direction);
-                        add_to_frame(&mut transforms, &mut frame_of_node, f, node);
-                        boundary.push((node, 2, u.dot(&f[1])));
-                        boundary.push((node, 3, u.dot(&f[2])));
+                }
+                NodeConstraint::Line { point_m, direction } => {
+                    let off = point_m - rest;
+                    let u = off - direction * off.dot(&direction);
+                    match axis_of(&direction) {
+                        Some(i) => {
+                            for j in (0..3).filter(|&j| j != i) {
+                                boundary.push((node, j + 1, u[j]));
+                            }
+                        }
+                        None => {
+                            let f = frame_with_x(direction);
+                            add_to_frame(&mut transforms, &mut frame_of_node, f, node);
+                            boundary.push((node, 2, u.dot(&f[1])));
+                            boundary.push((node, 3, u.dot(&f[2])));
+                        }
                     }
                 }
-            }
-            NodeConstraint::Surface { field } => {
-                return Err(Error::InvalidModel(format!(
-                    "node {node} slides on implicit surface {field}; CalculiX has no equivalent \
-                     constraint, so this scene cannot be exported"
-                )));
+                NodeConstraint::Surface { field } => {
+                    return Err(Error::InvalidModel(format!(
+                        "node {node} slides on implicit surface {field}; CalculiX has no \
+                         equivalent constraint, so this scene cannot be exported"
+                    )));
+                }
             }
         }
+        Ok(DeckConstraints {
+            transforms,
+            frame_of_node,
+            boundary,
+        })
     }
+}
+
+/// `*NSET` and `*TRANSFORM` of each local frame.
+fn write_transforms(d: &mut String, transforms: &[([V3; 3], Vec<u32>)]) {
     for (t, (frame, nodes)) in transforms.iter().enumerate() {
         writeln!(d, "*NSET, NSET=TR{}", t + 1).unwrap();
-        write_id_list(&mut d, nodes.iter().map(|n| n + 1));
+        write_id_list(d, nodes.iter().map(|n| n + 1));
         // CalculiX builds its local y from the second point's part orthogonal to local x.
         let (a, b) = (frame[0], frame[1]);
         writeln!(
@@ -338,42 +379,74 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
         )
         .unwrap();
     }
+}
 
-    // Loads: dead forces summed per node (CalculiX keeps only the last value given for a
-    // node and DOF), follower pressures summed per element face.
-    let nlgeom = options.nlgeom;
-    let mut nodal = vec![V3::zeros(); mesh.node_count()];
-    let mut has_nodal = vec![false; mesh.node_count()];
-    for &(n, f) in &scene.loads.point_forces_n {
-        nodal[n as usize] += f;
-        has_nodal[n as usize] = true;
-    }
-    let locator = FaceLocator::new(&mesh.elements);
-    let mut face_pressure: Vec<((u32, u8), f64)> = Vec::new();
-    let mut face_slot: HashMap<(u32, u8), usize> = HashMap::new();
-    for p in &scene.loads.pressures {
-        for face in &p.faces {
-            if p.follows_deformation || !nlgeom {
-                let key = locator.locate(face)?;
-                match face_slot.get(&key) {
-                    Some(&s) => face_pressure[s].1 += p.pressure_pa,
-                    None => {
-                        face_slot.insert(key, face_pressure.len());
-                        face_pressure.push((key, p.pressure_pa));
+/// The scene's loads as CalculiX takes them: dead forces summed per node (CalculiX keeps
+/// only the last value given for a node and DOF), follower pressures summed per element
+/// face.
+struct DeckLoads {
+    /// Summed dead force per node, N.
+    nodal: Vec<V3>,
+    /// Whether a node carries a dead force (possibly summing to zero).
+    has_nodal: Vec<bool>,
+    /// Pressure per (element, C3D8 face), Pa, in order of first appearance.
+    face_pressure: Vec<((u32, u8), f64)>,
+}
+
+impl DeckLoads {
+    /// Sums the scene's point forces and pressures; under NLGEOM dead pressures become
+    /// nodal forces P·A/4 per corner (CalculiX pressure follows the deformation).
+    fn of(scene: &Scene, nlgeom: bool) -> Result<Self> {
+        let mesh = &scene.mesh;
+        let mut nodal = vec![V3::zeros(); mesh.node_count()];
+        let mut has_nodal = vec![false; mesh.node_count()];
+        for &(n, f) in &scene.loads.point_forces_n {
+            nodal[n as usize] += f;
+            has_nodal[n as usize] = true;
+        }
+        let locator = FaceLocator::new(&mesh.elements);
+        let mut face_pressure: Vec<((u32, u8), f64)> = Vec::new();
+        let mut face_slot: HashMap<(u32, u8), usize> = HashMap::new();
+        for p in &scene.loads.pressures {
+            for face in &p.faces {
+                if p.follows_deformation || !nlgeom {
+                    let key = locator.locate(face)?;
+                    match face_slot.get(&key) {
+                        Some(&s) => face_pressure[s].1 += p.pressure_pa,
+                        None => {
+                            face_slot.insert(key, face_pressure.len());
+                            face_pressure.push((key, p.pressure_pa));
+                        }
                     }
-                }
-            } else {
-                let c = face.map(|i| mesh.rest_positions_m[i as usize]);
-                let area = 0.5 * (c[2] - c[0]).cross(&(c[3] - c[1]));
-                for &i in face {
-                    nodal[i as usize] -= area * (p.pressure_pa / 4.0);
-                    has_nodal[i as usize] = true;
+                } else {
+                    let c = face.map(|i| mesh.rest_positions_m[i as usize]);
+                    let area = 0.5 * (c[2] - c[0]).cross(&(c[3] - c[1]));
+                    for &i in face {
+                        nodal[i as usize] -= area * (p.pressure_pa / 4.0);
+                        has_nodal[i as usize] = true;
+                    }
                 }
             }
         }
+        Ok(DeckLoads {
+            nodal,
+            has_nodal,
+            face_pressure,
+        })
     }
+}
 
-    if nlgeom {
+/// The static step: `*STEP`, `*STATIC`, `*BOUNDARY`, `*DLOAD` (gravity on each of the
+/// `material_count` element sets, face pressures), `*CLOAD` and the displacement print.
+fn write_step(
+    d: &mut String,
+    scene: &Scene,
+    options: &CalculixOptions,
+    material_count: usize,
+    constraints: &DeckConstraints,
+    loads: &DeckLoads,
+) {
+    if options.nlgeom {
         writeln!(d, "*STEP, NLGEOM, INC={}", options.max_increments).unwrap();
     } else {
         writeln!(d, "*STEP, INC={}", options.max_increments).unwrap();
@@ -384,17 +457,28 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
         options.initial_increment, options.min_increment, options.max_increment
     )
     .unwrap();
-    if !boundary.is_empty() {
+    if !constraints.boundary.is_empty() {
         d.push_str("*BOUNDARY\n");
-        for (node, dof, value) in &boundary {
+        for (node, dof, value) in &constraints.boundary {
             writeln!(d, "{}, {dof}, {dof}, {value:.12e}", node + 1).unwrap();
         }
     }
-    let g = scene.loads.gravity_m_per_s2;
+    write_dloads(
+        d,
+        scene.loads.gravity_m_per_s2,
+        material_count,
+        &loads.face_pressure,
+    );
+    write_cloads(d, loads, constraints);
+    d.push_str("*NODE PRINT, NSET=NALL, GLOBAL=YES\nU\n*END STEP\n");
+}
+
+/// `*DLOAD`: gravity on each element set, then the face pressures; nothing without either.
+fn write_dloads(d: &mut String, g: V3, material_count: usize, face_pressure: &[((u32, u8), f64)]) {
     let mut dload = String::new();
     if g != V3::zeros() {
         let dir = g / g.norm();
-        for e in 0..materials.len() {
+        for e in 0..material_count {
             writeln!(
                 dload,
                 "E{}, GRAV, {:.12e}, {:.12e}, {:.12e}, {:.12e}",
@@ -407,38 +491,41 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
             .unwrap();
         }
     }
-    for ((e, s), p) in &face_pressure {
+    for ((e, s), p) in face_pressure {
         writeln!(dload, "{}, P{s}, {p:.12e}", e + 1).unwrap();
     }
     if !dload.is_empty() {
         d.push_str("*DLOAD\n");
         d.push_str(&dload);
     }
-    if has_nodal.iter().any(|&h| h) {
-        d.push_str("*CLOAD\n");
-        for (n, f) in nodal.iter().enumerate() {
-            if !has_nodal[n] {
-                continue;
+}
+
+/// `*CLOAD`: the dead nodal forces, in each transformed node's local frame.
+fn write_cloads(d: &mut String, loads: &DeckLoads, constraints: &DeckConstraints) {
+    if !loads.has_nodal.iter().any(|&h| h) {
+        return;
+    }
+    d.push_str("*CLOAD\n");
+    for (n, f) in loads.nodal.iter().enumerate() {
+        if !loads.has_nodal[n] {
+            continue;
+        }
+        // Loads on transformed nodes are read in the node's local frame.
+        let local = match constraints.frame_of_node.get(&(n as u32)) {
+            Some(&t) => {
+                let fr = &constraints.transforms[t].0;
+                V3::new(f.dot(&fr[0]), f.dot(&fr[1]), f.dot(&fr[2]))
             }
-            // Loads on transformed nodes are read in the node's local frame.
-            let local = match frame_of_node.get(&(n as u32)) {
-                Some(&t) => {
-                    let fr = &transforms[t].0;
-                    V3::new(f.dot(&fr[0]), f.dot(&fr[1]), f.dot(&fr[2]))
-                }
-                None => *f,
-            };
-            // Components at round-off level of a rotated load would only be noise.
-            let floor = 1e-14 * local.norm();
-            for i in 0..3 {
-                if local[i].abs() > floor {
-                    writeln!(d, "{}, {}, {:.12e}", n + 1, i + 1, local[i]).unwrap();
-                }
+            None => *f,
+        };
+        // Components at round-off level of a rotated load would only be noise.
+        let floor = 1e-14 * local.norm();
+        for i in 0..3 {
+            if local[i].abs() > floor {
+                writeln!(d, "{}, {}, {:.12e}", n + 1, i + 1, local[i]).unwrap();
             }
         }
     }
-    d.push_str("*NODE PRINT, NSET=NALL, GLOBAL=YES\nU\n*END STEP\n");
-    Ok(d)
 }
 
 /// Index of the coordinate axis `v` points along (either sign), if it does.

@@ -354,6 +354,7 @@ pub fn run_composite(options: &CompositeOptions) -> Result<CompositeReport> {
     })
 }
 
+/// One resolution of a case solved by both codes (failures kept as messages).
 struct Solved {
     model: CaseModel,
     ours: std::result::Result<MassSpringSolution, String>,
@@ -366,18 +367,7 @@ pub fn run_case(
     resolutions: &[usize],
     options: &CompositeOptions,
 ) -> Result<CaseReport> {
-    let mut res = resolutions.to_vec();
-    res.sort_unstable();
-    res.dedup();
-    let finest = *res
-        .last()
-        .ok_or_else(|| Error::InvalidModel("no resolution to run".into()))?;
-    if let Some(n) = res.iter().find(|&&n| finest % n != 0) {
-        return Err(Error::InvalidModel(format!(
-            "resolution {n} does not divide the reference resolution {finest}, so its nodes \
-             are not reference nodes"
-        )));
-    }
+    let (res, finest) = nested_resolutions(resolutions)?;
     let mut solved = Vec::new();
     for &n in &res {
         let model = build_case(case, n, options)?;
@@ -398,98 +388,181 @@ pub fn run_case(
         }
     };
     let ref_mesh = &reference.model.scene.mesh;
-    let ref_index: HashMap<[u32; 3], usize> = reference
-        .model
-        .node_lattice
-        .iter()
-        .enumerate()
-        .map(|(i, l)| (*l, i))
-        .collect();
     let size = case.object_size_m();
     let reference_c3d8_vs_c3d8i = if options.check_reference_with_c3d8i {
-        let opts = CalculixOptions {
-            element_type: ElementType::C3D8I,
-            ..options.calculix.clone()
-        };
-        calculix::solve(&reference.model.scene, &opts)
-            .ok()
-            .map(|s| ErrorStats::between(&s.displacements_m, &ref_u, size))
+        reference_uncertainty(&reference.model.scene, &ref_u, size, options)
     } else {
         None
     };
 
+    let reference_at = ReferenceLookup::new(&reference.model, &ref_u, finest);
     let mut rows: Vec<ResolutionRow> = Vec::new();
     for s in &solved {
-        let mesh = &s.model.scene.mesh;
-        let ratio = (finest / s.model.resolution) as u32;
-        let at_ref: Vec<V3> = s
-            .model
-            .node_lattice
-            .iter()
-            .map(|l| ref_u[ref_index[&l.map(|c| c * ratio)]])
-            .collect();
-        let mut row = ResolutionRow {
-            resolution: s.model.resolution,
-            label: case.label(s.model.resolution),
-            elements: mesh.element_count(),
-            nodes: mesh.node_count(),
-            mass_spring_error: None,
-            calculix_error: None,
-            mass_spring_vs_calculix_same_mesh: None,
-            mass_spring_order: None,
-            calculix_order: None,
-            mass_spring_max_strain: None,
-            calculix_max_strain: None,
-            mass_spring_max_displacement_m: None,
-            mass_spring_wall_time_s: None,
-            calculix_wall_time_s: None,
-            solve: None,
-            mass_spring_method: None,
-            mass_spring_failure: None,
-            calculix_failure: None,
-        };
-        match &s.ours {
-            Ok(MassSpringSolution {
-                displacements_m: u,
-                wall_time_s: t,
-                report,
-                method,
-            }) => {
-                row.mass_spring_error = Some(ErrorStats::between(u, &at_ref, size));
-                row.mass_spring_max_strain = Some(max_green_strain(mesh, u));
-                row.mass_spring_max_displacement_m =
-                    Some(u.iter().map(|v| v.norm()).fold(0.0, f64::max));
-                row.mass_spring_wall_time_s = Some(*t);
-                row.solve = Some(report.clone());
-                row.mass_spring_method = Some(method.clone());
-            }
-            Err(e) => row.mass_spring_failure = Some(e.clone()),
-        }
-        match &s.ccx {
-            Ok((u, t)) => {
-                row.calculix_error = Some(ErrorStats::between(u, &at_ref, size));
-                row.calculix_max_strain = Some(max_green_strain(mesh, u));
-                row.calculix_wall_time_s = Some(*t);
-                if let Ok(ours) = &s.ours {
-                    row.mass_spring_vs_calculix_same_mesh =
-                        Some(ErrorStats::between(&ours.displacements_m, u, size));
-                }
-            }
-            Err(e) => row.calculix_failure = Some(e.clone()),
-        }
-        if let Some(prev) = rows.last() {
-            let h = (row.resolution as f64 / prev.resolution as f64).ln();
-            let order = |a: Option<ErrorStats>, b: Option<ErrorStats>| match (a, b) {
-                (Some(a), Some(b)) if a.mean_m > 0.0 && b.mean_m > 0.0 => {
-                    Some((a.mean_m / b.mean_m).ln() / h)
-                }
-                _ => None,
-            };
-            row.mass_spring_order = order(prev.mass_spring_error, row.mass_spring_error);
-            row.calculix_order = order(prev.calculix_error, row.calculix_error);
-        }
+        let at_ref = reference_at.nodes_of(&s.model);
+        let row = resolution_row(case, s, &at_ref, size, rows.last());
         rows.push(row);
     }
+    let (mass_spring_fitted_order, calculix_fitted_order) = fitted_orders(&rows, finest);
+    Ok(CaseReport {
+        case,
+        description: describe(case, options),
+        object_size_m: size,
+        reference_resolution: finest,
+        reference_max_displacement_m: ref_u.iter().map(|v| v.norm()).fold(0.0, f64::max),
+        reference_max_strain: max_green_strain(ref_mesh, &ref_u),
+        reference_c3d8_vs_c3d8i,
+        mass_spring_fitted_order,
+        calculix_fitted_order,
+        rows,
+        thesis: thesis_anchors(case),
+    })
+}
+
+/// The resolutions sorted and deduplicated, and the finest; refuses an empty list and a
+/// resolution that does not divide the finest (its nodes would not be reference nodes).
+fn nested_resolutions(resolutions: &[usize]) -> Result<(Vec<usize>, usize)> {
+    let mut res = resolutions.to_vec();
+    res.sort_unstable();
+    res.dedup();
+    let finest = *res
+        .last()
+        .ok_or_else(|| Error::InvalidModel("no resolution to run".into()))?;
+    if let Some(n) = res.iter().find(|&&n| finest % n != 0) {
+        return Err(Error::InvalidModel(format!(
+            "resolution {n} does not divide the reference resolution {finest}, so its nodes \
+             are not reference nodes"
+        )));
+    }
+    Ok((res, finest))
+}
+
+/// The reference C3D8 solution against C3D8I on the same mesh (none if CalculiX fails).
+fn reference_uncertainty(
+    reference: &Scene,
+    ref_u: &[V3],
+    size: f64,
+    options: &CompositeOptions,
+) -> Option<ErrorStats> {
+    let opts = CalculixOptions {
+        element_type: ElementType::C3D8I,
+        ..options.calculix.clone()
+    };
+    calculix::solve(reference, &opts)
+        .ok()
+        .map(|s| ErrorStats::between(&s.displacements_m, ref_u, size))
+}
+
+/// The reference displacement at each node of a coarser nested mesh.
+struct ReferenceLookup<'a> {
+    ref_u: &'a [V3],
+    /// Reference node at each reference lattice point.
+    index: HashMap<[u32; 3], usize>,
+    finest: usize,
+}
+
+impl<'a> ReferenceLookup<'a> {
+    /// Indexes the reference model's nodes by lattice point.
+    fn new(reference: &CaseModel, ref_u: &'a [V3], finest: usize) -> Self {
+        let index = reference
+            .node_lattice
+            .iter()
+            .enumerate()
+            .map(|(i, l)| (*l, i))
+            .collect();
+        ReferenceLookup {
+            ref_u,
+            index,
+            finest,
+        }
+    }
+
+    /// The reference displacement at every node of `model`.
+    fn nodes_of(&self, model: &CaseModel) -> Vec<V3> {
+        let ratio = (self.finest / model.resolution) as u32;
+        model
+            .node_lattice
+            .iter()
+            .map(|l| self.ref_u[self.index[&l.map(|c| c * ratio)]])
+            .collect()
+    }
+}
+
+/// The row of one resolution: both codes against the reference `at_ref`, against each
+/// other, and the observed orders from the previous row.
+fn resolution_row(
+    case: CompositeCase,
+    s: &Solved,
+    at_ref: &[V3],
+    size: f64,
+    prev: Option<&ResolutionRow>,
+) -> ResolutionRow {
+    let mesh = &s.model.scene.mesh;
+    let mut row = ResolutionRow {
+        resolution: s.model.resolution,
+        label: case.label(s.model.resolution),
+        elements: mesh.element_count(),
+        nodes: mesh.node_count(),
+        mass_spring_error: None,
+        calculix_error: None,
+        mass_spring_vs_calculix_same_mesh: None,
+        mass_spring_order: None,
+        calculix_order: None,
+        mass_spring_max_strain: None,
+        calculix_max_strain: None,
+        mass_spring_max_displacement_m: None,
+        mass_spring_wall_time_s: None,
+        calculix_wall_time_s: None,
+        solve: None,
+        mass_spring_method: None,
+        mass_spring_failure: None,
+        calculix_failure: None,
+    };
+    match &s.ours {
+        Ok(MassSpringSolution {
+            displacements_m: u,
+            wall_time_s: t,
+            report,
+            method,
+        }) => {
+            row.mass_spring_error = Some(ErrorStats::between(u, at_ref, size));
+            row.mass_spring_max_strain = Some(max_green_strain(mesh, u));
+            row.mass_spring_max_displacement_m =
+                Some(u.iter().map(|v| v.norm()).fold(0.0, f64::max));
+            row.mass_spring_wall_time_s = Some(*t);
+            row.solve = Some(report.clone());
+            row.mass_spring_method = Some(method.clone());
+        }
+        Err(e) => row.mass_spring_failure = Some(e.clone()),
+    }
+    match &s.ccx {
+        Ok((u, t)) => {
+            row.calculix_error = Some(ErrorStats::between(u, at_ref, size));
+            row.calculix_max_strain = Some(max_green_strain(mesh, u));
+            row.calculix_wall_time_s = Some(*t);
+            if let Ok(ours) = &s.ours {
+                row.mass_spring_vs_calculix_same_mesh =
+                    Some(ErrorStats::between(&ours.displacements_m, u, size));
+            }
+        }
+        Err(e) => row.calculix_failure = Some(e.clone()),
+    }
+    if let Some(prev) = prev {
+        let h = (row.resolution as f64 / prev.resolution as f64).ln();
+        let order = |a: Option<ErrorStats>, b: Option<ErrorStats>| match (a, b) {
+            (Some(a), Some(b)) if a.mean_m > 0.0 && b.mean_m > 0.0 => {
+                Some((a.mean_m / b.mean_m).ln() / h)
+            }
+            _ => None,
+        };
+        row.mass_spring_order = order(prev.mass_spring_error, row.mass_spring_error);
+        row.calculix_order = order(prev.calculix_error, row.calculix_error);
+    }
+    row
+}
+
+/// Least-squares orders of the mass–spring and the CalculiX mean errors over the rows
+/// (the reference excluded from CalculiX's, where its error is zero by construction).
+fn fitted_orders(rows: &[ResolutionRow], finest: usize) -> (Option<f64>, Option<f64>) {
     let fit = |pick: &dyn Fn(&ResolutionRow) -> Option<f64>| {
         let pts: Vec<(f64, f64)> = rows
             .iter()
@@ -507,19 +580,7 @@ pub fn run_case(
             .then_some(r.calculix_error.map(|e| e.mean_m))
             .flatten()
     });
-    Ok(CaseReport {
-        case,
-        description: describe(case, options),
-        object_size_m: size,
-        reference_resolution: finest,
-        reference_max_displacement_m: ref_u.iter().map(|v| v.norm()).fold(0.0, f64::max),
-        reference_max_strain: max_green_strain(ref_mesh, &ref_u),
-        reference_c3d8_vs_c3d8i,
-        mass_spring_fitted_order,
-        calculix_fitted_order,
-        rows,
-        thesis: thesis_anchors(case),
-    })
+    (mass_spring_fitted_order, calculix_fitted_order)
 }
 
 struct MassSpringSolution {

@@ -228,9 +228,56 @@ pub fn compare_model_with_calculix(
     let rest_volume_ml = scene.mesh.enclosed_volume_m3(rest) * 1e6;
     let compliance = elastic_compliance_ml_per_pa(rest_volume_ml, &material);
 
+    let groups = &model.node_group;
+    let (ours, pressure_pa, ours_u) = solve_ours(&scene, groups, compliance, settings)?;
+    let (calculix, fields) = solve_calculix(&scene, groups, pressure_pa, &ours_u, settings)?;
+    let calculix_cross_check = match fields.as_slice() {
+        [a, b, ..] => Some(displacement_difference(b, a, rest, groups)?),
+        _ => None,
+    };
+
+    let small_strain = match settings.small_strain_fraction {
+        Some(f) => Some(small_strain_check(
+            &scene,
+            model,
+            pressure_pa * f,
+            settings,
+        )?),
+        None => None,
+    };
+
+    let [fixed_nodes, plane_nodes, line_nodes] = constraint_counts(&scene);
+    Ok(LungCalculixReport {
+        case: case.to_string(),
+        settings: settings.clone(),
+        material,
+        elements: scene.mesh.element_count(),
+        nodes: scene.node_count(),
+        fixed_nodes,
+        plane_nodes,
+        line_nodes,
+        pressure_pa,
+        rest_volume_ml,
+        ours,
+        calculix,
+        calculix_cross_check,
+        small_strain,
+        wall_time_s: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Our end-inhale frame: the volume driver finds the pressure that inhales the target
+/// volume, then a fresh solve from rest at that pressure does what CalculiX does. Returns
+/// our run, the pressure and the displacement field.
+fn solve_ours(
+    scene: &Scene,
+    groups: &[u8],
+    compliance: f64,
+    settings: &LungCalculixSettings,
+) -> Result<(OurRun, f64, Vec<V3>)> {
     let t0 = Instant::now();
     let mut driver = BreathingDriver::new(
-        &scene,
+        scene,
         REFERENCE_PRESSURE_PA,
         compliance,
         settings.solver.clone(),
@@ -249,7 +296,7 @@ pub fn compare_model_with_calculix(
     // A fresh driver from rest at the found pressure: the same problem CalculiX solves.
     let t0 = Instant::now();
     let mut fresh = BreathingDriver::new(
-        &scene,
+        scene,
         REFERENCE_PRESSURE_PA,
         compliance,
         settings.solver.clone(),
@@ -258,17 +305,28 @@ pub fn compare_model_with_calculix(
     let pressure_solve_wall_time_s = t0.elapsed().as_secs_f64();
     let ours_u = scene.displacements(&ours_state.positions_m);
 
-    let groups = &model.node_group;
     let ours = OurRun {
-        field: summarise(&scene, groups, &ours_u),
+        field: summarise(scene, groups, &ours_u),
         volume_solve_wall_time_s,
         volume_solves: by_volume.solves,
         pressure_solve_wall_time_s,
         newton_iterations: ours_state.newton_iterations,
         residual: ours_state.residual,
     };
+    Ok((ours, pressure_pa, ours_u))
+}
 
-    let ccx_scene = scaled_scene(&scene, pressure_pa / REFERENCE_PRESSURE_PA);
+/// CalculiX on the scene at `pressure_pa`, once per element type of the settings, each
+/// compared with our field `ours_u`; returns the runs and their displacement fields.
+fn solve_calculix(
+    scene: &Scene,
+    groups: &[u8],
+    pressure_pa: f64,
+    ours_u: &[V3],
+    settings: &LungCalculixSettings,
+) -> Result<(Vec<CalculixRun>, Vec<Vec<V3>>)> {
+    let rest = &scene.mesh.rest_positions_m;
+    let ccx_scene = scaled_scene(scene, pressure_pa / REFERENCE_PRESSURE_PA);
     let mut calculix = Vec::with_capacity(settings.element_types.len());
     let mut fields = Vec::with_capacity(settings.element_types.len());
     for &element_type in &settings.element_types {
@@ -281,29 +339,19 @@ pub fn compare_model_with_calculix(
             .map_err(|e| Error::External(format!("CalculiX {element_type:?}: {e}")))?;
         calculix.push(CalculixRun {
             element_type,
-            field: summarise(&scene, groups, &run.displacements_m),
+            field: summarise(scene, groups, &run.displacements_m),
             wall_time_s: run.wall_time_s,
             peak_memory_mb: run.peak_memory_mb,
             increments: run.increments,
-            ours_vs_calculix: displacement_difference(&ours_u, &run.displacements_m, rest, groups)?,
+            ours_vs_calculix: displacement_difference(ours_u, &run.displacements_m, rest, groups)?,
         });
         fields.push(run.displacements_m);
     }
-    let calculix_cross_check = match fields.as_slice() {
-        [a, b, ..] => Some(displacement_difference(b, a, rest, groups)?),
-        _ => None,
-    };
+    Ok((calculix, fields))
+}
 
-    let small_strain = match settings.small_strain_fraction {
-        Some(f) => Some(small_strain_check(
-            &scene,
-            model,
-            pressure_pa * f,
-            settings,
-        )?),
-        None => None,
-    };
-
+/// Nodes held fixed, sliding on a plane and moving along a line.
+fn constraint_counts(scene: &Scene) -> [usize; 3] {
     let mut counts = [0usize; 3];
     for (_, c) in &scene.constraints.entries {
         match c {
@@ -313,23 +361,7 @@ pub fn compare_model_with_calculix(
             NodeConstraint::Surface { .. } => {}
         }
     }
-    Ok(LungCalculixReport {
-        case: case.to_string(),
-        settings: settings.clone(),
-        material,
-        elements: scene.mesh.element_count(),
-        nodes: scene.node_count(),
-        fixed_nodes: counts[0],
-        plane_nodes: counts[1],
-        line_nodes: counts[2],
-        pressure_pa,
-        rest_volume_ml,
-        ours,
-        calculix,
-        calculix_cross_check,
-        small_strain,
-        wall_time_s: start.elapsed().as_secs_f64(),
-    })
+    counts
 }
 
 fn small_strain_check(

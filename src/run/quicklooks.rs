@@ -1,0 +1,61 @@
+//! The run's quick looks: `breathing.png` and `end-inhale-displacement.png`.
+
+use std::path::Path;
+
+use super::frames::EndInhaleCapture;
+use super::{FrameRecord, RunInputs};
+use crate::motion::FrameSummary;
+use crate::Result;
+
+/// `breathing.png` (trace, targets, simulated volumes) and `end-inhale-displacement.png`
+/// (coronal slice through the first tracked point, else the lungs' centroid).
+pub(super) fn write_quicklooks(
+    dir: &Path,
+    inputs: &RunInputs,
+    ct: &crate::volume::Volume<f32>,
+    lungs: &crate::volume::Volume<u8>,
+    records: &[FrameRecord],
+    end_inhale: &EndInhaleCapture,
+) -> Result<()> {
+    use crate::outputs::plots::{
+        lung_centroid_lps_mm, render_breathing_curve, render_displacement_look, BreathingCurve,
+        DisplacementLookInput,
+    };
+    use crate::outputs::quicklook::write_png;
+    let column = |f: fn(&FrameSummary) -> f64| -> Vec<f64> {
+        records.iter().map(|r| f(&r.summary)).collect()
+    };
+    let frame_time_s: Vec<f64> = column(|f| f.time_s);
+    let frame_target_ml: Vec<f64> = column(|f| f.target_volume_ml);
+    let frame_simulated_ml: Vec<f64> = column(|f| f.simulated_volume_ml);
+    let plot = render_breathing_curve(&BreathingCurve {
+        trace_time_s: &inputs.trace.time_s,
+        trace_volume_ml: &inputs.trace.volume_change_ml,
+        frame_time_s: &frame_time_s,
+        frame_target_ml: &frame_target_ml,
+        frame_simulated_ml: &frame_simulated_ml,
+        title: "Breathing trace (line), frame targets (rings) and simulated volumes (dots)",
+    })?;
+    write_png(&dir.join("breathing.png"), &plot.image)?;
+    let (coronal_y_mm, through) = match inputs.points.first() {
+        Some(p) => (p.rest_lps_mm[1], p.name.clone()),
+        None => (
+            lung_centroid_lps_mm(lungs).map_or(ct.geometry.origin_lps_mm[1], |c| c[1]),
+            "the lungs' centroid".to_string(),
+        ),
+    };
+    let f = &records[end_inhale.frame].summary;
+    let title = format!(
+        "End-inhale (frame {}, t = {:.2} s, +{:.0} mL): displacement, coronal slice through {}",
+        f.index, f.time_s, f.simulated_volume_ml, through
+    );
+    let look = render_displacement_look(&DisplacementLookInput {
+        ct,
+        lungs,
+        displacement_mm: &end_inhale.field_mm,
+        coronal_y_mm,
+        colour_max_mm: None,
+        title: &title,
+    })?;
+    write_png(&dir.join("end-inhale-displacement.png"), &look.image)
+}
