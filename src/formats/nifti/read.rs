@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::image::{parse_image, read_file, Components};
 use super::samples::decode_samples;
-use super::{refuse_non_finite, voxel_ijk, INTENT_DISPLACEMENT, INTENT_VECTOR};
+use super::{first_position, refuse_non_finite, voxel_ijk, INTENT_DISPLACEMENT, INTENT_VECTOR};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -46,7 +46,7 @@ pub fn read_nifti_labels_bytes(bytes: &[u8], what: &str) -> Result<Volume<u8>> {
             256
         }
     });
-    if let Some(first) = codes.par_iter().position_first(|&c| c > 255) {
+    if let Some(first) = first_position(&codes, |&c| c > 255) {
         let count = codes.par_iter().filter(|&&c| c > 255).count();
         let value = image.sample(first) * slope + inter;
         let [i, j, k] = voxel_ijk(first, &image.geometry);

@@ -11,8 +11,8 @@ use super::extension::{geometry_text, ECODE_COMMENT};
 use super::geometry::rotation_to_quaternion;
 use super::header::{DataType, NIFTI1_HEADER_BYTES};
 use super::{
-    refuse_non_finite, voxel_ijk, CHUNK_VOXELS, CT_DESCRIPTION, INTENT_LABEL, INTENT_VECTOR,
-    LABELS_DESCRIPTION, VECTOR_FIELD_CONVENTION,
+    first_position, refuse_non_finite, voxel_ijk, CHUNK_VOXELS, CT_DESCRIPTION, INTENT_LABEL,
+    INTENT_VECTOR, LABELS_DESCRIPTION, VECTOR_FIELD_CONVENTION,
 };
 use crate::durable::write_atomic;
 use crate::volume::{Volume, VolumeGeometry};
@@ -87,10 +87,7 @@ pub fn write_nifti_vector_field(
 ) -> Result<()> {
     let what = path.display().to_string();
     check_volume(geometry, vectors_lps_mm.len(), &what)?;
-    if let Some(bad) = vectors_lps_mm
-        .par_iter()
-        .position_first(|v| v.iter().any(|c| !c.is_finite()))
-    {
+    if let Some(bad) = first_position(vectors_lps_mm, |v| v.iter().any(|c| !c.is_finite())) {
         let [i, j, k] = voxel_ijk(bad, geometry);
         return Err(Error::InvalidInput(format!(
             "{what}: displacement at voxel ({i}, {j}, {k}) is not finite: {:?}",
