@@ -65,11 +65,10 @@ pub fn cip_expert_lung_masks(
 /// Builds the CIP chest CT's lung model (expert lung labels, airways for the hilum) at
 /// `element_size_mm`; fails naming the directory when the shared data is missing.
 pub fn cip_lung_model(element_size_mm: f64) -> crate::Result<crate::ingest::lung_model::LungModel> {
-    let (lungs, airways) = cip_expert_lung_masks().ok_or_else(|| {
-        crate::Error::InvalidInput(format!(
-            "the CIP chest CT (cip-chest-ct64) was not found; set {} to the shared data directory",
-            SHARED_DATA_ENV
-        ))
+    let (lungs, airways) = cip_expert_lung_masks().ok_or_else(|| crate::Error::MissingData {
+        what: "the CIP chest CT (cip-chest-ct64)".into(),
+        path: None,
+        hint: format!("set {SHARED_DATA_ENV} to the shared data directory"),
     })??;
     crate::ingest::lung_model::build_lung_model(
         &lungs,

@@ -10,7 +10,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use crate::Result;
+use crate::{IoContext, IoOp, Result};
 
 /// Writes `bytes` to `path` through a hidden temporary sibling and a rename: a reader sees the
 /// old file or the new one, never a part (not flushed to disk: see [`write_durable`]).
@@ -45,20 +45,20 @@ pub fn temporary_sibling(path: &Path) -> PathBuf {
 
 fn write_via_temporary(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
     let tmp = temporary_sibling(path);
+    // Errors name the file the caller asked for, not the temporary it goes through.
     let result = (|| {
-        let mut file = std::fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
+        let mut file = std::fs::File::create(&tmp).at(IoOp::Write, path)?;
+        file.write_all(bytes).at(IoOp::Write, path)?;
         if sync {
-            file.sync_all()?;
+            file.sync_all().at(IoOp::Sync, path)?;
         }
         drop(file);
-        std::fs::rename(&tmp, path)
+        std::fs::rename(&tmp, path).at(IoOp::Replace, path)
     })();
-    if let Err(e) = result {
+    if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
-        return Err(e.into());
     }
-    Ok(())
+    result
 }
 
 #[cfg(test)]

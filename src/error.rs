@@ -1,4 +1,8 @@
-//! Errors of the crate: each names the offending input or the failing step.
+//! Errors of the crate: each names the offending input or the failing step, in fields a caller
+//! can act on (the path and operation, the key, the sample, the point) as well as in its message.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 
 use thiserror::Error;
 
@@ -6,6 +10,10 @@ use thiserror::Error;
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// Everything lungmotion can refuse or detect.
+///
+/// Variants that carry an I/O error show its text in their message (`cannot read x.csv: No
+/// such file or directory`) and keep it in a field rather than as [`std::error::Error::source`],
+/// so a report that prints the chain (`{:#}` of anyhow) does not say it twice.
 #[derive(Debug, Error)]
 pub enum Error {
     /// A material parameter is outside its physical range.
@@ -46,9 +54,115 @@ pub enum Error {
     #[error("invalid scan: {0}")]
     InvalidScan(String),
 
-    /// A breathing trace, configuration or other user input is unusable; the message says why.
-    #[error("invalid input: {0}")]
-    InvalidInput(String),
+    /// A setting is unusable: a key of the run or service configuration, a setting of a stage
+    /// (segmentation, lung model, phantom, breathing model) or the output instants.
+    #[error("invalid {settings}{}: {}{reason}", in_file(.file), key_prefix(.key))]
+    Config {
+        /// Which settings: `configuration`, `breathing model`, `phantom settings`,
+        /// `output instants`, …
+        settings: &'static str,
+        /// The configuration file they were read from, if any.
+        file: Option<PathBuf>,
+        /// The key or setting to change (`element_size_mm`, `motion.driver.compliance_ml_per_pa`,
+        /// `period_s`), when one is to blame.
+        key: Option<String>,
+        /// What is wrong, with the value found.
+        reason: String,
+    },
+
+    /// A breathing trace is unusable.
+    #[error("invalid breathing trace{}: {reason}", in_file(.path))]
+    Trace {
+        /// The file it was read from, if any.
+        path: Option<PathBuf>,
+        /// The 1-based sample (data row) at fault, where one is.
+        row: Option<usize>,
+        /// What is wrong, naming the line or sample as the user sees it.
+        reason: String,
+    },
+
+    /// Tracked points are unusable (the points file or the points handed to a stage).
+    #[error("invalid tracked points{}: {}{reason}", in_file(.file), point_prefix(.point))]
+    Points {
+        /// The points file they were read from, if any.
+        file: Option<PathBuf>,
+        /// The 1-based number of the point at fault in the list handed over, where one is.
+        point: Option<usize>,
+        /// What is wrong, naming the line of the file where there is one.
+        reason: String,
+    },
+
+    /// A caller handed a stage data that does not fit: mismatched lengths or grids between
+    /// stages, a slice outside the scan, frames out of order, a parameter out of range.
+    #[error("invalid {what}: {reason}")]
+    Argument {
+        /// What was handed over (`quick-look slice`, `trajectory frame 3`, `volume target`, …).
+        what: String,
+        /// Why it does not fit.
+        reason: String,
+    },
+
+    /// A file we read back (or write) is malformed: not a PNG, a damaged trajectories file, a
+    /// record that cannot be encoded.
+    #[error("{}: {reason}", path.display())]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with its content.
+        reason: String,
+    },
+
+    /// A record of the service's store is missing or corrupt.
+    #[error("store {record}: {reason}")]
+    Store {
+        /// The record, relative to the store's data directory (`jobs/<id>/job.json`).
+        record: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+
+    /// An output location cannot be used (not a directory, or a foreign non-empty one).
+    #[error("output {}: {reason}", path.display())]
+    OutputDir {
+        /// The output directory asked for.
+        path: PathBuf,
+        /// Why it cannot be used.
+        reason: String,
+    },
+
+    /// Data the crate ships or shares (the sample volumes, the CIP chest CT) is not there.
+    #[error("{what} was not found{}; {hint}", looked_in(.path))]
+    MissingData {
+        /// What is missing.
+        what: String,
+        /// Where it was looked for, if in one place.
+        path: Option<PathBuf>,
+        /// How to get it.
+        hint: String,
+    },
+
+    /// A file or directory operation failed.
+    ///
+    /// Named `IoAt` while [`Error::Io`] still holds unattributed I/O errors; it takes the name
+    /// `Io` when that goes.
+    #[error("cannot {op} {}: {cause}", path.display())]
+    IoAt {
+        /// The file or directory.
+        path: PathBuf,
+        /// What was being done to it.
+        op: IoOp,
+        /// What the operating system said.
+        cause: std::io::Error,
+    },
+
+    /// A server cannot listen on its address.
+    #[error("cannot listen on {addr}: {cause}")]
+    Listen {
+        /// The address asked for.
+        addr: SocketAddr,
+        /// What the operating system said.
+        cause: std::io::Error,
+    },
 
     /// Lung segmentation or model building could not produce a usable result.
     #[error("ingest failed: {0}")]
@@ -62,7 +176,199 @@ pub enum Error {
     #[error("cancelled: {0}")]
     Cancelled(String),
 
-    /// File or process I/O failed.
+    /// A breathing trace, configuration or other user input is unusable; the message says why.
+    ///
+    /// Being replaced by the domain variants ([`Error::Config`], [`Error::Trace`],
+    /// [`Error::Points`], [`Error::Argument`], …); do not add uses.
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+
+    /// File or process I/O failed, without saying on what.
+    ///
+    /// Being replaced by [`Error::IoAt`] (attach the path with [`IoContext::at`]); do not add
+    /// uses, including `?` on a bare `std::io::Error`.
     #[error(transparent)]
     Io(#[from] std::io::Error),
+}
+
+/// What was being done to a file or directory when it failed; shown as a verb phrase
+/// (`cannot read …`, `cannot create the directory …`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IoOp {
+    /// Reading a file.
+    Read,
+    /// Writing to a file.
+    Write,
+    /// Creating a file.
+    Create,
+    /// Creating a directory (and its parents).
+    CreateDir,
+    /// Opening a file or directory.
+    Open,
+    /// Renaming a file or directory.
+    Rename,
+    /// Renaming something onto a path, replacing what was there (the commit of an atomic
+    /// write or a published directory).
+    Replace,
+    /// Removing a file or directory.
+    Remove,
+    /// Listing a directory.
+    List,
+    /// Flushing a file or directory to disk.
+    Sync,
+    /// Reading a file's metadata (size, kind).
+    Metadata,
+    /// Starting a program or a thread.
+    Spawn,
+}
+
+impl std::fmt::Display for IoOp {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            IoOp::Read => "read",
+            IoOp::Write => "write",
+            IoOp::Create => "create",
+            IoOp::CreateDir => "create the directory",
+            IoOp::Open => "open",
+            IoOp::Rename => "rename",
+            IoOp::Replace => "replace",
+            IoOp::Remove => "remove",
+            IoOp::List => "list the directory",
+            IoOp::Sync => "sync",
+            IoOp::Metadata => "inspect",
+            IoOp::Spawn => "start",
+        })
+    }
+}
+
+/// Attaches the operation and the path to an I/O result, so a call site stays one line:
+/// `std::fs::read(path).at(IoOp::Read, path)?`.
+pub trait IoContext<T> {
+    /// The value, or the error as [`Error::IoAt`] naming `op` on `path`.
+    fn at(self, op: IoOp, path: impl AsRef<Path>) -> Result<T>;
+}
+
+impl<T> IoContext<T> for std::io::Result<T> {
+    fn at(self, op: IoOp, path: impl AsRef<Path>) -> Result<T> {
+        self.map_err(|cause| Error::io(op, path, cause))
+    }
+}
+
+impl Error {
+    /// An I/O failure of `op` on `path`.
+    pub fn io(op: IoOp, path: impl AsRef<Path>, cause: std::io::Error) -> Self {
+        Error::IoAt {
+            path: path.as_ref().to_path_buf(),
+            op,
+            cause,
+        }
+    }
+
+    /// The file or directory this error names in a field, if any (errors that still carry a
+    /// path only in their message text return `None`).
+    pub fn path(&self) -> Option<&Path> {
+        match self {
+            Error::IoAt { path, .. }
+            | Error::Format { path, .. }
+            | Error::OutputDir { path, .. } => Some(path),
+            Error::Config { file: p, .. }
+            | Error::Trace { path: p, .. }
+            | Error::Points { file: p, .. }
+            | Error::MissingData { path: p, .. } => p.as_deref(),
+            _ => None,
+        }
+    }
+
+    /// The same error with the path it names rewritten by `shown_as`: how a service shows an
+    /// error to a client who must not learn the server's directories (a path relative to its
+    /// data directory, or what the file is to the client).
+    pub fn with_path_shown_as(mut self, shown_as: impl FnOnce(&Path) -> PathBuf) -> Self {
+        let slot = match &mut self {
+            Error::IoAt { path, .. }
+            | Error::Format { path, .. }
+            | Error::OutputDir { path, .. } => Some(path),
+            Error::Config { file: p, .. }
+            | Error::Trace { path: p, .. }
+            | Error::Points { file: p, .. }
+            | Error::MissingData { path: p, .. } => p.as_mut(),
+            _ => None,
+        };
+        if let Some(path) = slot {
+            *path = shown_as(path);
+        }
+        self
+    }
+}
+
+/// ` <path>` when there is one, for messages that name an optional file.
+fn in_file(path: &Option<PathBuf>) -> String {
+    path.as_ref()
+        .map(|p| format!(" {}", p.display()))
+        .unwrap_or_default()
+}
+
+/// ` at <path>` when there is one, for where missing data was looked for.
+fn looked_in(path: &Option<PathBuf>) -> String {
+    path.as_ref()
+        .map(|p| format!(" at {}", p.display()))
+        .unwrap_or_default()
+}
+
+/// `<key>: ` when a key is to blame.
+fn key_prefix(key: &Option<String>) -> String {
+    key.as_ref().map(|k| format!("{k}: ")).unwrap_or_default()
+}
+
+/// `point <n> ` when one point is to blame (the reason goes on: `point 3 is not finite`).
+fn point_prefix(point: &Option<usize>) -> String {
+    point.map(|n| format!("point {n} ")).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn messages_name_the_operation_the_path_and_the_reason() {
+        let e = std::fs::read("/no/such/dir/x.csv")
+            .at(IoOp::Read, "/no/such/dir/x.csv")
+            .unwrap_err();
+        let text = e.to_string();
+        assert!(
+            text.starts_with("cannot read /no/such/dir/x.csv: "),
+            "{text}"
+        );
+        assert!(std::error::Error::source(&e).is_none());
+        let e = Error::Config {
+            settings: "configuration",
+            file: Some("run.toml".into()),
+            key: Some("element_size_mm".into()),
+            reason: "1 mm is outside 2–16 mm".into(),
+        };
+        assert_eq!(
+            e.to_string(),
+            "invalid configuration run.toml: element_size_mm: 1 mm is outside 2–16 mm"
+        );
+        let e = Error::MissingData {
+            what: "the phantom description".into(),
+            path: Some("s/phantom.json".into()),
+            hint: "regenerate it".into(),
+        };
+        assert_eq!(
+            e.to_string(),
+            "the phantom description was not found at s/phantom.json; regenerate it"
+        );
+    }
+
+    #[test]
+    fn a_path_field_can_be_shown_as_something_else() {
+        let e = Error::io(
+            IoOp::Write,
+            "/srv/data/jobs/1/job.json",
+            std::io::Error::other("disk full"),
+        )
+        .with_path_shown_as(|p| p.strip_prefix("/srv/data").unwrap().to_path_buf());
+        assert_eq!(e.path(), Some(Path::new("jobs/1/job.json")));
+        assert_eq!(e.to_string(), "cannot write jobs/1/job.json: disk full");
+    }
 }

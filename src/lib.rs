@@ -66,4 +66,4 @@ pub mod simulation;
 pub mod validation;
 pub mod volume;
 
-pub use error::{Error, Result};
+pub use error::{Error, IoContext, IoOp, Result};

@@ -27,7 +27,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::volume::{Volume, VolumeGeometry, MAX_SPACING_MM, MIN_SPACING_MM};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// CT number of outside air and airway lumen.
 pub const AIR_HU: f32 = -1000.0;
@@ -294,62 +294,88 @@ pub fn generate_thorax_phantom(settings: &PhantomSettings) -> Result<Phantom> {
 
 /// The grid of the phantom, after checking the settings.
 fn phantom_geometry(settings: &PhantomSettings) -> Result<VolumeGeometry> {
-    let bad = |reason: String| Err(Error::InvalidInput(format!("phantom settings: {reason}")));
+    let bad = |key: &str, reason: String| {
+        Err(Error::Config {
+            settings: "phantom settings",
+            file: None,
+            key: Some(key.to_string()),
+            reason,
+        })
+    };
     let mut dims = [0usize; 3];
     for (axis, n) in dims.iter_mut().enumerate() {
         let spacing = settings.spacing_mm[axis];
         let fov = settings.field_of_view_mm[axis];
         if !spacing.is_finite() || !(MIN_SPACING_MM..=MAX_SPACING_MM).contains(&spacing) {
-            return bad(format!(
-                "spacing along axis {axis} is {spacing} mm; it must lie in \
+            return bad(
+                "spacing_mm",
+                format!(
+                    "spacing along axis {axis} is {spacing} mm; it must lie in \
                  {MIN_SPACING_MM}–{MAX_SPACING_MM} mm"
-            ));
+                ),
+            );
         }
         if !fov.is_finite() || fov <= 0.0 || fov > MAX_FIELD_OF_VIEW_MM {
-            return bad(format!(
-                "field of view along axis {axis} is {fov} mm; it must lie in \
+            return bad(
+                "field_of_view_mm",
+                format!(
+                    "field of view along axis {axis} is {fov} mm; it must lie in \
                  (0, {MAX_FIELD_OF_VIEW_MM}] mm"
-            ));
+                ),
+            );
         }
         *n = ((fov / spacing).round() as usize).max(1);
     }
     let voxels = dims.iter().product::<usize>();
     if voxels > MAX_PHANTOM_VOXELS {
-        return bad(format!(
-            "grid {dims:?} has {voxels} voxels, more than {MAX_PHANTOM_VOXELS}"
-        ));
+        return bad(
+            "field_of_view_mm",
+            format!("grid {dims:?} has {voxels} voxels, more than {MAX_PHANTOM_VOXELS}"),
+        );
     }
     if settings
         .field_of_view_centre_lps_mm
         .iter()
         .any(|v| !v.is_finite() || v.abs() > 1e5)
     {
-        return bad(format!(
-            "field of view centre {:?} mm is not a finite position",
-            settings.field_of_view_centre_lps_mm
-        ));
+        return bad(
+            "field_of_view_centre_lps_mm",
+            format!(
+                "field of view centre {:?} mm is not a finite position",
+                settings.field_of_view_centre_lps_mm
+            ),
+        );
     }
     if !settings.noise_hu.is_finite() || !(0.0..=1000.0).contains(&settings.noise_hu) {
-        return bad(format!(
-            "noise of {} HU; it must lie in 0–1000 HU",
-            settings.noise_hu
-        ));
+        return bad(
+            "noise_hu",
+            format!(
+                "noise of {} HU; it must lie in 0–1000 HU",
+                settings.noise_hu
+            ),
+        );
     }
     if let Some(t) = settings.tumour {
         if !t.radius_mm.is_finite() || t.radius_mm <= 0.0 || t.radius_mm > 150.0 {
-            return bad(format!(
-                "tumour radius of {} mm; it must lie in (0, 150] mm",
-                t.radius_mm
-            ));
+            return bad(
+                "tumour.radius_mm",
+                format!(
+                    "tumour radius of {} mm; it must lie in (0, 150] mm",
+                    t.radius_mm
+                ),
+            );
         }
         if t.centre_lps_mm
             .iter()
             .any(|v| !v.is_finite() || v.abs() > 1e5)
         {
-            return bad(format!(
-                "tumour centre {:?} mm is not a finite position",
-                t.centre_lps_mm
-            ));
+            return bad(
+                "tumour.centre_lps_mm",
+                format!(
+                    "tumour centre {:?} mm is not a finite position",
+                    t.centre_lps_mm
+                ),
+            );
         }
     }
     let origin = std::array::from_fn(|a| {
@@ -888,9 +914,9 @@ pub fn write_phantom_files(settings: &PhantomSettings, out_dir: &Path) -> Result
     // A fresh series replaces the old one whole, so slices of two versions never mix.
     let staging = out_dir.join("phantom-dicom.tmp");
     if staging.exists() {
-        std::fs::remove_dir_all(&staging)?;
+        std::fs::remove_dir_all(&staging).at(IoOp::Remove, &staging)?;
     }
-    std::fs::create_dir_all(&staging)?;
+    std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
     let meta = dicom::CtSeriesMetadata {
         uid_seed: settings.seed,
         series_description: "lungmotion thorax phantom".to_string(),
@@ -898,11 +924,13 @@ pub fn write_phantom_files(settings: &PhantomSettings, out_dir: &Path) -> Result
     };
     dicom::write_ct_series(&phantom.ct, &staging, &meta)?;
     if dicom_dir.exists() {
-        std::fs::remove_dir_all(&dicom_dir)?;
+        std::fs::remove_dir_all(&dicom_dir).at(IoOp::Remove, &dicom_dir)?;
     }
-    std::fs::rename(&staging, &dicom_dir)?;
-    let json = serde_json::to_string_pretty(&phantom.description)
-        .map_err(|e| Error::InvalidInput(format!("cannot serialise phantom.json: {e}")))?;
+    std::fs::rename(&staging, &dicom_dir).at(IoOp::Replace, &dicom_dir)?;
+    let json = serde_json::to_string_pretty(&phantom.description).map_err(|e| Error::Format {
+        path: json_path.clone(),
+        reason: format!("cannot serialise: {e}"),
+    })?;
     crate::durable::write_atomic(&json_path, json.as_bytes())?;
     Ok(vec![ct_path, dicom_dir, truth_path, json_path])
 }

@@ -37,21 +37,26 @@ impl Default for LujanBreathing {
 impl LujanBreathing {
     /// Checks the parameters are physical.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(Error::InvalidInput(format!("breathing model: {m}")));
         if !(self.period_s.is_finite() && self.period_s >= 0.5 && self.period_s <= 60.0) {
-            return bad(format!("period {} s outside 0.5–60 s", self.period_s));
+            return Err(model_setting(
+                "period_s",
+                format!("{} s outside 0.5–60 s", self.period_s),
+            ));
         }
         if !(self.tidal_volume_ml.is_finite() && self.tidal_volume_ml.abs() <= 4000.0) {
-            return bad(format!(
-                "tidal volume {} mL outside ±4000 mL",
-                self.tidal_volume_ml
+            return Err(model_setting(
+                "tidal_volume_ml",
+                format!("{} mL outside ±4000 mL", self.tidal_volume_ml),
             ));
         }
         if !self.baseline_ml.is_finite() {
-            return bad("baseline is not finite".into());
+            return Err(model_setting("baseline_ml", "not finite".into()));
         }
         if !(1..=10).contains(&self.exponent) {
-            return bad(format!("exponent {} outside 1–10", self.exponent));
+            return Err(model_setting(
+                "exponent",
+                format!("{} outside 1–10", self.exponent),
+            ));
         }
         Ok(())
     }
@@ -103,20 +108,16 @@ impl IrregularBreathing {
     /// Samples `duration_s` at `rate_hz`; each breath draws its own period and depth.
     pub fn trace(&self, duration_s: f64, rate_hz: f64) -> Result<BreathingTrace> {
         self.mean.validate()?;
-        for (name, v) in [
-            ("period variation", self.period_variation),
-            ("amplitude variation", self.amplitude_variation),
+        for (key, v) in [
+            ("period_variation", self.period_variation),
+            ("amplitude_variation", self.amplitude_variation),
         ] {
             if !(v.is_finite() && (0.0..=0.5).contains(&v)) {
-                return Err(Error::InvalidInput(format!(
-                    "breathing model: {name} {v} outside 0–0.5"
-                )));
+                return Err(model_setting(key, format!("{v} outside 0–0.5")));
             }
         }
         if !self.drift_ml_per_min.is_finite() {
-            return Err(Error::InvalidInput(
-                "breathing model: drift is not finite".into(),
-            ));
+            return Err(model_setting("drift_ml_per_min", "not finite".into()));
         }
         let times = sample_times(duration_s, rate_hz)?;
         let mut rng = SplitMix64(self.seed);
@@ -148,16 +149,28 @@ impl IrregularBreathing {
     }
 }
 
+/// A refused setting of a breathing model.
+fn model_setting(key: &str, reason: String) -> Error {
+    Error::Config {
+        settings: "breathing model",
+        file: None,
+        key: Some(key.to_string()),
+        reason,
+    }
+}
+
 fn sample_times(duration_s: f64, rate_hz: f64) -> Result<Vec<f64>> {
     if !(duration_s.is_finite() && duration_s > 0.0 && duration_s <= 86_400.0) {
-        return Err(Error::InvalidInput(format!(
-            "breathing model: duration {duration_s} s outside (0, 1 day]"
-        )));
+        return Err(model_setting(
+            "duration_s",
+            format!("{duration_s} s outside (0, 1 day]"),
+        ));
     }
     if !(rate_hz.is_finite() && rate_hz > 0.0 && rate_hz <= 1000.0) {
-        return Err(Error::InvalidInput(format!(
-            "breathing model: sample rate {rate_hz} Hz outside (0, 1000]"
-        )));
+        return Err(model_setting(
+            "rate_hz",
+            format!("{rate_hz} Hz outside (0, 1000]"),
+        ));
     }
     let n = (duration_s * rate_hz).round() as usize;
     Ok((0..=n).map(|i| i as f64 / rate_hz).collect())

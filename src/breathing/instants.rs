@@ -44,44 +44,56 @@ impl Default for OutputInstants {
 impl OutputInstants {
     /// The output times in seconds, increasing, within the trace.
     pub fn times(&self, trace: &BreathingTrace) -> Result<Vec<f64>> {
-        let bad = |m: String| Err(Error::InvalidInput(format!("output instants: {m}")));
+        let bad = |key: &str, reason: String| {
+            Err(Error::Config {
+                settings: "output instants",
+                file: None,
+                key: Some(key.to_string()),
+                reason,
+            })
+        };
         let times: Vec<f64> = match *self {
             OutputInstants::EverySample => trace.time_s.clone(),
             OutputInstants::EveryKth { k } => {
                 if k == 0 {
-                    return bad("the stride k must be at least 1".into());
+                    return bad("k", "the stride must be at least 1".into());
                 }
                 trace.time_s.iter().step_by(k).copied().collect()
             }
             OutputInstants::FrameRate { hz } => {
                 if !(hz.is_finite() && hz > 0.0) {
-                    return bad(format!("frame rate {hz} Hz must be positive"));
+                    return bad("hz", format!("frame rate {hz} Hz must be positive"));
                 }
                 let n = (trace.duration_s() * hz).floor();
                 if n >= MAX_FRAMES as f64 {
-                    return bad(format!(
-                        "{n} frames at {hz} Hz; at most {MAX_FRAMES} per run"
-                    ));
+                    return bad(
+                        "hz",
+                        format!("{n} frames at {hz} Hz; at most {MAX_FRAMES} per run"),
+                    );
                 }
                 let t0 = trace.time_s[0];
                 (0..=n as usize).map(|i| t0 + i as f64 / hz).collect()
             }
             OutputInstants::Phases { count } => {
                 if count == 0 {
-                    return bad("the number of phases must be at least 1".into());
+                    return bad("count", "the number of phases must be at least 1".into());
                 }
-                let (p1, p2) = first_cycle(trace)
-                    .map_err(|m| Error::InvalidInput(format!("output instants: {m}")))?;
+                let (p1, p2) = first_cycle(trace).map_err(|reason| Error::Config {
+                    settings: "output instants",
+                    file: None,
+                    key: None,
+                    reason,
+                })?;
                 (0..count)
                     .map(|k| p1 + (p2 - p1) * k as f64 / count as f64)
                     .collect()
             }
         };
         if times.len() > MAX_FRAMES {
-            return bad(format!(
-                "{} frames; at most {MAX_FRAMES} per run",
-                times.len()
-            ));
+            return bad(
+                "kind",
+                format!("{} frames; at most {MAX_FRAMES} per run", times.len()),
+            );
         }
         Ok(times)
     }

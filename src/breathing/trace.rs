@@ -15,7 +15,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest volume increase over the scanned state accepted, mL (total lung capacity is ≈ 6 L).
 pub const MAX_VOLUME_GAIN_ML: f64 = 5000.0;
@@ -98,18 +98,17 @@ impl BreathingTrace {
 
     /// Reads a CSV or JSON trace file; errors name the file, the row and the problem.
     pub fn read(path: &Path, options: &TraceOptions) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| {
-            Error::InvalidInput(format!(
-                "breathing trace {}: cannot read: {e}",
-                path.display()
-            ))
-        })?;
-        Self::parse(&text, options)
-            .map_err(|e| Error::InvalidInput(format!("breathing trace {}: {e}", path.display())))
+        let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
+        Self::parse_located(&text, options).map_err(|fault| fault.into_error(Some(path)))
     }
 
     /// Parses trace text; the error message says which row and what is wrong.
     pub fn parse(text: &str, options: &TraceOptions) -> std::result::Result<Self, String> {
+        Self::parse_located(text, options).map_err(|fault| fault.reason)
+    }
+
+    /// [`BreathingTrace::parse`] keeping the sample at fault apart from the message.
+    fn parse_located(text: &str, options: &TraceOptions) -> std::result::Result<Self, Fault> {
         let text = text.trim_start_matches('\u{feff}');
         let format = match options.format {
             TraceFormat::Detect if text.trim_start().starts_with('{') => TraceFormat::Json,
@@ -126,9 +125,9 @@ impl BreathingTrace {
             VolumeReference::ChangeFromScan => 0.0,
             VolumeReference::Absolute { scanned_volume_ml } => {
                 if !(scanned_volume_ml.is_finite() && scanned_volume_ml > 0.0) {
-                    return Err(format!(
+                    return Err(Fault::whole(format!(
                         "the scanned lung volume must be a positive number of mL, got {scanned_volume_ml}"
-                    ));
+                    )));
                 }
                 scanned_volume_ml
             }
@@ -137,74 +136,80 @@ impl BreathingTrace {
             time_s: times.iter().map(|t| t * seconds).collect(),
             volume_change_ml: volumes.iter().map(|v| v * ml - offset).collect(),
         };
-        trace.check().map_err(|e| {
+        trace.check().map_err(|mut fault| {
             if options.reference == VolumeReference::ChangeFromScan
                 && trace.volume_change_ml.iter().all(|&v| v > 1000.0)
             {
-                format!(
-                    "{e} (every volume is above 1000 mL: if these are absolute lung volumes, \
-                     give the scanned lung volume so they can be turned into changes)"
-                )
-            } else {
-                e
+                fault.reason.push_str(
+                    " (every volume is above 1000 mL: if these are absolute lung volumes, \
+                     give the scanned lung volume so they can be turned into changes)",
+                );
             }
+            fault
         })?;
         Ok(trace)
     }
 
     /// Checks finiteness, strictly increasing times, plausible volumes and flows.
     pub fn validate(&self) -> Result<()> {
-        self.check()
-            .map_err(|e| Error::InvalidInput(format!("breathing trace: {e}")))
+        self.check().map_err(|fault| fault.into_error(None))
     }
 
-    fn check(&self) -> std::result::Result<(), String> {
+    fn check(&self) -> std::result::Result<(), Fault> {
         let n = self.time_s.len();
         if n != self.volume_change_ml.len() {
-            return Err(format!(
+            return Err(Fault::whole(format!(
                 "{n} times but {} volumes",
                 self.volume_change_ml.len()
-            ));
+            )));
         }
         if n < 2 {
-            return Err(format!("{n} samples; a breathing curve needs at least 2"));
+            return Err(Fault::whole(format!(
+                "{n} samples; a breathing curve needs at least 2"
+            )));
         }
         if n > MAX_SAMPLES {
-            return Err(format!("{n} samples; at most {MAX_SAMPLES} are accepted"));
+            return Err(Fault::whole(format!(
+                "{n} samples; at most {MAX_SAMPLES} are accepted"
+            )));
         }
         for (i, (&t, &v)) in self.time_s.iter().zip(&self.volume_change_ml).enumerate() {
+            let at = |reason: String| Fault {
+                row: Some(i + 1),
+                reason,
+            };
             if !t.is_finite() {
-                return Err(format!("sample {}: time is {t}", i + 1));
+                return Err(at(format!("sample {}: time is {t}", i + 1)));
             }
             if !v.is_finite() {
-                return Err(format!("sample {} (t = {t} s): volume is {v}", i + 1));
+                return Err(at(format!("sample {} (t = {t} s): volume is {v}", i + 1)));
             }
             if !(-MAX_VOLUME_LOSS_ML..=MAX_VOLUME_GAIN_ML).contains(&v) {
-                return Err(format!(
+                return Err(at(format!(
                     "sample {} (t = {t} s): volume change {v:.1} mL is implausible: lungs hold \
                      between {MAX_VOLUME_LOSS_ML} mL less and {MAX_VOLUME_GAIN_ML} mL more than \
                      at the scan",
                     i + 1
-                ));
+                )));
             }
             if i > 0 {
                 let (t0, v0) = (self.time_s[i - 1], self.volume_change_ml[i - 1]);
                 if t <= t0 {
-                    return Err(format!(
+                    return Err(at(format!(
                         "sample {}: time {t} s is not after the previous sample's {t0} s \
                          (times must strictly increase: sort the rows, remove duplicates)",
                         i + 1
-                    ));
+                    )));
                 }
                 let flow = (v - v0) / (t - t0);
                 if flow.abs() > MAX_FLOW_ML_PER_S {
-                    return Err(format!(
+                    return Err(at(format!(
                         "samples {} to {} (t = {t0} … {t} s): flow {:.0} mL/s is implausible \
                          (more than {MAX_FLOW_ML_PER_S} mL/s; wrong units?)",
                         i,
                         i + 1,
                         flow
-                    ));
+                    )));
                 }
             }
         }
@@ -260,13 +265,15 @@ fn volume_unit(name: &str) -> Option<f64> {
     }
 }
 
-fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), String> {
+fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), Fault> {
     let mut lines = text
         .lines()
         .enumerate()
         .map(|(i, l)| (i + 1, l.trim()))
         .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let (hline, header) = lines.next().ok_or("the file is empty")?;
+    let (hline, header) = lines
+        .next()
+        .ok_or_else(|| Fault::whole("the file is empty".into()))?;
     let names: Vec<String> = header
         .split(',')
         .map(|c| c.trim().trim_matches('"').to_ascii_lowercase())
@@ -274,10 +281,10 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
     let time_col = names.iter().position(|n| time_unit(n).is_some());
     let vol_col = names.iter().position(|n| volume_unit(n).is_some());
     let (Some(tc), Some(vc)) = (time_col, vol_col) else {
-        return Err(format!(
+        return Err(Fault::whole(format!(
             "line {hline}: header '{header}' must name a time column (time_s or time_ms) and a \
              volume column (volume_ml or volume_l), e.g. 'time_s,volume_ml'"
-        ));
+        )));
     };
     let units = (
         time_unit(&names[tc]).unwrap(),
@@ -285,34 +292,39 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
     );
     let (mut times, mut volumes) = (Vec::new(), Vec::new());
     for (line, row) in lines {
+        let at = |reason: String| Fault {
+            row: Some(times.len() + 1),
+            reason,
+        };
         let cells: Vec<&str> = row.split(',').map(str::trim).collect();
         if cells.len() != names.len() {
-            return Err(format!(
+            return Err(at(format!(
                 "line {line}: {} columns where the header has {}",
                 cells.len(),
                 names.len()
-            ));
+            )));
         }
         let number = |c: usize| {
             cells[c].parse::<f64>().map_err(|_| {
-                format!(
+                at(format!(
                     "line {line}: '{}' in column {} is not a number",
                     cells[c], names[c]
-                )
+                ))
             })
         };
-        times.push(number(tc)?);
-        volumes.push(number(vc)?);
+        let (t, v) = (number(tc)?, number(vc)?);
+        times.push(t);
+        volumes.push(v);
         if times.len() > MAX_SAMPLES {
-            return Err(format!("more than {MAX_SAMPLES} samples"));
+            return Err(Fault::whole(format!("more than {MAX_SAMPLES} samples")));
         }
     }
     Ok((times, volumes, units))
 }
 
-fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), String> {
+fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), Fault> {
     let value: serde_json::Value =
-        serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
+        serde_json::from_str(text).map_err(|e| Fault::whole(format!("not valid JSON: {e}")))?;
     let units = (
         if value.get("time_ms").is_some() {
             1e-3
@@ -330,14 +342,42 @@ fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnit
     for key in ["time_s", "time_ms", "volume_ml", "volume_l"] {
         if let Some(serde_json::Value::Array(a)) = value.get(key) {
             if let Some(i) = a.iter().position(|x| x.is_null()) {
-                return Err(format!("{key}[{i}] is null (NaN or a missing value?)"));
+                return Err(Fault {
+                    row: Some(i + 1),
+                    reason: format!("{key}[{i}] is null (NaN or a missing value?)"),
+                });
             }
         }
     }
     let trace: JsonTrace = serde_json::from_value(value).map_err(|e| {
-        format!("expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}: {e}")
+        Fault::whole(format!(
+            "expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}: {e}"
+        ))
     })?;
     Ok((trace.time_s, trace.volume_ml, units))
+}
+
+/// What is wrong with a trace, and at which sample where one is to blame.
+#[derive(Debug)]
+struct Fault {
+    /// 1-based sample (data row).
+    row: Option<usize>,
+    reason: String,
+}
+
+impl Fault {
+    /// A problem of the trace as a whole (or of its header).
+    fn whole(reason: String) -> Self {
+        Fault { row: None, reason }
+    }
+
+    fn into_error(self, path: Option<&Path>) -> Error {
+        Error::Trace {
+            path: path.map(Path::to_path_buf),
+            row: self.row,
+            reason: self.reason,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -418,5 +458,23 @@ mod tests {
         }
         let e = BreathingTrace::new(vec![0.0, 1.0], vec![0.0]).unwrap_err();
         assert!(e.to_string().contains("2 times but 1 volumes"), "{e}");
+    }
+
+    #[test]
+    fn a_trace_file_error_names_the_file_and_the_sample_in_fields() {
+        let path = std::env::temp_dir().join(format!("lm-trace-row-{}.csv", std::process::id()));
+        std::fs::write(&path, "time_s,volume_ml\n0,0\n1,5\n1,6\n").unwrap();
+        let e = BreathingTrace::read(&path, &TraceOptions::default()).unwrap_err();
+        assert!(
+            matches!(&e, Error::Trace { path: Some(p), row: Some(3), .. } if *p == path),
+            "{e:?}"
+        );
+        assert!(
+            e.to_string().contains("sample 3: time 1 s is not after"),
+            "{e}"
+        );
+        std::fs::remove_file(&path).unwrap();
+        let e = BreathingTrace::read(&path, &TraceOptions::default()).unwrap_err();
+        assert!(matches!(e, Error::IoAt { op: IoOp::Read, .. }), "{e:?}");
     }
 }

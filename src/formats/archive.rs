@@ -15,7 +15,7 @@
 use std::io::{Read, Seek};
 use std::path::Path;
 
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Bounds applied while reading an archive, each a guard against a hostile or broken file.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -65,8 +65,7 @@ pub fn looks_like_zip(path: &Path) -> bool {
 
 /// Reads every regular file of the zip archive at `path` into memory, within `limits`.
 pub fn read_zip_file(path: &Path, limits: &ArchiveLimits) -> Result<Vec<ArchiveEntry>> {
-    let file = std::fs::File::open(path)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot open: {e}", path.display())))?;
+    let file = std::fs::File::open(path).at(IoOp::Open, path)?;
     read_zip_entries(
         std::io::BufReader::new(file),
         &path.display().to_string(),

@@ -11,7 +11,7 @@ use std::path::Path;
 
 use crate::durable::write_atomic;
 use crate::volume::VolumeGeometry;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Writes float32 voxels with `channels` components each (1 for a scalar image, 3 for a field).
 pub fn write_mha(
@@ -22,12 +22,14 @@ pub fn write_mha(
     description: &str,
 ) -> Result<()> {
     if values.len() != geometry.voxel_count() * channels {
-        return Err(Error::InvalidInput(format!(
-            "{}: {} values for {} voxels × {channels} channels",
-            path.display(),
-            values.len(),
-            geometry.voxel_count()
-        )));
+        return Err(Error::Argument {
+            what: "MetaImage values".into(),
+            reason: format!(
+                "{} values for {} voxels × {channels} channels",
+                values.len(),
+                geometry.voxel_count()
+            ),
+        });
     }
     let d = geometry.direction_lps;
     let join = |v: &[f64]| {
@@ -69,7 +71,7 @@ pub fn write_mha(
 /// Reads a float32 MetaImage written as [`write_mha`] writes it: geometry, channels, values.
 pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
     let bad = |m: String| Error::InvalidScan(format!("{}: {m}", path.display()));
-    let bytes = std::fs::read(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+    let bytes = std::fs::read(path).at(IoOp::Read, path)?;
     let mut pos = 0;
     let mut fields = std::collections::HashMap::new();
     loop {

@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use crate::formats::{dicom, nifti, nrrd};
 use crate::volume::Volume;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// The container a scan arrived in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -42,15 +42,14 @@ pub struct LoadedScan {
 
 /// Tells the format of `path` from its content (magic numbers, header sizes).
 pub fn detect_scan_format(path: &Path) -> Result<ScanFormat> {
-    let meta = std::fs::metadata(path)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot open: {e}", path.display())))?;
+    let meta = std::fs::metadata(path).at(IoOp::Open, path)?;
     if meta.is_dir() {
         return Ok(ScanFormat::DicomDirectory);
     }
     let mut head = Vec::with_capacity(544);
     std::fs::File::open(path)
         .and_then(|f| f.take(544).read_to_end(&mut head))
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot read: {e}", path.display())))?;
+        .at(IoOp::Read, path)?;
     classify_header(&head).ok_or_else(|| {
         Error::InvalidScan(format!(
             "{}: not a DICOM directory, zip, DICOM, NIfTI or NRRD file (first bytes {:02x?})",

@@ -184,10 +184,11 @@ impl PointSampler {
         };
         for (i, p) in points_lps_mm.iter().enumerate() {
             if p.iter().any(|v| !v.is_finite()) {
-                return Err(Error::InvalidInput(format!(
-                    "point {} is not finite: {p:?}",
-                    i + 1
-                )));
+                return Err(Error::Points {
+                    file: None,
+                    point: Some(i + 1),
+                    reason: format!("is not finite: {p:?}"),
+                });
             }
             let p_m = V3::from(*p) * 1e-3;
             let inside = labels
@@ -204,13 +205,14 @@ impl PointSampler {
                     })
             });
             let Some((e, w, inside)) = hit else {
-                return Err(Error::InvalidInput(format!(
-                    "point {} at LPS ({:.1}, {:.1}, {:.1}) mm is outside the lungs' mesh",
-                    i + 1,
-                    p[0],
-                    p[1],
-                    p[2]
-                )));
+                return Err(Error::Points {
+                    file: None,
+                    point: Some(i + 1),
+                    reason: format!(
+                        "at LPS ({:.1}, {:.1}, {:.1}) mm is outside the lungs' mesh",
+                        p[0], p[1], p[2]
+                    ),
+                });
             };
             sampler.element.push(e);
             sampler.weights.push(w);

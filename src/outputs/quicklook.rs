@@ -27,7 +27,7 @@ use rayon::prelude::*;
 
 use crate::durable::write_atomic;
 use crate::volume::{Volume, VolumeGeometry};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest image side in pixels (refused beyond: a sign of a wrong spacing or pixel size).
 pub const MAX_IMAGE_SIDE: usize = 8192;
@@ -163,16 +163,12 @@ pub fn write_overview(
     stem: &str,
 ) -> Result<Vec<PathBuf>> {
     if stem.is_empty() || stem.contains(['/', '\\']) {
-        return Err(Error::InvalidInput(format!(
-            "quick-look file stem {stem:?} must be a plain non-empty name"
-        )));
+        return Err(argument(
+            "quick-look file stem",
+            format!("{stem:?} must be a plain non-empty name"),
+        ));
     }
-    std::fs::create_dir_all(out_dir).map_err(|e| {
-        Error::InvalidInput(format!(
-            "{}: cannot create directory: {e}",
-            out_dir.display()
-        ))
-    })?;
+    std::fs::create_dir_all(out_dir).at(IoOp::CreateDir, out_dir)?;
     let spacing = smallest_spacing_mm(&ct.geometry);
     let extent_px = ct
         .geometry
@@ -208,7 +204,7 @@ pub fn write_overview(
 
 /// Writes an 8-bit RGB PNG atomically.
 pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
-    let bad = |m: String| Error::InvalidInput(format!("{}: {m}", path.display()));
+    let bad = |m: String| argument("PNG image", m);
     if image.width == 0 || image.height == 0 {
         return Err(bad(format!("empty image {}×{}", image.width, image.height)));
     }
@@ -231,23 +227,24 @@ pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
         let mut encoder = png::Encoder::new(&mut bytes, image.width as u32, image.height as u32);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder
-            .write_header()
-            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
-        writer
-            .write_image_data(&image.pixels)
-            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
-        writer
-            .finish()
-            .map_err(|e| bad(format!("PNG encoding failed: {e}")))?;
+        let failed = |e: png::EncodingError| Error::Format {
+            path: path.to_path_buf(),
+            reason: format!("PNG encoding failed: {e}"),
+        };
+        let mut writer = encoder.write_header().map_err(failed)?;
+        writer.write_image_data(&image.pixels).map_err(failed)?;
+        writer.finish().map_err(failed)?;
     }
     write_atomic(path, &bytes)
 }
 
 /// Reads a PNG as 8-bit RGB (grey and alpha channels are converted; 16-bit is reduced).
 pub fn read_png(path: &Path) -> Result<RgbImage> {
-    let bad = |m: String| Error::InvalidInput(format!("{}: {m}", path.display()));
-    let bytes = std::fs::read(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+    let bad = |reason: String| Error::Format {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let bytes = std::fs::read(path).at(IoOp::Read, path)?;
     let mut decoder = png::Decoder::new(Cursor::new(bytes));
     decoder.set_transformations(png::Transformations::normalize_to_color8());
     let mut reader = decoder
@@ -316,10 +313,13 @@ impl SliceGrid {
         pixel_mm: f64,
     ) -> Result<SliceGrid> {
         if !(pixel_mm.is_finite() && pixel_mm > 0.0) {
-            return Err(Error::InvalidInput(format!(
-                "{} slice pixel {pixel_mm} mm must be positive and finite",
-                plane.name()
-            )));
+            return Err(argument(
+                "quick-look slice",
+                format!(
+                    "{} slice pixel {pixel_mm} mm must be positive and finite",
+                    plane.name()
+                ),
+            ));
         }
         let [col_dir, row_dir, normal] = plane.frame();
         // LPS bounding box of the scan: its 8 outer voxel corners projected on the frame axes.
@@ -341,20 +341,27 @@ impl SliceGrid {
             }
         }
         if !position_lps_mm.is_finite() || position_lps_mm < lo[2] || position_lps_mm > hi[2] {
-            return Err(Error::InvalidInput(format!(
-                "{} slice at {position_lps_mm} mm is outside the scan ({:.1} to {:.1} mm)",
-                plane.name(),
-                lo[2],
-                hi[2]
-            )));
+            return Err(argument(
+                "quick-look slice",
+                format!(
+                    "{} slice at {position_lps_mm} mm is outside the scan ({:.1} to {:.1} mm)",
+                    plane.name(),
+                    lo[2],
+                    hi[2]
+                ),
+            ));
         }
         let side = |a: usize| ((hi[a] - lo[a]) / pixel_mm - 1e-6).ceil().max(1.0) as usize;
         let (width, height) = (side(0), side(1));
         if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-            return Err(Error::InvalidInput(format!(
-                "{} slice would be {width}×{height} pixels (more than {MAX_IMAGE_SIDE} per side)",
-                plane.name()
-            )));
+            return Err(argument(
+                "quick-look slice",
+                format!(
+                    "{} slice would be {width}×{height} pixels (more than {MAX_IMAGE_SIDE} per \
+                     side)",
+                    plane.name()
+                ),
+            ));
         }
         // The image is centred on the scan's box.
         let margin = |a: usize, n: usize| 0.5 * ((hi[a] - lo[a]) - n as f64 * pixel_mm);
@@ -429,14 +436,25 @@ impl PixelToVoxel {
     }
 }
 
+/// A refused quick-look request.
+fn argument(what: &str, reason: String) -> Error {
+    Error::Argument {
+        what: what.to_string(),
+        reason,
+    }
+}
+
 fn check_volume<T>(v: &Volume<T>, what: &str) -> Result<()> {
     v.geometry.validate(what)?;
     if v.data.len() != v.geometry.voxel_count() {
-        return Err(Error::InvalidInput(format!(
-            "{what}: {} voxels for a grid of {:?}",
-            v.data.len(),
-            v.geometry.dims
-        )));
+        return Err(argument(
+            what,
+            format!(
+                "{} voxels for a grid of {:?}",
+                v.data.len(),
+                v.geometry.dims
+            ),
+        ));
     }
     Ok(())
 }
@@ -453,16 +471,17 @@ fn render_slice_with_pixel(
     for (n, o) in overlays.iter().enumerate() {
         check_volume(o.labels, &format!("quick-look overlay {n}"))?;
         if !(0.0..=1.0).contains(&o.opacity) {
-            return Err(Error::InvalidInput(format!(
-                "overlay {n} opacity {} is outside 0–1",
-                o.opacity
-            )));
+            return Err(argument(
+                "quick-look overlay",
+                format!("overlay {n} opacity {} is outside 0–1", o.opacity),
+            ));
         }
     }
     if !(window.width_hu.is_finite() && window.width_hu > 0.0 && window.level_hu.is_finite()) {
-        return Err(Error::InvalidInput(format!(
-            "HU window {window:?} needs a positive finite width and a finite level"
-        )));
+        return Err(argument(
+            "quick-look window",
+            format!("HU window {window:?} needs a positive finite width and a finite level"),
+        ));
     }
     let grid = SliceGrid::new(&ct.geometry, plane, position_lps_mm, pixel_mm)?;
     let (width, height) = (grid.width_px, grid.height_px);

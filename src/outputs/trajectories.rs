@@ -25,7 +25,7 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Header line of the points file.
 pub const POINTS_HEADER: &str = "name,x_mm,y_mm,z_mm";
@@ -65,7 +65,12 @@ pub struct TrajectorySample {
 
 /// Reads a points file; errors name the file, the line and the problem.
 pub fn read_points(path: &Path) -> Result<Vec<TrackedPoint>> {
-    read_csv(path, "points", parse_points)
+    let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
+    parse_points(&text).map_err(|reason| Error::Points {
+        file: Some(path.to_path_buf()),
+        point: None,
+        reason,
+    })
 }
 
 /// Parses the text of a points file; errors say `line N: problem`.
@@ -107,42 +112,58 @@ pub struct TrajectoryWriter<W: Write> {
     last: Option<(usize, f64)>,
     /// Reused for every row so streaming does not allocate per frame.
     line: String,
+    /// Where the rows go, as write failures name it.
+    destination: PathBuf,
 }
 
 impl<W: Write> TrajectoryWriter<W> {
-    /// Writes the header; `points` fixes the rows of every frame (names must be unique).
-    pub fn new(mut out: W, points: &[TrackedPoint]) -> Result<Self> {
+    /// Writes the header; `points` fixes the rows of every frame (names must be unique). Write
+    /// failures name the destination `trajectories`; [`TrajectoryWriter::for_file`] names it.
+    pub fn new(out: W, points: &[TrackedPoint]) -> Result<Self> {
+        Self::for_file(out, points, Path::new("trajectories"))
+    }
+
+    /// [`TrajectoryWriter::new`] for rows going to the file at `path`, which write failures name.
+    pub fn for_file(mut out: W, points: &[TrackedPoint], path: &Path) -> Result<Self> {
+        let refused = |point: Option<usize>, reason: String| Error::Points {
+            file: None,
+            point,
+            reason,
+        };
         if points.is_empty() {
-            return Err(Error::InvalidInput("no points to track".into()));
+            return Err(refused(None, "no points to track".into()));
         }
         let mut names = std::collections::HashSet::with_capacity(points.len());
         for (i, p) in points.iter().enumerate() {
             if let Some(problem) = name_problem(&p.name) {
-                return Err(Error::InvalidInput(format!(
-                    "point {} name {:?}: {problem}",
-                    i + 1,
-                    p.name
-                )));
+                return Err(refused(
+                    Some(i + 1),
+                    format!("name {:?}: {problem}", p.name),
+                ));
             }
             if !names.insert(p.name.as_str()) {
-                return Err(Error::InvalidInput(format!(
-                    "point name {:?} is used twice",
-                    p.name
-                )));
+                return Err(refused(
+                    Some(i + 1),
+                    format!("name {:?} is used twice", p.name),
+                ));
             }
             if p.rest_lps_mm.iter().any(|v| !v.is_finite()) {
-                return Err(Error::InvalidInput(format!(
-                    "point {:?} has a non-finite position {:?}",
-                    p.name, p.rest_lps_mm
-                )));
+                return Err(refused(
+                    Some(i + 1),
+                    format!(
+                        "named {:?} has a non-finite position {:?}",
+                        p.name, p.rest_lps_mm
+                    ),
+                ));
             }
         }
-        writeln!(out, "{TRAJECTORY_HEADER}")?;
+        writeln!(out, "{TRAJECTORY_HEADER}").at(IoOp::Write, path)?;
         Ok(TrajectoryWriter {
             out,
             points: points.to_vec(),
             last: None,
             line: String::with_capacity(160),
+            destination: path.to_path_buf(),
         })
     }
 
@@ -157,21 +178,23 @@ impl<W: Write> TrajectoryWriter<W> {
         inside_lung: &[bool],
     ) -> Result<()> {
         let n = self.points.len();
+        let refused = |reason: String| Error::Argument {
+            what: format!("trajectory frame {frame}"),
+            reason,
+        };
         if displacements_mm.len() != n || inside_lung.len() != n {
-            return Err(Error::InvalidInput(format!(
-                "frame {frame}: {} displacements and {} inside flags for {n} points",
+            return Err(refused(format!(
+                "{} displacements and {} inside flags for {n} points",
                 displacements_mm.len(),
                 inside_lung.len()
             )));
         }
         if !time_s.is_finite() {
-            return Err(Error::InvalidInput(format!(
-                "frame {frame}: time {time_s} s is not finite"
-            )));
+            return Err(refused(format!("time {time_s} s is not finite")));
         }
         if let Some((last_frame, last_time_s)) = self.last {
             if frame <= last_frame || time_s < last_time_s {
-                return Err(Error::InvalidInput(format!(
+                return Err(refused(format!(
                     "frame {frame} at {time_s} s comes after frame {last_frame} at \
                      {last_time_s} s: frames must increase in number and time"
                 )));
@@ -183,8 +206,8 @@ impl<W: Write> TrajectoryWriter<W> {
             .zip(displacements_mm)
             .find(|(_, d)| d.iter().any(|v| !v.is_finite()))
         {
-            return Err(Error::InvalidInput(format!(
-                "frame {frame}: point {:?} has a non-finite displacement {d:?}",
+            return Err(refused(format!(
+                "point {:?} has a non-finite displacement {d:?}",
                 p.name
             )));
         }
@@ -203,7 +226,9 @@ impl<W: Write> TrajectoryWriter<W> {
                 d[1],
                 d[2],
             );
-            self.out.write_all(self.line.as_bytes())?;
+            self.out
+                .write_all(self.line.as_bytes())
+                .at(IoOp::Write, &self.destination)?;
         }
         self.last = Some((frame, time_s));
         Ok(())
@@ -211,7 +236,7 @@ impl<W: Write> TrajectoryWriter<W> {
 
     /// Flushes and returns the underlying writer.
     pub fn finish(mut self) -> Result<W> {
-        self.out.flush()?;
+        self.out.flush().at(IoOp::Write, &self.destination)?;
         Ok(self.out)
     }
 }
@@ -231,11 +256,9 @@ impl TrajectoryFile {
         let mut name = path.as_os_str().to_owned();
         name.push(".partial");
         let partial = PathBuf::from(name);
-        let file = File::create(&partial).map_err(|e| {
-            Error::InvalidInput(format!("{}: cannot create: {e}", partial.display()))
-        })?;
+        let file = File::create(&partial).at(IoOp::Create, &partial)?;
         Ok(TrajectoryFile {
-            writer: TrajectoryWriter::new(BufWriter::new(file), points)?,
+            writer: TrajectoryWriter::for_file(BufWriter::new(file), points, &partial)?,
             partial,
             path: path.to_path_buf(),
         })
@@ -251,31 +274,28 @@ impl TrajectoryFile {
     ) -> Result<()> {
         self.writer
             .write_frame(frame, time_s, displacements_mm, inside_lung)
-            .map_err(|e| with_path(e, &self.partial))
     }
 
     /// Flushes, syncs and gives the file its final name, which it returns.
     pub fn finish(self) -> Result<PathBuf> {
         let file = self
             .writer
-            .finish()
-            .and_then(|w| w.into_inner().map_err(|e| e.into_error().into()))
-            .map_err(|e| with_path(e, &self.partial))?;
-        file.sync_all()?;
-        std::fs::rename(&self.partial, &self.path).map_err(|e| {
-            Error::InvalidInput(format!(
-                "{}: cannot rename to {}: {e}",
-                self.partial.display(),
-                self.path.display()
-            ))
-        })?;
+            .finish()?
+            .into_inner()
+            .map_err(|e| Error::io(IoOp::Write, &self.partial, e.into_error()))?;
+        file.sync_all().at(IoOp::Sync, &self.partial)?;
+        std::fs::rename(&self.partial, &self.path).at(IoOp::Replace, &self.path)?;
         Ok(self.path)
     }
 }
 
 /// Reads a trajectories file; errors name the file, the line and the problem.
 pub fn read_trajectories(path: &Path) -> Result<Vec<TrajectorySample>> {
-    read_csv(path, "trajectories", parse_trajectories)
+    let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
+    parse_trajectories(&text).map_err(|reason| Error::Format {
+        path: path.to_path_buf(),
+        reason,
+    })
 }
 
 /// Parses the text of a trajectories file; errors say `line N: problem`.
@@ -308,18 +328,6 @@ pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySampl
         Ok(())
     })?;
     Ok(samples)
-}
-
-/// Reads `path` (a `kind` file) and parses it, prefixing parse errors with the path.
-fn read_csv<T>(
-    path: &Path,
-    kind: &str,
-    parse: impl FnOnce(&str) -> std::result::Result<T, String>,
-) -> Result<T> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Error::InvalidInput(format!("{}: cannot read {kind} file: {e}", path.display()))
-    })?;
-    parse(&text).map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))
 }
 
 /// Checks the header of a `kind` CSV text, then hands `row` the 1-based line number and
@@ -401,14 +409,6 @@ fn parse_finite(n: usize, column: &str, text: &str) -> std::result::Result<f64, 
         Ok(v) if v.is_finite() => Ok(v),
         Ok(_) => Err(format!("line {n}: {column} {text:?} is not finite")),
         Err(_) => Err(format!("line {n}: {column} {text:?} is not a number")),
-    }
-}
-
-/// Prefixes an I/O or input error with the file being written.
-fn with_path(e: Error, path: &Path) -> Error {
-    match e {
-        Error::Io(io) => Error::InvalidInput(format!("{}: write failed: {io}", path.display())),
-        other => other,
     }
 }
 

@@ -35,10 +35,12 @@ use crate::breathing::{OutputInstants, TraceOptions};
 use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest configuration file read, bytes (a real one is well under 2 kB).
 const MAX_CONFIG_BYTES: u64 = 1 << 20;
+/// How a run configuration names itself in errors.
+const SETTINGS: &str = "configuration";
 
 /// Everything a breathing run can be told besides its inputs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -170,22 +172,49 @@ impl Default for OutputConfig {
 impl RunConfig {
     /// Reads a TOML configuration; the error names the file and the offending key.
     pub fn from_toml_file(path: &Path) -> Result<Self> {
-        let bad = |m: String| Error::InvalidInput(format!("configuration {}: {m}", path.display()));
-        let meta = std::fs::metadata(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        let meta = std::fs::metadata(path).at(IoOp::Read, path)?;
         if meta.len() > MAX_CONFIG_BYTES {
-            return Err(bad(format!(
-                "{} bytes is not a configuration file (limit {MAX_CONFIG_BYTES})",
-                meta.len()
-            )));
+            return Err(Error::Config {
+                settings: SETTINGS,
+                file: Some(path.to_path_buf()),
+                key: None,
+                reason: format!(
+                    "{} bytes is not a configuration file (limit {MAX_CONFIG_BYTES})",
+                    meta.len()
+                ),
+            });
         }
-        let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
-        Self::from_toml(&text).map_err(|e| bad(e.to_string()))
+        let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
+        Self::from_toml(&text).map_err(|e| match e {
+            Error::Config {
+                settings,
+                key,
+                reason,
+                ..
+            } => Error::Config {
+                settings,
+                file: Some(path.to_path_buf()),
+                key,
+                reason,
+            },
+            // A refused material or dynamic setting, named by its own message.
+            other => Error::Config {
+                settings: SETTINGS,
+                file: Some(path.to_path_buf()),
+                key: None,
+                reason: other.to_string(),
+            },
+        })
     }
 
     /// Parses TOML text and validates it.
     pub fn from_toml(text: &str) -> Result<Self> {
-        let config: RunConfig = toml::from_str(text)
-            .map_err(|e| Error::InvalidInput(e.message().trim().to_string()))?;
+        let config: RunConfig = toml::from_str(text).map_err(|e| Error::Config {
+            settings: SETTINGS,
+            file: None,
+            key: None,
+            reason: e.message().trim().to_string(),
+        })?;
         config.validate()?;
         Ok(config)
     }
@@ -205,33 +234,42 @@ impl RunConfig {
 
     /// Refuses values no run can use, naming the key.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(Error::InvalidInput(m));
+        let bad = |key: &str, reason: String| {
+            Err(Error::Config {
+                settings: SETTINGS,
+                file: None,
+                key: Some(key.to_string()),
+                reason,
+            })
+        };
         let h = self.element_size_mm;
         if !(h.is_finite() && (2.0..=16.0).contains(&h)) {
-            return bad(format!("element_size_mm = {h}: must be within 2–16 mm"));
+            return bad("element_size_mm", format!("{h} mm is not within 2–16 mm"));
         }
         self.material.validate()?;
         let m = &self.motion;
         if !(m.interpolation_tolerance_mm.is_finite() && m.interpolation_tolerance_mm > 0.0) {
-            return bad(format!(
-                "motion.interpolation_tolerance_mm = {}: must be positive",
-                m.interpolation_tolerance_mm
-            ));
+            return bad(
+                "motion.interpolation_tolerance_mm",
+                format!("{} mm must be positive", m.interpolation_tolerance_mm),
+            );
         }
         let f = m.volume_tolerance_fraction;
         if !(f.is_finite() && f > 0.0 && f <= 0.1) {
-            return bad(format!(
-                "motion.volume_tolerance_fraction = {f}: must be in (0, 0.1]"
-            ));
+            return bad(
+                "motion.volume_tolerance_fraction",
+                format!("{f} must be in (0, 0.1]"),
+            );
         }
         if let DriverKind::Compliance {
             compliance_ml_per_pa: Some(c),
         } = m.driver
         {
             if !(c.is_finite() && c > 0.0) {
-                return bad(format!(
-                    "motion.driver.compliance_ml_per_pa = {c}: must be positive"
-                ));
+                return bad(
+                    "motion.driver.compliance_ml_per_pa",
+                    format!("{c} mL/Pa must be positive"),
+                );
             }
         }
         if let Some(d) = &m.dynamic {
@@ -241,10 +279,10 @@ impl RunConfig {
             self.trace.reference
         {
             if !(scanned_volume_ml.is_finite() && scanned_volume_ml > 0.0) {
-                return bad(format!(
-                    "trace.reference.absolute.scanned_volume_ml = {scanned_volume_ml}: must be \
-                     positive"
-                ));
+                return bad(
+                    "trace.reference.absolute.scanned_volume_ml",
+                    format!("{scanned_volume_ml} mL must be positive"),
+                );
             }
         }
         Ok(())

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use super::{RunInputs, TrackedPoint};
 use crate::breathing::LujanBreathing;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Sample rate of the generated demo curve, Hz (a spirometer records 25–100 Hz).
 pub const DEMO_SAMPLE_RATE_HZ: f64 = 25.0;
@@ -30,26 +30,27 @@ pub fn sample_volumes_dir() -> PathBuf {
 /// the CT at end-exhale) and tracked points at the tumour, the right apex and the right base.
 pub fn demo_inputs(sample_dir: &Path) -> Result<RunInputs> {
     let description = sample_dir.join("phantom.json");
-    let text = std::fs::read_to_string(&description).map_err(|e| {
-        Error::InvalidInput(format!(
-            "demo: cannot read {} ({e}); run from the repository or regenerate it with \
-             `lungmotion phantom`",
-            description.display()
-        ))
-    })?;
-    let json: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| Error::InvalidInput(format!("demo: {}: {e}", description.display())))?;
+    if !description.is_file() {
+        return Err(Error::MissingData {
+            what: "the demo's phantom description".into(),
+            path: Some(description),
+            hint: "run from the repository or regenerate it with `lungmotion phantom`".into(),
+        });
+    }
+    let text = std::fs::read_to_string(&description).at(IoOp::Read, &description)?;
+    let malformed = |reason: String| Error::Format {
+        path: description.clone(),
+        reason,
+    };
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| malformed(e.to_string()))?;
     let landmark = |name: &str, dz_mm: f64| -> Result<Option<TrackedPoint>> {
         let v = &json["landmarks"][format!("{name}_lps_mm")];
         if v.is_null() {
             return Ok(None);
         }
-        let p: [f64; 3] = serde_json::from_value(v.clone()).map_err(|e| {
-            Error::InvalidInput(format!(
-                "demo: landmark {name} in {}: {e}",
-                description.display()
-            ))
-        })?;
+        let p: [f64; 3] = serde_json::from_value(v.clone())
+            .map_err(|e| malformed(format!("landmark {name}: {e}")))?;
         Ok(Some(TrackedPoint {
             name: name.trim_end_matches("_centre").to_string(),
             rest_lps_mm: [p[0], p[1], p[2] + dz_mm],

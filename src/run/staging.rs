@@ -7,7 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// The file that marks a directory as a lungmotion run.
 pub const SUMMARY_FILE: &str = "summary.json";
@@ -22,43 +22,37 @@ pub struct OutputStaging {
 impl OutputStaging {
     /// Prepares to write `target`; refuses a non-empty directory that is not a previous run.
     pub fn new(target: &Path) -> Result<Self> {
-        let io = |what: &str, p: &Path, e: std::io::Error| {
-            Error::InvalidInput(format!("output directory {}: {what}: {e}", p.display()))
+        let refused = |reason: String| Error::OutputDir {
+            path: target.to_path_buf(),
+            reason,
         };
         if target.exists() {
             if !target.is_dir() {
-                return Err(Error::InvalidInput(format!(
-                    "output {} exists and is not a directory",
-                    target.display()
-                )));
+                return Err(refused("exists and is not a directory".into()));
             }
-            let mut entries =
-                std::fs::read_dir(target).map_err(|e| io("cannot list", target, e))?;
+            let mut entries = std::fs::read_dir(target).at(IoOp::List, target)?;
             if entries.next().is_some() && !target.join(SUMMARY_FILE).is_file() {
-                return Err(Error::InvalidInput(format!(
-                    "output directory {} is not empty and holds no {SUMMARY_FILE} from an \
-                     earlier run; choose a new or empty directory (nothing was written)",
-                    target.display()
+                return Err(refused(format!(
+                    "the directory is not empty and holds no {SUMMARY_FILE} from an earlier \
+                     run; choose a new or empty directory (nothing was written)"
                 )));
             }
         }
         let name = target
             .file_name()
-            .ok_or_else(|| {
-                Error::InvalidInput(format!("output {} has no directory name", target.display()))
-            })?
+            .ok_or_else(|| refused("has no directory name".into()))?
             .to_string_lossy()
             .into_owned();
         let parent = match target.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         };
-        std::fs::create_dir_all(&parent).map_err(|e| io("cannot create", &parent, e))?;
+        std::fs::create_dir_all(&parent).at(IoOp::CreateDir, &parent)?;
         let staging = parent.join(format!(".{name}.partial-{}", std::process::id()));
         if staging.exists() {
-            std::fs::remove_dir_all(&staging).map_err(|e| io("cannot clear", &staging, e))?;
+            std::fs::remove_dir_all(&staging).at(IoOp::Remove, &staging)?;
         }
-        std::fs::create_dir_all(&staging).map_err(|e| io("cannot create", &staging, e))?;
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         Ok(OutputStaging {
             target: target.to_path_buf(),
             staging,
@@ -78,13 +72,6 @@ impl OutputStaging {
 
     /// Replaces the output directory with the staged files.
     pub fn publish(mut self) -> Result<()> {
-        let io = |what: &str, e: std::io::Error| {
-            Error::InvalidInput(format!(
-                "publishing {} as {}: {what}: {e}",
-                self.staging.display(),
-                self.target.display()
-            ))
-        };
         let old = self.staging.with_file_name(format!(
             ".{}.old-{}",
             self.target
@@ -95,14 +82,15 @@ impl OutputStaging {
         ));
         let had_old = self.target.exists();
         if had_old {
-            std::fs::rename(&self.target, &old).map_err(|e| io("moving the old run aside", e))?;
+            // Moving the old run aside.
+            std::fs::rename(&self.target, &old).at(IoOp::Rename, &self.target)?;
         }
         if let Err(e) = std::fs::rename(&self.staging, &self.target) {
             if had_old {
                 // Put the previous run back: losing it would be worse than failing.
                 let _ = std::fs::rename(&old, &self.target);
             }
-            return Err(io("renaming", e));
+            return Err(Error::io(IoOp::Replace, &self.target, e));
         }
         self.published = true;
         if had_old {

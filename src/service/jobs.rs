@@ -18,7 +18,7 @@ use super::store::{now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, St
 use crate::breathing::BreathingTrace;
 use crate::run::{run_breathing, RunInputs, RunObserver, RunStage};
 use crate::simulation::CancelFlag;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Why a submission was refused.
 #[derive(Debug, Clone, PartialEq)]
@@ -180,10 +180,11 @@ impl JobManager {
         let threads = (0..workers)
             .map(|i| {
                 let shared = shared.clone();
+                let name = format!("lungmotion-worker-{i}");
                 std::thread::Builder::new()
-                    .name(format!("lungmotion-worker-{i}"))
+                    .name(name.clone())
                     .spawn(move || worker_loop(&shared))
-                    .map_err(Error::Io)
+                    .at(IoOp::Spawn, name)
             })
             .collect::<Result<Vec<_>>>()?;
         Ok((JobManager { shared }, Workers { threads }))
@@ -457,10 +458,8 @@ fn run_job(shared: &Shared, live: &LiveJob) {
         }
         Err(e) => {
             record.state = JobState::Failed;
-            // Clients see paths relative to the store, not the server's file system.
-            let root = format!("{}/", shared.store.root().display());
-            record.error = Some(e.to_string().replace(&root, ""));
             tracing::warn!(job = %id, "run failed: {e}");
+            record.error = Some(client_message(e, shared.store.root()));
         }
     }
     if record.state.is_terminal() {
@@ -479,10 +478,21 @@ fn run_job(shared: &Shared, live: &LiveJob) {
     );
 }
 
+/// A failed run's error as clients read it: paths relative to the store, not the server's file
+/// system (from the path field; errors that carry a path only in their text are cut there).
+fn client_message(e: Error, root: &std::path::Path) -> String {
+    let e = e.with_path_shown_as(|p| match p.strip_prefix(root) {
+        Ok(relative) => relative.to_path_buf(),
+        Err(_) => p.file_name().map(Into::into).unwrap_or_default(),
+    });
+    e.to_string().replace(&format!("{}/", root.display()), "")
+}
+
 fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Result<()> {
     let request = shared.store.job_request(id)?;
-    let scan = shared.store.scan(scan_id)?.ok_or_else(|| {
-        Error::InvalidInput(format!("scan {scan_id} was deleted before the job ran"))
+    let scan = shared.store.scan(scan_id)?.ok_or_else(|| Error::Store {
+        record: format!("scans/{scan_id}"),
+        reason: "the scan was deleted before the job ran".into(),
     })?;
     shared.store.clear_partial_outputs(id)?;
     let JobRequest {

@@ -4,6 +4,7 @@
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
+use std::path::{Path, PathBuf};
 
 use crate::Error;
 
@@ -85,21 +86,37 @@ impl ApiError {
         self
     }
 
-    /// Maps a library error met while handling the client's input to its answer.
+    /// Maps a library error met while handling the client's input to its answer; a path the
+    /// error names in a field is shown by its file name only (see
+    /// [`ApiError::from_input_error_showing`]).
     pub fn from_input_error(error: Error) -> Self {
+        Self::from_input_error_showing(error, |path| {
+            path.file_name().map(PathBuf::from).unwrap_or_default()
+        })
+    }
+
+    /// [`ApiError::from_input_error`], the path the error names in a field shown as what it is
+    /// to the client (`the upload`, a name relative to the store), never as the server's path.
+    pub fn from_input_error_showing(error: Error, shown_as: impl FnOnce(&Path) -> PathBuf) -> Self {
+        let error = error.with_path_shown_as(shown_as);
         let detail = error.to_string();
         match error {
             Error::InvalidScan(_) => Self::unprocessable("invalid-scan", detail),
             Error::Ingest(_) => Self::unprocessable("ingest-failed", detail),
-            Error::InvalidInput(_) | Error::InvalidMaterial(_) => {
-                Self::unprocessable("invalid-input", detail)
-            }
+            Error::InvalidInput(_)
+            | Error::InvalidMaterial(_)
+            | Error::Config { .. }
+            | Error::Trace { .. }
+            | Error::Points { .. }
+            | Error::Argument { .. } => Self::unprocessable("invalid-input", detail),
+            // I/O, store and format failures are ours: 500, detail kept for the log only.
             _ => Self::internal(detail),
         }
     }
 
-    /// Replaces a server path in the detail with what it is to the client.
-    pub fn redact_path(mut self, path: &std::path::Path, shown_as: &str) -> Self {
+    /// Replaces a server path in the detail text with what it is to the client, for errors
+    /// that still carry their path only in the message (scan readers' `InvalidScan`).
+    pub fn redact_path(mut self, path: &Path, shown_as: &str) -> Self {
         self.detail = self.detail.replace(&path.display().to_string(), shown_as);
         self
     }

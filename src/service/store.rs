@@ -18,9 +18,9 @@ use std::time::SystemTime;
 use serde::{Deserialize, Serialize};
 
 use super::ids::{JobId, ScanId};
-use crate::durable::{sync_dir, write_durable as write_durable_unlabelled};
+use crate::durable::{sync_dir, write_durable};
 use crate::run::{RunConfig, TrackedPoint};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// A scan as stored: what was uploaded and what ingest found.
 #[derive(Debug, Clone, Serialize, Deserialize, utoipa::ToSchema)]
@@ -202,13 +202,14 @@ impl Store {
             root: root.to_path_buf(),
         };
         for dir in ["scans", "jobs"] {
-            std::fs::create_dir_all(root.join(dir)).map_err(|e| io_error(&root.join(dir), e))?;
+            let dir = root.join(dir);
+            std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
         }
         let tmp = store.tmp_dir();
         if tmp.exists() {
-            std::fs::remove_dir_all(&tmp).map_err(|e| io_error(&tmp, e))?;
+            std::fs::remove_dir_all(&tmp).at(IoOp::Remove, &tmp)?;
         }
-        std::fs::create_dir_all(&tmp).map_err(|e| io_error(&tmp, e))?;
+        std::fs::create_dir_all(&tmp).at(IoOp::CreateDir, &tmp)?;
         // Proves the store is writable now rather than at the first upload.
         write_durable(&tmp.join("writable"), b"ok")?;
         Ok(store)
@@ -248,16 +249,16 @@ impl Store {
     /// Stores a scan: moves the received `upload` in and writes its record, all at once.
     pub fn put_scan(&self, record: &ScanRecord, upload: &Path) -> Result<()> {
         let staging = self.tmp_path("scan");
-        std::fs::create_dir_all(&staging).map_err(|e| io_error(&staging, e))?;
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let file = staging.join(&record.file_name);
-        std::fs::rename(upload, &file).map_err(|e| io_error(upload, e))?;
+        std::fs::rename(upload, &file).at(IoOp::Rename, upload)?;
         write_json(&staging.join(SCAN_RECORD), record)?;
         publish_dir(&staging, &self.scan_dir(record.scan_id))
     }
 
     /// A scan's record, `None` when there is no such scan.
     pub fn scan(&self, id: ScanId) -> Result<Option<ScanRecord>> {
-        read_json_opt(&self.scan_dir(id).join(SCAN_RECORD))
+        self.read_record(&self.scan_dir(id).join(SCAN_RECORD))
     }
 
     /// Removes a scan; `false` when there was none.
@@ -278,7 +279,7 @@ impl Store {
     /// Stores a new job: its request and its record, all at once.
     pub fn put_job(&self, record: &JobRecord, request: &JobRequest) -> Result<()> {
         let staging = self.tmp_path("job");
-        std::fs::create_dir_all(&staging).map_err(|e| io_error(&staging, e))?;
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         write_json(&staging.join(JOB_REQUEST), request)?;
         write_json(&staging.join(JOB_RECORD), record)?;
         publish_dir(&staging, &self.job_dir(record.job_id))
@@ -291,14 +292,16 @@ impl Store {
 
     /// A job's record, `None` when there is no such job.
     pub fn job(&self, id: JobId) -> Result<Option<JobRecord>> {
-        read_json_opt(&self.job_dir(id).join(JOB_RECORD))
+        self.read_record(&self.job_dir(id).join(JOB_RECORD))
     }
 
     /// A job's request.
     pub fn job_request(&self, id: JobId) -> Result<JobRequest> {
         let path = self.job_dir(id).join(JOB_REQUEST);
-        read_json_opt(&path)?
-            .ok_or_else(|| Error::InvalidInput(format!("{}: missing", path.display())))
+        self.read_record(&path)?.ok_or_else(|| Error::Store {
+            record: self.record_name(&path),
+            reason: "missing".into(),
+        })
     }
 
     /// Removes a job and its outputs; `false` when there was none.
@@ -311,8 +314,8 @@ impl Store {
         let dir = self.root.join("jobs");
         let mut jobs = Vec::new();
         let mut problems = Vec::new();
-        for entry in std::fs::read_dir(&dir).map_err(|e| io_error(&dir, e))? {
-            let entry = entry.map_err(|e| io_error(&dir, e))?;
+        for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
+            let entry = entry.at(IoOp::List, &dir)?;
             let name = entry.file_name().to_string_lossy().into_owned();
             let Some(id) = JobId::parse(&name) else {
                 problems.push(format!("jobs/{name}: not a job directory, ignored"));
@@ -331,14 +334,15 @@ impl Store {
     /// Removes a stopped run's partial output directories (`.out.partial-<pid>`).
     pub fn clear_partial_outputs(&self, id: JobId) -> Result<()> {
         let dir = self.job_dir(id);
-        for entry in std::fs::read_dir(&dir).map_err(|e| io_error(&dir, e))? {
-            let entry = entry.map_err(|e| io_error(&dir, e))?;
+        for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
+            let entry = entry.at(IoOp::List, &dir)?;
             if entry
                 .file_name()
                 .to_string_lossy()
                 .starts_with(&format!(".{JOB_OUTPUT}.partial"))
             {
-                std::fs::remove_dir_all(entry.path()).map_err(|e| io_error(&entry.path(), e))?;
+                let partial = entry.path();
+                std::fs::remove_dir_all(&partial).at(IoOp::Remove, &partial)?;
             }
         }
         Ok(())
@@ -349,49 +353,48 @@ impl Store {
         match std::fs::rename(dir, &doomed) {
             Ok(()) => {}
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
-            Err(e) => return Err(io_error(dir, e)),
+            Err(e) => return Err(Error::io(IoOp::Rename, dir, e)),
         }
         sync_dir(dir.parent().unwrap_or(&self.root));
-        std::fs::remove_dir_all(&doomed).map_err(|e| io_error(&doomed, e))?;
+        std::fs::remove_dir_all(&doomed).at(IoOp::Remove, &doomed)?;
         Ok(true)
+    }
+
+    /// A record's name relative to the data directory, as store errors give it.
+    fn record_name(&self, path: &Path) -> String {
+        path.strip_prefix(&self.root)
+            .unwrap_or(path)
+            .display()
+            .to_string()
+    }
+
+    /// A record, `None` when its file does not exist.
+    fn read_record<T: serde::de::DeserializeOwned>(&self, path: &Path) -> Result<Option<T>> {
+        let bytes = match std::fs::read(path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(Error::io(IoOp::Read, path, e)),
+        };
+        serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| Error::Store {
+                record: self.record_name(path),
+                reason: format!("corrupt record: {e}"),
+            })
     }
 }
 
-fn io_error(path: &Path, e: std::io::Error) -> Error {
-    Error::Io(std::io::Error::new(
-        e.kind(),
-        format!("store {}: {e}", path.display()),
-    ))
-}
-
-/// [`write_durable_unlabelled`] with the store's path in the error.
-fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_durable_unlabelled(path, bytes).map_err(|e| match e {
-        Error::Io(io) => io_error(path, io),
-        other => other,
-    })
-}
-
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
-    let bytes = serde_json::to_vec_pretty(value)
-        .map_err(|e| Error::InvalidInput(format!("{}: cannot serialise: {e}", path.display())))?;
+    let bytes = serde_json::to_vec_pretty(value).map_err(|e| Error::Format {
+        path: path.to_path_buf(),
+        reason: format!("cannot serialise: {e}"),
+    })?;
     write_durable(path, &bytes)
-}
-
-fn read_json_opt<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Option<T>> {
-    let bytes = match std::fs::read(path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(io_error(path, e)),
-    };
-    serde_json::from_slice(&bytes)
-        .map(Some)
-        .map_err(|e| Error::InvalidInput(format!("store {}: corrupt record: {e}", path.display())))
 }
 
 fn publish_dir(staging: &Path, target: &Path) -> Result<()> {
     sync_dir(staging);
-    std::fs::rename(staging, target).map_err(|e| io_error(target, e))?;
+    std::fs::rename(staging, target).at(IoOp::Replace, target)?;
     if let Some(parent) = target.parent() {
         sync_dir(parent);
     }

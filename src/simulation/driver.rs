@@ -145,9 +145,13 @@ impl<'s> BreathingDriver<'s> {
     /// Equilibrium whose volume change from rest is `target_ml` within `tolerance_ml`.
     pub fn solve_volume(&mut self, target_ml: f64, tolerance_ml: f64) -> Result<DrivenState> {
         if !(target_ml.is_finite() && tolerance_ml.is_finite() && tolerance_ml > 0.0) {
-            return Err(Error::InvalidInput(format!(
-                "volume target {target_ml} mL with tolerance {tolerance_ml} mL"
-            )));
+            return Err(Error::Argument {
+                what: "volume target".into(),
+                reason: format!(
+                    "{target_ml} mL with tolerance {tolerance_ml} mL (both must be finite, the \
+                     tolerance positive)"
+                ),
+            });
         }
         let mut reports = Vec::new();
         let mut dv = self.path.last().map_or(0.0, |p| p.dv_ml);

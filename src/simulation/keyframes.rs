@@ -85,14 +85,16 @@ impl VolumeKeyframes {
         volume_tolerance_ml: f64,
     ) -> Result<Self> {
         if !(lo_ml.is_finite() && hi_ml.is_finite() && lo_ml <= hi_ml) {
-            return Err(Error::InvalidInput(format!(
-                "key volume range {lo_ml} … {hi_ml} mL"
-            )));
+            return Err(Error::Argument {
+                what: "key volume range".into(),
+                reason: format!("{lo_ml} … {hi_ml} mL is not an ordered finite range"),
+            });
         }
         if !(tolerance_mm.is_finite() && tolerance_mm > 0.0) {
-            return Err(Error::InvalidInput(format!(
-                "interpolation tolerance {tolerance_mm} mm must be positive"
-            )));
+            return Err(Error::Argument {
+                what: "interpolation tolerance".into(),
+                reason: format!("{tolerance_mm} mm must be positive"),
+            });
         }
         // A degenerate range is one key: every frame is the same state.
         let span = (hi_ml - lo_ml).max(2.0 * volume_tolerance_ml);
