@@ -6,7 +6,10 @@ use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
 use lungmotion::bench::Outcome;
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (motion benchmark): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (motion benchmark): cargo test --features slow-tests"
+)]
 fn quick_motion_bench_reports_a_coherent_cycle() {
     let report = run_motion_bench(&MotionBenchOptions::quick()).expect("benchmark ran");
     let md = report.to_markdown();

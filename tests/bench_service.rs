@@ -8,7 +8,10 @@ use lungmotion::bench::service::{
 use lungmotion::bench::Outcome;
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (service benchmark under load): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (service benchmark under load): cargo test --features slow-tests"
+)]
 fn quick_service_bench_measures_upload_overhead_and_load() {
     let report = run_service_bench(&ServiceBenchOptions { quick: true }).unwrap();
     assert_eq!(report.server_workers, 1);

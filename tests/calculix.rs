@@ -93,7 +93,10 @@ fn max_diff(a: &[V3], b: &[V3]) -> f64 {
 /// Homogeneous uniaxial stress: C3D8 and Baudet's element are both exact, so the two codes
 /// must agree to CalculiX's printed precision (7 significant digits) and match the closed form.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
 fn uniaxial_block_matches_calculix_linear() {
     require_ccx();
     let p = 1e-3; // Strain 1e-6: the mass–spring model's geometric non-linearity is O(1e-6).
@@ -124,7 +127,10 @@ fn uniaxial_block_matches_calculix_linear() {
 /// General plane and line constraints go through `*TRANSFORM`: the rotated block must give
 /// the rotated displacements of the axis-aligned one.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
 fn rotated_block_uses_transforms_correctly() {
     require_ccx();
     let rot = Rotation3::from_euler_angles(0.3, -0.5, 0.9);
@@ -151,7 +157,10 @@ fn rotated_block_uses_transforms_correctly() {
 /// motion (3-2-1 supports): CalculiX must return the closed-form hydrostatic compression, which
 /// it does only if every face number points at the right face.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
 fn all_face_numbers_give_hydrostatic_compression_in_calculix() {
     require_ccx();
     let gm = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros())
@@ -208,7 +217,10 @@ fn all_face_numbers_give_hydrostatic_compression_in_calculix() {
 /// checkerboard twist modes (u_z ∝ (−1)^(i+j), …) with zero stiffness, and compression buckles
 /// them.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
 fn all_face_pressure_gives_same_volume_change_nlgeom() {
     require_ccx();
     let mut scene = symmetric_block(Matrix3::identity(), 60.0);
@@ -248,7 +260,10 @@ fn all_face_pressure_gives_same_volume_change_nlgeom() {
 ///   mass on clamped nodes at 1×1×4), so only the fall of their error is asserted. 1×1×4 is a
 ///   mechanism at rest (zero-energy twist modes), which exercises the explicit fallback.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
 fn composite_error_falls_with_refinement() {
     require_ccx();
     let options = CompositeOptions {

@@ -178,7 +178,10 @@ fn bad_inputs_are_refused_with_reasons() {
 /// 0.2 Pa·s/mL: the whole bellows pressure loads the tissue, and at 0.2 Pa·s/mL the inhaling
 /// lung (C ≈ 7 mL/Pa here) would take ≈ 150 Pa, beyond the ≈ 80 Pa this mesh survives.
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests"
+)]
 fn cip_lungs_one_dynamic_cycle() {
     if lungmotion::datasets::cip_chest_ct64().is_none() {
         eprintln!("skipped: shared data not found");

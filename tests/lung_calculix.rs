@@ -15,7 +15,10 @@ use lungmotion::validation::lung_calculix::{
 };
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests"
+)]
 fn end_inhale_frame_agrees_with_calculix() {
     if lungmotion::datasets::cip_chest_ct64().is_none() {
         eprintln!("skipped: shared data not found");

@@ -80,7 +80,10 @@ fn assert_outputs_complete(data_dir: &Path, job_id: &str, frames: usize) {
 }
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (service load and kill): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (service load and kill): cargo test --features slow-tests"
+)]
 fn fifty_concurrent_simulations_on_a_queue_of_8_all_finish_or_are_refused() {
     let scratch = Scratch::new("burst");
     let data = scratch.join("data");
@@ -164,7 +167,10 @@ fn fifty_concurrent_simulations_on_a_queue_of_8_all_finish_or_are_refused() {
 }
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (service load and kill): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (service load and kill): cargo test --features slow-tests"
+)]
 fn a_job_interrupted_by_kill_9_is_rerun_after_restart() {
     let scratch = Scratch::new("kill9");
     let data = scratch.join("data");
@@ -316,7 +322,10 @@ fn cancelling_and_deleting_jobs_and_scans() {
 }
 
 #[test]
-#[cfg_attr(not(feature = "slow-tests"), ignore = "slow study (service load and kill): cargo test --features slow-tests")]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (service load and kill): cargo test --features slow-tests"
+)]
 fn sigterm_requeues_a_running_job_which_completes_after_restart() {
     let scratch = Scratch::new("sigterm");
     let data = scratch.join("data");

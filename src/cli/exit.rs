@@ -35,18 +35,31 @@ pub const FAILED: u8 = 1;
 /// on it (exit 1). Exhaustive, so a new error variant must be placed here; it mirrors the
 /// service's 422 against 500 (`ApiError::from_input_error`).
 pub fn is_refusal(error: &lungmotion::Error) -> bool {
-    use lungmotion::Error;
+    use lungmotion::{Error, IoOp};
     match error {
         Error::InvalidInput(_)
         | Error::InvalidScan(_)
         | Error::InvalidMaterial(_)
-        | Error::Ingest(_) => true,
+        | Error::Ingest(_)
+        | Error::Config { .. }
+        | Error::Trace { .. }
+        | Error::Points { .. }
+        | Error::Argument { .. }
+        | Error::Format { .. }
+        | Error::OutputDir { .. }
+        | Error::MissingData { .. }
+        | Error::Listen { .. } => true,
+        // An input that cannot be read is refused; an output that cannot be written failed.
+        Error::IoAt { op, .. } => {
+            matches!(op, IoOp::Read | IoOp::Open | IoOp::List | IoOp::Metadata)
+        }
         Error::InadmissibleElement(_)
         | Error::InvalidModel(_)
         | Error::Diverged { .. }
         | Error::NotConverged { .. }
         | Error::External(_)
         | Error::Cancelled(_)
+        | Error::Store { .. }
         | Error::Io(_) => false,
     }
 }
