@@ -97,6 +97,19 @@ impl BreathingTrace {
     }
 
     /// Reads a CSV or JSON trace file; errors name the file, the row and the problem.
+    ///
+    /// # Examples
+    ///
+    /// ```
+    /// use lungmotion::breathing::{BreathingTrace, TraceOptions};
+    ///
+    /// let path = std::env::temp_dir().join(format!("lm-doc-trace-{}.csv", std::process::id()));
+    /// std::fs::write(&path, "time_s,volume_ml\n0,0\n2,500\n4,0\n")?;
+    /// let trace = BreathingTrace::read(&path, &TraceOptions::default())?;
+    /// assert_eq!(trace.volume_at(1.0), 250.0); // linear between samples
+    /// std::fs::remove_file(&path)?;
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
     pub fn read(path: &Path, options: &TraceOptions) -> Result<Self> {
         let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
         Self::parse_located(&text, options).map_err(|fault| fault.into_error(Some(path)))

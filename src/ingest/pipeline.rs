@@ -89,6 +89,22 @@ pub struct ScanSummary {
 }
 
 /// Segments the lungs of a loaded CT and builds its mechanical model.
+///
+/// # Examples
+///
+/// ```
+/// use lungmotion::ingest::pipeline::{ingest_scan, IngestSettings};
+/// use lungmotion::ingest::scan::load_ct;
+///
+/// let path = concat!(env!("CARGO_MANIFEST_DIR"), "/sample-volumes/phantom-ct.nii.gz");
+/// let scan = load_ct(std::path::Path::new(path))?;
+/// let mut settings = IngestSettings::default();
+/// settings.model.element_size_mm = 12.0; // coarse, so the example runs in a second
+/// let outcome = ingest_scan(&scan, &settings)?;
+/// assert!(outcome.summary.elements > 0);
+/// assert!(outcome.summary.lung_volume_ml > 1000.0);
+/// # Ok::<(), lungmotion::Error>(())
+/// ```
 pub fn ingest_scan(scan: &LoadedScan, settings: &IngestSettings) -> Result<IngestOutcome> {
     let t0 = Instant::now();
     let segmentation = segment_lungs(&scan.ct, &settings.segmentation)?;

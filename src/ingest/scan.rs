@@ -85,6 +85,20 @@ pub fn classify_header(head: &[u8]) -> Option<ScanFormat> {
 }
 
 /// Reads a CT from a DICOM directory, zip or file, a NIfTI or a NRRD file.
+///
+/// # Examples
+///
+/// ```
+/// use lungmotion::ingest::scan::{load_ct, ScanFormat};
+///
+/// let path = concat!(env!("CARGO_MANIFEST_DIR"), "/sample-volumes/phantom-ct.nii.gz");
+/// let scan = load_ct(std::path::Path::new(path))?;
+/// assert_eq!(scan.format, ScanFormat::Nifti);
+/// // Voxels are in Hounsfield units on a grid placed in LPS millimetres.
+/// let g = scan.ct.geometry;
+/// assert_eq!(scan.ct.data.len(), g.dims[0] * g.dims[1] * g.dims[2]);
+/// # Ok::<(), lungmotion::Error>(())
+/// ```
 pub fn load_ct(path: &Path) -> Result<LoadedScan> {
     let format = detect_scan_format(path)?;
     let (ct, series, warnings) = match format {

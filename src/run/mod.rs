@@ -122,6 +122,30 @@ fn check_cancel(observer: &dyn RunObserver, stage: &str) -> Result<()> {
 }
 
 /// Runs the whole job and publishes `out_dir`; on any error nothing in `out_dir` changes.
+///
+/// # Examples
+///
+/// ```
+/// use lungmotion::breathing::LujanBreathing;
+/// use lungmotion::run::{run_breathing, RunConfig, RunInputs, SilentObserver};
+///
+/// let ct = concat!(env!("CARGO_MANIFEST_DIR"), "/sample-volumes/phantom-ct.nii.gz");
+/// let inputs = RunInputs {
+///     ct_path: ct.into(),
+///     // Two 4-second breaths of 500 mL, sampled at 10 Hz.
+///     trace: LujanBreathing::default().trace(8.0, 10.0)?,
+///     trace_source: "generated".into(),
+///     points: Vec::new(),
+/// };
+/// let config = RunConfig { element_size_mm: 12.0, ..RunConfig::default() };
+/// let out = std::env::temp_dir().join(format!("lm-doc-run-{}", std::process::id()));
+/// let summary = run_breathing(&inputs, &config, &out, &mut SilentObserver)?;
+/// // One displacement field per output instant (10 phases by default).
+/// assert_eq!(summary.frames.len(), 10);
+/// assert!(out.join("frames/0/displacement.nii.gz").is_file());
+/// std::fs::remove_dir_all(&out)?;
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
 pub fn run_breathing(
     inputs: &RunInputs,
     config: &RunConfig,

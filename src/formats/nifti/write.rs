@@ -79,6 +79,29 @@ pub fn write_nifti_labels(path: &Path, labels: &Volume<u8>) -> Result<()> {
 
 /// Writes a displacement field with LPS-millimetre components as ITK reads it (see the
 /// module doc); `description` follows the convention in the 80-character header text.
+///
+/// # Examples
+///
+/// ```
+/// use lungmotion::formats::nifti::{read_nifti_vector_field, write_nifti_vector_field};
+/// use lungmotion::volume::VolumeGeometry;
+///
+/// let geometry = VolumeGeometry {
+///     dims: [4, 3, 2],
+///     spacing_mm: [1.0, 1.0, 2.5],
+///     origin_lps_mm: [-10.0, 20.0, -30.0],
+///     direction_lps: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+/// };
+/// // Every voxel's tissue moves 5 mm up (LPS +z, superior).
+/// let field = vec![[0.0f32, 0.0, 5.0]; 4 * 3 * 2];
+/// let path = std::env::temp_dir().join(format!("lm-doc-field-{}.nii.gz", std::process::id()));
+/// write_nifti_vector_field(&path, &geometry, &field, "example")?;
+/// let (read_geometry, read_field) = read_nifti_vector_field(&path)?;
+/// assert_eq!(read_geometry.dims, geometry.dims);
+/// assert_eq!(read_field, field);
+/// std::fs::remove_file(&path)?;
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
 pub fn write_nifti_vector_field(
     path: &Path,
     geometry: &VolumeGeometry,
