@@ -411,7 +411,7 @@ pub fn build_lung_model(
     let ct = &lungs.geometry;
     let voxel_ml = ct.voxel_volume_mm3() * 1e-3;
     let voxels_per_lung =
-        [RIGHT_LUNG, LEFT_LUNG].map(|l| lungs.data.par_iter().filter(|&&v| v == l).count());
+        [RIGHT_LUNG, LEFT_LUNG].map(|l| lungs.as_slice().par_iter().filter(|&&v| v == l).count());
 
     // Cubic lattice over the lungs, and each cell's lung by partial-volume rule.
     let lattice = CellLattice::covering(lungs, h_mm)?;
@@ -714,16 +714,17 @@ fn check_inputs(
     settings: &LungModelSettings,
 ) -> Result<()> {
     lungs.geometry.validate("lung mask")?;
-    if lungs.data.len() != lungs.geometry.voxel_count() {
+    if lungs.as_slice().len() != lungs.geometry.voxel_count() {
         return Err(Error::InvalidInput(format!(
             "lung mask: grid {:?} needs {} voxels, has {}",
             lungs.geometry.dims,
             lungs.geometry.voxel_count(),
-            lungs.data.len()
+            lungs.as_slice().len()
         )));
     }
     let same = |other: &Volume<u8>, what: &str| -> Result<()> {
-        if !lungs.geometry.same_grid(&other.geometry, 1e-3) || other.data.len() != lungs.data.len()
+        if !lungs.geometry.same_grid(&other.geometry, 1e-3)
+            || other.as_slice().len() != lungs.as_slice().len()
         {
             return Err(Error::InvalidInput(format!(
                 "{what} is on a different grid than the lung mask ({:?} voxels of {:?} mm at \
@@ -742,24 +743,24 @@ fn check_inputs(
     if let Some(o) = &settings.group_overrides {
         same(o, "group override map")?;
         if let Some(i) = o
-            .data
+            .as_slice()
             .iter()
             .position(|&v| v > ConstraintGroup::Apex.code())
         {
             return Err(Error::InvalidInput(format!(
                 "group override map holds code {} at voxel {i}; codes are 0 (none) and 1–5 \
                  (hilum, mediastinal, costal, diaphragmatic, apex)",
-                o.data[i]
+                o.as_slice()[i]
             )));
         }
     }
-    if let Some(i) = lungs.data.iter().position(|&v| v > LEFT_LUNG) {
+    if let Some(i) = lungs.as_slice().iter().position(|&v| v > LEFT_LUNG) {
         return Err(Error::InvalidInput(format!(
             "lung mask holds label {} at voxel {i}; expected 0 background, 1 right lung, 2 left lung",
-            lungs.data[i]
+            lungs.as_slice()[i]
         )));
     }
-    if !lungs.data.iter().any(|&v| v != 0) {
+    if !lungs.as_slice().iter().any(|&v| v != 0) {
         return Err(Error::InvalidInput(
             "lung mask is empty: no voxel is labelled 1 (right lung) or 2 (left lung)".into(),
         ));
@@ -782,7 +783,7 @@ impl CellLattice {
         let [nx, ny, _] = g.dims;
         // Voxel-index box of the lung voxels, per slab then reduced.
         let (lo, hi) = lungs
-            .data
+            .as_slice()
             .par_chunks(nx * ny)
             .enumerate()
             .map(|(k, slab)| {
@@ -1127,7 +1128,7 @@ fn build_wall(lungs: &Volume<u8>, lattice: &CellLattice) -> Result<WallBuild> {
         });
     let [cnx, cny, _] = ct_dims;
     let contact_voxels: usize = lungs
-        .data
+        .as_slice()
         .par_chunks(cnx * cny)
         .enumerate()
         .map(|(k, slab)| {
@@ -1330,7 +1331,7 @@ fn hilum_centre(
     let [nx, ny, _] = g.dims;
     // Airway voxels with a 26-neighbour in this lung: where the bronchus enters.
     let (count, sum) = airways
-        .data
+        .as_slice()
         .par_chunks(nx * ny)
         .enumerate()
         .map(|(k, slab)| {
@@ -1533,7 +1534,7 @@ fn paint_groups(
     }
     let g = &lungs.geometry;
     let [nx, ny, nz] = g.dims;
-    let mut out = vec![0u8; lungs.data.len()];
+    let mut out = vec![0u8; lungs.as_slice().len()];
     let origin = lattice.point_mm([0, 0, 0]);
     out.par_chunks_mut(nx * ny)
         .enumerate()

@@ -443,7 +443,7 @@ const ARROW_FILL: f64 = 0.9;
 pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<DisplacementLook> {
     let ct = input.ct;
     let g = &ct.geometry;
-    if !input.lungs.geometry.same_grid(g, 1e-3) || input.lungs.data.len() != g.voxel_count() {
+    if !input.lungs.geometry.same_grid(g, 1e-3) || input.lungs.as_slice().len() != g.voxel_count() {
         return Err(Error::InvalidInput(format!(
             "displacement quick look: the lung labels ({:?}) are not on the CT grid ({:?})",
             input.lungs.geometry.dims, g.dims
@@ -477,7 +477,7 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
             let largest = input
                 .displacement_mm
                 .par_iter()
-                .zip(&input.lungs.data)
+                .zip(input.lungs.as_slice())
                 .filter(|(_, &l)| l != 0)
                 .map(|(u, _)| magnitude(u))
                 .reduce(|| 0.0, f32::max);
@@ -550,7 +550,7 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
     let voxel_at = |col: usize, row: usize| {
         nearest_voxel(ct, v0 + per_col * col as f64 + per_row * row as f64)
     };
-    let lungs = &input.lungs.data;
+    let lungs = input.lungs.as_slice();
     let field = input.displacement_mm;
     image
         .pixels
@@ -661,7 +661,7 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
 pub fn lung_centroid_lps_mm(lungs: &Volume<u8>) -> Option<[f64; 3]> {
     let [nx, ny, _] = lungs.geometry.dims;
     let (sum, count) = lungs
-        .data
+        .as_slice()
         .par_iter()
         .enumerate()
         .filter(|(_, &l)| l != 0)
