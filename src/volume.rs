@@ -3,9 +3,12 @@
 //! Every reader (DICOM, NIfTI, NRRD) converts into [`Volume`]; every later stage works in
 //! patient millimetres through [`VolumeGeometry`]. Voxel data are stored with the first
 //! index fastest (`i + nx·(j + ny·k)`), as NIfTI, NRRD and a DICOM frame's rows store them,
-//! so readers and writers copy without reordering.
+//! so readers and writers copy without reordering. They live in an [`Array3`] of shape
+//! `(nk, nj, ni)` in standard (C) layout, which is exactly that order: `[[k, j, i]]` and the
+//! flat [`Volume::as_slice`] index `geometry.index(i, j, k)` name the same voxel.
 
 use nalgebra::{Matrix3, Matrix4, Vector3};
+use ndarray::{Array3, ArrayView3, ArrayViewMut3, Zip};
 use serde::Serialize;
 
 use crate::{Error, Result};
@@ -167,12 +170,57 @@ impl VolumeGeometry {
 
 /// Voxel values on a grid in patient space: CT numbers in HU (`Volume<f32>`) or labels
 /// (`Volume<u8>`).
+///
+/// The voxels are private so that their shape always matches `geometry.dims` and their
+/// layout stays standard (i fastest): [`Volume::as_slice`] can then hand out the flat
+/// buffer without copying.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Volume<T> {
     /// Placement of the grid in LPS millimetres.
     pub geometry: VolumeGeometry,
-    /// Voxel values, i fastest (`geometry.index(i, j, k)`).
-    pub data: Vec<T>,
+    /// Voxel values indexed `[[k, j, i]]`, standard layout (i fastest in memory).
+    data: Array3<T>,
+}
+
+/// The `(nk, nj, ni)` array shape of a grid: k slowest, i fastest.
+fn array_shape(geometry: &VolumeGeometry) -> (usize, usize, usize) {
+    let [ni, nj, nk] = geometry.dims;
+    (nk, nj, ni)
+}
+
+impl<T> Volume<T> {
+    /// All voxels as one flat slice, i fastest (`geometry.index(i, j, k)`); no copy.
+    #[inline]
+    pub fn as_slice(&self) -> &[T] {
+        self.data
+            .as_slice()
+            .expect("Volume voxels are always in standard layout")
+    }
+
+    /// All voxels as one flat mutable slice, i fastest (`geometry.index(i, j, k)`); no copy.
+    #[inline]
+    pub fn as_slice_mut(&mut self) -> &mut [T] {
+        self.data
+            .as_slice_mut()
+            .expect("Volume voxels are always in standard layout")
+    }
+
+    /// The voxels as a 3-D view indexed `[[k, j, i]]`.
+    pub fn voxels(&self) -> ArrayView3<'_, T> {
+        self.data.view()
+    }
+
+    /// The voxels as a mutable 3-D view indexed `[[k, j, i]]`.
+    pub fn voxels_mut(&mut self) -> ArrayViewMut3<'_, T> {
+        self.data.view_mut()
+    }
+
+    /// The flat voxel buffer, i fastest, without copying.
+    pub fn into_vec(self) -> Vec<T> {
+        let (vec, offset) = self.data.into_raw_vec_and_offset();
+        debug_assert!(matches!(offset, None | Some(0)));
+        vec
+    }
 }
 
 impl<T: Copy> Volume<T> {
@@ -181,7 +229,7 @@ impl<T: Copy> Volume<T> {
         geometry.validate("volume")?;
         Ok(Volume {
             geometry,
-            data: vec![value; geometry.voxel_count()],
+            data: Array3::from_elem(array_shape(&geometry), value),
         })
     }
 
@@ -196,13 +244,15 @@ impl<T: Copy> Volume<T> {
                 data.len()
             )));
         }
+        let data = Array3::from_shape_vec(array_shape(&geometry), data)
+            .expect("length checked against the grid above");
         Ok(Volume { geometry, data })
     }
 
     /// Value at voxel (i, j, k).
     #[inline]
     pub fn get(&self, i: usize, j: usize, k: usize) -> T {
-        self.data[self.geometry.index(i, j, k)]
+        self.data[[k, j, i]]
     }
 
     /// Dimensions of the grid.
@@ -215,10 +265,10 @@ impl<T: Copy> Volume<T> {
     where
         T: Sync,
     {
-        use rayon::prelude::*;
+        // A standard-layout input gives a standard-layout output, so the i-fastest order holds.
         Volume {
             geometry: self.geometry,
-            data: self.data.par_iter().map(|&v| f(v)).collect(),
+            data: Zip::from(&self.data).par_map_collect(|&v| f(v)),
         }
     }
 }

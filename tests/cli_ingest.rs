@@ -36,11 +36,11 @@ fn ingest_of_the_dicom_phantom_writes_the_promised_files_and_fields() {
         mask.geometry.same_grid(&ct.geometry, 1e-3),
         "mask not on the CT grid"
     );
-    assert!(mask.data.iter().all(|&v| v <= 2));
+    assert!(mask.as_slice().iter().all(|&v| v <= 2));
     // Right lung (1) on the patient's right, which is −x in LPS.
     let mean_x = |label: u8| {
         let (mut s, mut n) = (0.0, 0usize);
-        for (idx, &v) in mask.data.iter().enumerate() {
+        for (idx, &v) in mask.as_slice().iter().enumerate() {
             if v == label {
                 let [nx, ny, _] = mask.geometry.dims;
                 let ijk = nalgebra::Vector3::new(
@@ -86,12 +86,12 @@ fn ingest_of_the_dicom_phantom_writes_the_promised_files_and_fields() {
         assert!(json["group_nodes"][name].as_u64().unwrap() > 0, "{name}");
         let code: u8 = code.parse().unwrap();
         assert!(
-            groups.data.contains(&code),
+            groups.as_slice().contains(&code),
             "code {code} ({name}) absent from groups.nii.gz"
         );
     }
     assert!(groups
-        .data
+        .as_slice()
         .iter()
         .all(|&g| g == 0 || codes.contains_key(&g.to_string())));
 
@@ -120,7 +120,7 @@ fn nifti_and_dicom_inputs_give_the_same_lungs() {
         .success());
     let ma = nifti::read_nifti_labels(&a.join("lung-mask.nii.gz")).unwrap();
     let mb = nifti::read_nifti_labels(&b.join("lung-mask.nii.gz")).unwrap();
-    assert_eq!(ma.data, mb.data);
+    assert_eq!(ma.as_slice(), mb.as_slice());
     std::fs::remove_dir_all(&a).ok();
     std::fs::remove_dir_all(&b).ok();
 }

@@ -104,7 +104,7 @@ fn assert_same_geometry(a: &VolumeGeometry, b: &VolumeGeometry, tol_mm: f64) {
 }
 
 fn rounded(volume: &Volume<f32>) -> Vec<f32> {
-    volume.data.iter().map(|v| v.round()).collect()
+    volume.as_slice().iter().map(|v| v.round()).collect()
 }
 
 #[test]
@@ -124,7 +124,7 @@ fn an_oblique_series_round_trips_with_unsorted_file_names() {
         .abs()
         .max();
     assert!(direction_error < 1e-9, "direction error {direction_error}");
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     assert!(series.warnings.is_empty(), "{:?}", series.warnings);
     let info = &series.info;
     assert_eq!((info.rows, info.columns, info.slice_count), (17, 23, 9));
@@ -153,10 +153,10 @@ fn values_outside_int16_use_a_rescale_intercept() {
     let dir = scratch("intercept");
     let mut volume = smooth_volume([8, 6, 3]);
     volume
-        .data
+        .as_slice_mut()
         .iter_mut()
         .for_each(|v| *v = *v * 30.0 + 20_000.0);
-    let max = volume.data.iter().cloned().fold(f32::MIN, f32::max);
+    let max = volume.as_slice().iter().cloned().fold(f32::MIN, f32::max);
     assert!(max > 40_000.0);
     let paths = write_series(&dir, &volume, 1);
     let obj = open_file(&paths[0]).unwrap();
@@ -167,7 +167,7 @@ fn values_outside_int16_use_a_rescale_intercept() {
         .unwrap();
     assert!(intercept != 0.0);
     let series = read_dicom_series(&dir).unwrap();
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     std::fs::remove_dir_all(dir).unwrap();
 }
 
@@ -210,7 +210,11 @@ fn native_transfer_syntaxes_read_identically() {
         });
         let series = read_dicom_series(&out).unwrap();
         assert_eq!(series.info.transfer_syntax_uid, uid, "{name}");
-        assert_eq!(series.volume.data, reference.volume.data, "{name}");
+        assert_eq!(
+            series.volume.as_slice(),
+            reference.volume.as_slice(),
+            "{name}"
+        );
         assert_same_geometry(&series.volume.geometry, &reference.volume.geometry, 1e-9);
     }
     // Pixel Data is the last element: in the big-endian file its bytes are swapped, so the
@@ -336,7 +340,7 @@ fn jpeg_lossless_reads_identically() {
     });
     let series = read_dicom_series(&out).unwrap();
     assert_eq!(series.info.transfer_syntax_uid, "1.2.840.10008.1.2.4.70");
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     std::fs::remove_dir_all(dir).unwrap();
 }
 
@@ -367,7 +371,7 @@ fn a_512_by_512_by_300_series_reads_at_disk_speed() {
          read_dicom_series {read_s:.2} s",
         bytes as f64 / 1e6
     );
-    assert_eq!(series.volume.data, volume.data);
+    assert_eq!(series.volume.as_slice(), volume.as_slice());
     std::fs::remove_dir_all(dir).unwrap();
 }
 
@@ -442,7 +446,7 @@ fn rle_lossless_reads_identically() {
     let out = transcoded_copy(&src, &dir.join("rle"), rle_encode);
     let series = read_dicom_series(&out).unwrap();
     assert_eq!(series.info.transfer_syntax_uid, "1.2.840.10008.1.2.5");
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     std::fs::remove_dir_all(dir).unwrap();
 }
 
@@ -486,11 +490,11 @@ fn jpeg_baseline_of_an_8_bit_unsigned_series_reads_within_tolerance() {
     let native8 = transcoded_copy(&src, &dir.join("u8"), to_8_bit);
     let exact = read_dicom_series(&native8).unwrap();
     let quantised: Vec<f32> = volume
-        .data
+        .as_slice()
         .iter()
         .map(|&hu| ((hu.round() + 1000.0) / 8.0).round().clamp(0.0, 255.0) * 8.0 - 1000.0)
         .collect();
-    assert_eq!(exact.volume.data, quantised);
+    assert_eq!(exact.volume.as_slice(), quantised);
 
     let jpeg = transcoded_copy(&src, &dir.join("jpeg"), |obj| {
         to_8_bit(obj);
@@ -500,9 +504,9 @@ fn jpeg_baseline_of_an_8_bit_unsigned_series_reads_within_tolerance() {
     assert_eq!(lossy.info.transfer_syntax_uid, "1.2.840.10008.1.2.4.50");
     let errors: Vec<f32> = lossy
         .volume
-        .data
+        .as_slice()
         .iter()
-        .zip(&exact.volume.data)
+        .zip(exact.volume.as_slice())
         .map(|(a, b)| (a - b).abs())
         .collect();
     let max = errors.iter().cloned().fold(0.0, f32::max);
@@ -532,7 +536,7 @@ fn a_zipped_series_reads_like_the_directory() {
     let zip_path = dir.join("export.zip");
     std::fs::write(&zip_path, w.finish().unwrap().into_inner()).unwrap();
     let series = read_dicom_series(&zip_path).unwrap();
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     assert!(series.warnings.is_empty(), "{:?}", series.warnings);
     std::fs::remove_dir_all(dir).unwrap();
 }
@@ -553,9 +557,9 @@ fn the_cip_series_matches_its_nrrd_exactly() {
     assert_same_geometry(&series.volume.geometry, &nrrd.geometry, 1e-3);
     let max_difference = series
         .volume
-        .data
+        .as_slice()
         .iter()
-        .zip(&nrrd.data)
+        .zip(nrrd.as_slice())
         .map(|(a, b)| (a - b).abs())
         .fold(0.0f32, f32::max);
     assert_eq!(max_difference, 0.0);
@@ -589,9 +593,24 @@ fn the_totalsegmentator_jpeg2000_series_reads_in_position_order() {
         "{first_z} {last_z}"
     );
     assert_eq!(series.info.transfer_syntax_uid, "1.2.840.10008.1.2.4.90");
-    let min = series.volume.data.iter().cloned().fold(f32::MAX, f32::min);
-    let max = series.volume.data.iter().cloned().fold(f32::MIN, f32::max);
-    let air = series.volume.data.iter().filter(|&&v| v < -900.0).count();
+    let min = series
+        .volume
+        .as_slice()
+        .iter()
+        .cloned()
+        .fold(f32::MAX, f32::min);
+    let max = series
+        .volume
+        .as_slice()
+        .iter()
+        .cloned()
+        .fold(f32::MIN, f32::max);
+    let air = series
+        .volume
+        .as_slice()
+        .iter()
+        .filter(|&&v| v < -900.0)
+        .count();
     println!("HU range {min} … {max}, {air} voxels below −900 HU");
     assert!((-1100.0..=-900.0).contains(&min) && max > 300.0 && max < 4000.0);
     assert!(air > 100_000, "{air}");
@@ -608,7 +627,7 @@ fn non_dicom_and_truncated_files_are_skipped_with_a_warning() {
     std::fs::write(dir.join("short-pixels.dcm"), &bytes[..bytes.len() - 20]).unwrap();
     std::fs::write(dir.join("DICOMDIR"), "directory record, ignored").unwrap();
     let series = read_dicom_series(&dir).unwrap();
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     assert_eq!(series.warnings.len(), 3, "{:?}", series.warnings);
     let all = series.warnings.join("\n");
     for name in ["notes.txt", "partial.dcm", "short-pixels.dcm"] {
@@ -661,7 +680,7 @@ fn two_ct_series_are_listed_unless_one_is_chosen() {
         ..DicomReadOptions::default()
     };
     let chosen = read_dicom_series_with(&dir, &options).unwrap();
-    assert_eq!(chosen.volume.data, rounded(&second));
+    assert_eq!(chosen.volume.as_slice(), rounded(&second));
     let options = DicomReadOptions {
         series_uid: Some("1.2.3".into()),
         ..DicomReadOptions::default()
@@ -787,7 +806,7 @@ fn duplicate_slices_are_dropped_when_identical_and_refused_otherwise() {
     let copy = dir.join("copy-of-2.dcm");
     std::fs::copy(&paths[1], &copy).unwrap();
     let series = read_dicom_series(&dir).unwrap();
-    assert_eq!(series.volume.data, rounded(&volume));
+    assert_eq!(series.volume.as_slice(), rounded(&volume));
     assert_eq!(series.warnings.len(), 1);
     assert!(
         series.warnings[0].contains("duplicate") && series.warnings[0].contains("IMG0002.dcm"),
@@ -940,7 +959,7 @@ fn twelve_bit_pixels_ignore_the_unused_high_bits() {
     let dir = scratch("u12");
     let paths = write_series(&dir, &volume, 1);
     restore_pixels(&paths, 12, false, "-1024", |hu| 0xF000 | (hu + 1024) as u16);
-    assert_eq!(read_dicom_series(&dir).unwrap().volume.data, expected);
+    assert_eq!(read_dicom_series(&dir).unwrap().volume.as_slice(), expected);
     std::fs::remove_dir_all(&dir).unwrap();
 
     let smooth = smooth_volume([7, 5, 3]);
@@ -949,8 +968,8 @@ fn twelve_bit_pixels_ignore_the_unused_high_bits() {
     // Two's complement in 12 bits, with a pattern above that is not a sign extension.
     restore_pixels(&paths, 12, true, "0", |hu| 0x5000 | ((hu as u16) & 0x0FFF));
     let series = read_dicom_series(&dir).unwrap();
-    assert_eq!(series.volume.data, rounded(&smooth));
-    assert!(series.volume.data.iter().any(|&v| v < -500.0));
+    assert_eq!(series.volume.as_slice(), rounded(&smooth));
+    assert!(series.volume.as_slice().iter().any(|&v| v < -500.0));
     std::fs::remove_dir_all(dir).unwrap();
 }
 
@@ -987,13 +1006,13 @@ fn multi_frame_images_are_refused_clearly() {
 fn the_writer_refuses_what_it_cannot_store() {
     let dir = scratch("writer-refusals");
     let mut volume = smooth_volume([4, 4, 2]);
-    volume.data[5] = f32::NAN;
+    volume.as_slice_mut()[5] = f32::NAN;
     let e = write_ct_series(&volume, &dir, &CtSeriesMetadata::default())
         .unwrap_err()
         .to_string();
     assert!(e.contains("non-finite"), "{e}");
-    volume.data[5] = 70_000.0;
-    volume.data[6] = -1_000.0;
+    volume.as_slice_mut()[5] = 70_000.0;
+    volume.as_slice_mut()[6] = -1_000.0;
     let e = write_ct_series(&volume, &dir, &CtSeriesMetadata::default())
         .unwrap_err()
         .to_string();

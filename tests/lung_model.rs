@@ -124,7 +124,9 @@ fn settings(element_size_mm: f64) -> LungModelSettings {
 }
 
 fn mask_volume_ml(lungs: &Volume<u8>) -> f64 {
-    lungs.data.iter().filter(|&&v| v != 0).count() as f64 * lungs.geometry.voxel_volume_mm3() * 1e-3
+    lungs.as_slice().iter().filter(|&&v| v != 0).count() as f64
+        * lungs.geometry.voxel_volume_mm3()
+        * 1e-3
 }
 
 fn node_lungs(model: &LungModel) -> Vec<HashSet<u8>> {
@@ -379,11 +381,15 @@ fn synthetic_lungs_give_clean_cubic_elements_and_anatomical_groups() {
     // groups_volume: only lung-surface voxels, every code present, interior voxels 0.
     let gv = &model.groups_volume;
     assert_eq!(gv.geometry, lungs.geometry);
-    for (&g, &l) in gv.data.iter().zip(&lungs.data) {
+    for (&g, &l) in gv.as_slice().iter().zip(lungs.as_slice()) {
         assert!(g == 0 || l != 0, "a background voxel has a group");
     }
     for g in ConstraintGroup::ALL {
-        assert!(gv.data.contains(&g.code()), "no voxel painted {}", g.name());
+        assert!(
+            gv.as_slice().contains(&g.code()),
+            "no voxel painted {}",
+            g.name()
+        );
     }
     let centre = lungs
         .geometry
@@ -394,8 +400,8 @@ fn synthetic_lungs_give_clean_cubic_elements_and_anatomical_groups() {
         0,
         "an interior voxel has a group"
     );
-    let surface_voxels = (0..lungs.data.len())
-        .filter(|&i| lungs.data[i] != 0 && gv.data[i] != 0)
+    let surface_voxels = (0..lungs.as_slice().len())
+        .filter(|&i| lungs.as_slice()[i] != 0 && gv.as_slice()[i] != 0)
         .count();
     assert!(surface_voxels > 1000);
 }
@@ -456,8 +462,8 @@ fn the_same_anatomy_on_flipped_and_oblique_grids_gives_the_same_model() {
 
     let (lungs_f, airways_f) = synthetic_masks(flipped_geometry());
     assert_eq!(
-        lungs_f.data.iter().filter(|&&v| v != 0).count(),
-        lungs.data.iter().filter(|&&v| v != 0).count()
+        lungs_f.as_slice().iter().filter(|&&v| v != 0).count(),
+        lungs.as_slice().iter().filter(|&&v| v != 0).count()
     );
     let flipped = build_lung_model(&lungs_f, &airways_f, &settings(h)).unwrap();
     assert_eq!(
@@ -567,12 +573,12 @@ fn bad_inputs_are_refused_with_the_reason() {
     assert!(m.contains("different grid"), "{m}");
 
     let mut bad_labels = lungs.clone();
-    bad_labels.data[geometry.index(10, 10, 10)] = 7;
+    bad_labels.as_slice_mut()[geometry.index(10, 10, 10)] = 7;
     let m = message(build_lung_model(&bad_labels, &airways, &settings(6.0)));
     assert!(m.contains("label 7"), "{m}");
 
     let mut overrides = Volume::filled(geometry, 0u8).unwrap();
-    overrides.data[0] = 9;
+    overrides.as_slice_mut()[0] = 9;
     let m = message(build_lung_model(
         &lungs,
         &airways,

@@ -70,7 +70,7 @@ fn sampling_a_field_is_fast_and_exact() {
             for i in 0..64 {
                 let p = g.voxel_to_lps_mm(Vector3::new(i as f64, j as f64, k as f64));
                 if p.x.abs() < 60.0 && p.y.abs() < 75.0 && p.z.abs() < 90.0 {
-                    lungs.data[g.index(i, j, k)] = 1;
+                    lungs.as_slice_mut()[g.index(i, j, k)] = 1;
                 }
             }
         }
@@ -92,7 +92,7 @@ fn sampling_a_field_is_fast_and_exact() {
         g.voxel_count()
     );
     for (idx, u) in field.iter().enumerate() {
-        let expected: [f32; 3] = if lungs.data[idx] != 0 {
+        let expected: [f32; 3] = if lungs.as_slice()[idx] != 0 {
             [1.0, -2.0, -12.0]
         } else {
             [0.0; 3]
@@ -226,11 +226,11 @@ fn synthetic_chest() -> (Volume<f32>, Volume<u8>, [f64; 3]) {
                 let p = g.voxel_to_lps_mm(Vector3::new(i as f64, j as f64, k as f64));
                 let idx = g.index(i, j, k);
                 if (12.0..70.0).contains(&p.x.abs()) && (-170.0..-30.0).contains(&p.z) {
-                    ct.data[idx] = -800.0;
-                    lungs.data[idx] = if p.x < 0.0 { 1 } else { 2 };
+                    ct.as_slice_mut()[idx] = -800.0;
+                    lungs.as_slice_mut()[idx] = if p.x < 0.0 { 1 } else { 2 };
                 }
                 if (p - Vector3::from(ball)).norm() < 7.0 {
-                    ct.data[idx] = 1000.0;
+                    ct.as_slice_mut()[idx] = 1000.0;
                 }
             }
         }
@@ -240,7 +240,7 @@ fn synthetic_chest() -> (Volume<f32>, Volume<u8>, [f64; 3]) {
 
 fn field_of(lungs: &Volume<u8>, right_mm: [f32; 3], left_mm: [f32; 3]) -> Vec<[f32; 3]> {
     lungs
-        .data
+        .as_slice()
         .iter()
         .map(|&l| match l {
             1 => right_mm,
@@ -492,7 +492,7 @@ fn the_cip_chest_displacement_look_renders() {
     let g = lungs.geometry;
     let centroid = lung_centroid_lps_mm(&lungs).unwrap();
     let (z_lo, z_hi) = lungs
-        .data
+        .as_slice()
         .iter()
         .enumerate()
         .filter(|(_, &l)| l != 0)
@@ -501,7 +501,7 @@ fn the_cip_chest_displacement_look_renders() {
         })
         .fold((f64::MAX, f64::MIN), |(a, b), z| (a.min(z), b.max(z)));
     let field: Vec<[f32; 3]> = lungs
-        .data
+        .as_slice()
         .iter()
         .enumerate()
         .map(|(idx, &l)| {

@@ -221,7 +221,7 @@ fn ct_round_trips_through_nii_and_nii_gz_on_oblique_and_reflected_grids() {
                 let expected_type = if fractional { 16 } else { 4 };
                 assert_eq!(le_i16(&header, 70), expected_type, "{path:?}");
                 let back = read_nifti(&path).unwrap();
-                assert_eq!(back.data, ct.data, "{path:?}");
+                assert_eq!(back.as_slice(), ct.as_slice(), "{path:?}");
                 let err = geometry_error_mm(&back.geometry, &geometry);
                 assert!(err < 1e-5, "{path:?}: geometry off by {err:.2e} mm");
             }
@@ -248,7 +248,7 @@ fn labels_round_trip_through_nii_and_nii_gz_on_oblique_and_reflected_grids() {
             assert_eq!(le_i16(&header, 70), 2, "uint8");
             assert_eq!(le_i16(&header, 68), 1002, "label intent");
             let back = read_nifti_labels(&path).unwrap();
-            assert_eq!(back.data, volume.data);
+            assert_eq!(back.as_slice(), volume.as_slice());
             let err = geometry_error_mm(&back.geometry, &geometry);
             assert!(err < 1e-5, "{path:?}: geometry off by {err:.2e} mm");
         }
@@ -418,7 +418,10 @@ fn qform_with_qfac_minus_one_follows_the_standard() {
     // Voxel (1, 1, 1) in RAS: offset + (0, 0.5, 0) + (−2, 0, 0) + (0, 0, −4) = (8, −19.5, 26).
     let p = g.voxel_to_lps_mm(Vector3::new(1.0, 1.0, 1.0));
     assert!((p - Vector3::new(-8.0, 19.5, 26.0)).norm() < 1e-5, "{p}");
-    assert_eq!(v.data, voxels.iter().map(|&x| x as f32).collect::<Vec<_>>());
+    assert_eq!(
+        v.as_slice(),
+        voxels.iter().map(|&x| x as f32).collect::<Vec<_>>()
+    );
 
     // The same header with qfac = +1 keeps k superior.
     h.pixdim[0] = 1.0;
@@ -493,7 +496,7 @@ fn analyze_fallback_units_and_scaling() {
     h.scl_inter = -1024.0;
     let v = read_nifti_bytes(&h.with_i16_voxels(&voxels), "scaled").unwrap();
     let expected: Vec<f32> = voxels.iter().map(|&x| 2.0 * x as f32 - 1024.0).collect();
-    assert_eq!(v.data, expected);
+    assert_eq!(v.as_slice(), expected);
 }
 
 /// A NIfTI-2 file per `nifti2.h`: 540-byte header, 64-bit dims, double affine.
@@ -551,7 +554,10 @@ fn nifti2_is_read_with_its_double_precision_geometry() {
         let v = read_nifti_bytes(&bytes, "nifti2").unwrap();
         let err = geometry_error_mm(&v.geometry, &g);
         assert!(err < 1e-9, "NIfTI-2 geometry off by {err:.2e} mm");
-        assert_eq!(v.data, voxels.iter().map(|&x| x as f32).collect::<Vec<_>>());
+        assert_eq!(
+            v.as_slice(),
+            voxels.iter().map(|&x| x as f32).collect::<Vec<_>>()
+        );
     }
 }
 
@@ -574,8 +580,12 @@ fn totalsegmentator_ct_reads_with_ras_axes_and_round_trips() {
     // Voxel axes point R, A, S: in LPS that is diag(−1, −1, 1).
     let expected = Matrix3::from_diagonal(&Vector3::new(-1.0, -1.0, 1.0));
     assert!((g.direction() - expected).abs().max() < 1e-6, "{g:?}");
-    let min = ct.data.iter().copied().fold(f32::INFINITY, f32::min);
-    let max = ct.data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let min = ct.as_slice().iter().copied().fold(f32::INFINITY, f32::min);
+    let max = ct
+        .as_slice()
+        .iter()
+        .copied()
+        .fold(f32::NEG_INFINITY, f32::max);
     println!(
         "totalseg ct: origin {:?} mm, HU {min} .. {max}",
         g.origin_lps_mm
@@ -602,7 +612,7 @@ fn totalsegmentator_ct_reads_with_ras_axes_and_round_trips() {
     let path = out.join("ct.nii.gz");
     write_nifti_ct(&path, &ct).unwrap();
     let back = read_nifti(&path).unwrap();
-    assert_eq!(back.data, ct.data);
+    assert_eq!(back.as_slice(), ct.as_slice());
     let err = geometry_error_mm(&back.geometry, &g);
     println!("totalseg round trip: geometry error {err:.2e} mm");
     assert!(err < 1e-5, "geometry off by {err:.2e} mm");
@@ -621,7 +631,7 @@ fn cip_nrrd_written_as_nifti_reads_back_identical() {
         let path = out.join(file);
         write_nifti_ct(&path, &ct).unwrap();
         let back = read_nifti(&path).unwrap();
-        assert_eq!(back.data, ct.data);
+        assert_eq!(back.as_slice(), ct.as_slice());
         println!(
             "cip {file}: geometry error {:.2e} mm",
             geometry_error_mm(&back.geometry, &ct.geometry)
@@ -661,7 +671,7 @@ fn non_finite_voxels_are_refused_with_count_and_first_voxel() {
 
     let g = oblique_geometry();
     let mut ct = Volume::filled(g, 0.0f32).unwrap();
-    ct.data[5] = f32::NAN;
+    ct.as_slice_mut()[5] = f32::NAN;
     let path = scratch_dir("nan-write").join("ct.nii");
     let e = write_nifti_ct(&path, &ct).unwrap_err().to_string();
     assert_mentions(&e, &["1 voxels", "NaN"]);
@@ -821,7 +831,7 @@ fn timing_on_a_512_by_512_by_256_ct() {
         let read = t.elapsed();
         let size = std::fs::metadata(&path).unwrap().len();
         println!("{file}: write {written:?}, read {read:?}, {size} bytes");
-        assert_eq!(back.data, ct.data);
+        assert_eq!(back.as_slice(), ct.as_slice());
     }
     std::fs::remove_dir_all(dir).unwrap();
 }

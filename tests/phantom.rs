@@ -32,7 +32,12 @@ fn centroid_lps_mm(truth: &Volume<u8>, code: u8) -> [f64; 3] {
     let [nx, ny, _] = truth.dims();
     let mut sum = Vector3::zeros();
     let mut n = 0usize;
-    for (index, _) in truth.data.iter().enumerate().filter(|(_, &l)| l == code) {
+    for (index, _) in truth
+        .as_slice()
+        .iter()
+        .enumerate()
+        .filter(|(_, &l)| l == code)
+    {
         let ijk = Vector3::new(
             (index % nx) as f64,
             ((index / nx) % ny) as f64,
@@ -92,7 +97,7 @@ fn default_phantom_is_small_enough_to_commit() {
     let counted: usize = p.description.label_counts.iter().map(|c| c.voxels).sum();
     assert_eq!(counted, count);
     for c in &p.description.label_counts {
-        let actual = p.truth.data.iter().filter(|&&l| l == c.code).count();
+        let actual = p.truth.as_slice().iter().filter(|&&l| l == c.code).count();
         assert_eq!(actual, c.voxels, "label {}", c.name);
         assert!(
             c.voxels > 0,
@@ -111,9 +116,9 @@ fn same_seed_is_bit_identical_and_another_seed_changes_only_the_noise() {
     let b = generate_thorax_phantom(&settings).unwrap();
     assert!(a
         .ct
-        .data
+        .as_slice()
         .iter()
-        .zip(&b.ct.data)
+        .zip(b.ct.as_slice())
         .all(|(x, y)| x.to_bits() == y.to_bits()));
     assert_eq!(a.truth, b.truth);
     // The thread count does not matter either.
@@ -124,9 +129,9 @@ fn same_seed_is_bit_identical_and_another_seed_changes_only_the_noise() {
         .install(|| generate_thorax_phantom(&settings).unwrap());
     assert!(a
         .ct
-        .data
+        .as_slice()
         .iter()
-        .zip(&single.ct.data)
+        .zip(single.ct.as_slice())
         .all(|(x, y)| x.to_bits() == y.to_bits()));
     assert_eq!(a.truth, single.truth);
 
@@ -138,9 +143,9 @@ fn same_seed_is_bit_identical_and_another_seed_changes_only_the_noise() {
     assert_eq!(a.truth, other.truth, "the seed must not move anatomy");
     // Away from the −1024 clamp in air, the difference is two independent noises.
     let diffs: Vec<f64> =
-        a.ct.data
+        a.ct.as_slice()
             .iter()
-            .zip(&other.ct.data)
+            .zip(other.ct.as_slice())
             .filter(|(x, y)| x.min(**y) > AIR_HU + 100.0)
             .map(|(x, y)| (x - y) as f64)
             .collect();
@@ -231,7 +236,7 @@ fn landmarks_sit_on_the_labelled_anatomy() {
         // Nothing of this lung lies above its apex.
         let top = p
             .truth
-            .data
+            .as_slice()
             .iter()
             .enumerate()
             .filter(|(_, &c)| c == lung)
@@ -260,10 +265,16 @@ fn tumour_lies_inside_the_right_lung() {
     let dims = p.truth.dims();
     let mut touching = [0usize; 9];
     let mut tumour_voxels = 0;
-    for (i, _) in p.truth.data.iter().enumerate().filter(|(_, &l)| l == code) {
+    for (i, _) in p
+        .truth
+        .as_slice()
+        .iter()
+        .enumerate()
+        .filter(|(_, &l)| l == code)
+    {
         tumour_voxels += 1;
         for n in neighbours(dims, i) {
-            touching[p.truth.data[n] as usize] += 1;
+            touching[p.truth.as_slice()[n] as usize] += 1;
         }
     }
     let radius = PhantomSettings::default().tumour.unwrap().radius_mm;
@@ -286,9 +297,9 @@ fn tumour_lies_inside_the_right_lung() {
     // Tumour CT numbers match its label.
     let hu = mean(
         p.truth
-            .data
+            .as_slice()
             .iter()
-            .zip(&p.ct.data)
+            .zip(p.ct.as_slice())
             .filter(|(&l, _)| l == code)
             .map(|(_, &h)| h as f64),
     );
@@ -303,7 +314,7 @@ fn tumour_lies_inside_the_right_lung() {
         ..PhantomSettings::default()
     })
     .unwrap();
-    assert!(!none.truth.data.contains(&code));
+    assert!(!none.truth.as_slice().contains(&code));
     assert_eq!(label_at(&none.truth, centre), Tissue::RightLung.code());
     assert!(none.description.landmarks.tumour_centre_lps_mm.is_none());
 }
@@ -316,13 +327,13 @@ fn labels_agree_with_ct_numbers() {
     let interior_mean = |code: u8| {
         mean(
             p.truth
-                .data
+                .as_slice()
                 .iter()
                 .enumerate()
                 .filter(|&(i, &l)| {
-                    l == code && neighbours(dims, i).all(|n| p.truth.data[n] == code)
+                    l == code && neighbours(dims, i).all(|n| p.truth.as_slice()[n] == code)
                 })
-                .map(|(i, _)| p.ct.data[i] as f64),
+                .map(|(i, _)| p.ct.as_slice()[i] as f64),
         )
     };
     for (tissue, nominal, tolerance) in [
@@ -347,9 +358,9 @@ fn labels_agree_with_ct_numbers() {
     let all_mean = |code: u8| {
         mean(
             p.truth
-                .data
+                .as_slice()
                 .iter()
-                .zip(&p.ct.data)
+                .zip(p.ct.as_slice())
                 .filter(|(&l, _)| l == code)
                 .map(|(_, &h)| h as f64),
         )
@@ -374,10 +385,10 @@ fn trachea_reaches_both_lungs_through_the_bronchi() {
     // Seeds: airway voxels in the top slice (the trachea leaves the field of view there).
     let top = (nz - 1) * nx * ny;
     let seeds: Vec<usize> = (top..top + nx * ny)
-        .filter(|&i| p.truth.data[i] == airway)
+        .filter(|&i| p.truth.as_slice()[i] == airway)
         .collect();
     assert!(!seeds.is_empty(), "no trachea in the top slice");
-    let mut seen = vec![false; p.truth.data.len()];
+    let mut seen = vec![false; p.truth.as_slice().len()];
     let mut queue: VecDeque<usize> = seeds.into_iter().collect();
     for &s in &queue {
         seen[s] = true;
@@ -385,7 +396,7 @@ fn trachea_reaches_both_lungs_through_the_bronchi() {
     let mut reached = [false; 9];
     while let Some(v) = queue.pop_front() {
         for n in neighbours(dims, v) {
-            let l = p.truth.data[n];
+            let l = p.truth.as_slice()[n];
             reached[l as usize] = true;
             if l == airway && !seen[n] {
                 seen[n] = true;
@@ -406,11 +417,13 @@ fn trachea_reaches_both_lungs_through_the_bronchi() {
     // The lungs are separate: no lung voxel touches the other lung.
     let touching = p
         .truth
-        .data
+        .as_slice()
         .iter()
         .enumerate()
         .filter(|(_, &l)| l == Tissue::RightLung.code())
-        .any(|(i, _)| neighbours(dims, i).any(|n| p.truth.data[n] == Tissue::LeftLung.code()));
+        .any(|(i, _)| {
+            neighbours(dims, i).any(|n| p.truth.as_slice()[n] == Tissue::LeftLung.code())
+        });
     assert!(!touching, "the lungs touch each other");
 }
 

@@ -154,7 +154,7 @@ fn overlay_colours_exactly_the_labelled_voxels() {
         for j in 0..10 {
             for i in 0..5 {
                 let n = lab_g.index(i, j, k);
-                labels.data[n] = 3;
+                labels.as_slice_mut()[n] = 3;
             }
         }
     }

@@ -132,7 +132,7 @@ fn fields_are_on_the_ct_grid_finite_and_zero_outside_the_lungs() {
         assert!(geometry.same_grid(&ct.geometry, 1e-3), "{geometry:?}");
         assert_eq!(field.len(), ct.geometry.voxel_count());
         let mut max_mm: f64 = 0.0;
-        for (u, &l) in field.iter().zip(&lungs.data) {
+        for (u, &l) in field.iter().zip(lungs.as_slice()) {
             assert!(u.iter().all(|c| c.is_finite()));
             if l == 0 {
                 assert_eq!(*u, [0.0; 3]);

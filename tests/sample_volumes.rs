@@ -20,14 +20,15 @@ fn committed_sample_is_what_the_generator_makes_in_both_formats() {
     let nii = nifti::read_nifti(&sample("phantom-ct.nii.gz")).unwrap();
     assert!(nii.geometry.same_grid(&fresh.ct.geometry, 1e-4));
     assert_eq!(
-        nii.data, fresh.ct.data,
+        nii.as_slice(),
+        fresh.ct.as_slice(),
         "sample-volumes/ is stale: run `cargo run --release -- phantom`"
     );
     let truth = nifti::read_nifti_labels(&sample("phantom-truth.nii.gz")).unwrap();
-    assert_eq!(truth.data, fresh.truth.data);
+    assert_eq!(truth.as_slice(), fresh.truth.as_slice());
     let series = dicom::read_dicom_series(&sample("phantom-dicom")).unwrap();
     assert!(series.volume.geometry.same_grid(&nii.geometry, 1e-3));
-    assert_eq!(series.volume.data, nii.data);
+    assert_eq!(series.volume.as_slice(), nii.as_slice());
     assert_eq!(series.info.modality, "CT");
 }
 
@@ -62,7 +63,13 @@ fn phantom_lungs_are_segmented_as_its_truth_says() {
     let carina_z = phantom.description.landmarks.carina_lps_mm[2];
     let g = phantom.truth.geometry;
     let (mut trachea, mut in_lungs) = (0, 0);
-    for (idx, (&t, &l)) in phantom.truth.data.iter().zip(&seg.lungs.data).enumerate() {
+    for (idx, (&t, &l)) in phantom
+        .truth
+        .as_slice()
+        .iter()
+        .zip(seg.lungs.as_slice())
+        .enumerate()
+    {
         let k = idx / (g.dims[0] * g.dims[1]);
         let z = g
             .voxel_to_lps_mm(nalgebra::Vector3::new(0.0, 0.0, k as f64))

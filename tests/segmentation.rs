@@ -23,7 +23,7 @@ fn cip_case_matches_the_expert_lung_map() {
     let ct = read_nrrd(&dir.join("ct-64.nrrd")).unwrap();
     let expert = cip_expert_labels(&read_nrrd(&dir.join("lm-64.nrrd")).unwrap());
     let voxel_ml = ct.geometry.voxel_volume_mm3() / 1000.0;
-    let count = |v: &Volume<u8>, l: u8| v.data.iter().filter(|&&x| x == l).count() as f64;
+    let count = |v: &Volume<u8>, l: u8| v.as_slice().iter().filter(|&&x| x == l).count() as f64;
     let expert_right_ml = count(&expert, RIGHT_LUNG) * voxel_ml;
     let expert_left_ml = count(&expert, LEFT_LUNG) * voxel_ml;
     let expert_airway_ml = count(&expert, CIP_AIRWAY_LABEL) * voxel_ml;
@@ -83,9 +83,9 @@ fn cip_case_matches_the_expert_lung_map() {
         assert!(seg.lungs.geometry.same_grid(&ct.geometry, 1e-9));
         let outside_body = seg
             .lungs
-            .data
+            .as_slice()
             .iter()
-            .zip(&seg.body.data)
+            .zip(seg.body.as_slice())
             .filter(|(&l, &b)| l != 0 && b == 0)
             .count();
         assert_eq!(outside_body, 0);
@@ -341,7 +341,7 @@ fn bad_settings_and_mismatched_grids_are_refused() {
     .unwrap();
     assert!(dice(&a, 1, &b, 1).is_err());
     let mut c = a.clone();
-    c.data[..32].fill(0);
+    c.as_slice_mut()[..32].fill(0);
     // 32 common voxels of 64 and 32: 2·32/96.
     assert!((dice(&a, 1, &c, 1).unwrap() - 64.0 / 96.0).abs() < 1e-12);
 }

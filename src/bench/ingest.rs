@@ -172,7 +172,7 @@ pub fn upsample_trilinear(ct: &Volume<f32>, dims: [usize; 3]) -> Result<Volume<f
         .zip(&tz)
         .for_each(|(slice, &(k0, k1, wz))| {
             for (row, &(j0, j1, wy)) in slice.chunks_mut(dims[0]).zip(&ty) {
-                let at = |i: usize, j: usize, k: usize| ct.data[i + sx * (j + sy * k)];
+                let at = |i: usize, j: usize, k: usize| ct.as_slice()[i + sx * (j + sy * k)];
                 for (out, &(i0, i1, wx)) in row.iter_mut().zip(&tx) {
                     let lerp = |a: f32, b: f32, w: f32| a + (b - a) * w;
                     let c00 = lerp(at(i0, j0, k0), at(i1, j0, k0), wx);
@@ -231,7 +231,7 @@ fn bench_cip(
     let seg = last.ok_or_else(|| Error::InvalidInput("no run".into()))?;
     let union = |v: &Volume<u8>| v.map(|l| (l == RIGHT_LUNG || l == LEFT_LUNG) as u8);
     let voxel_ml = ct.geometry.voxel_volume_mm3() / 1000.0;
-    let count = |l: u8| expert.data.iter().filter(|&&x| x == l).count() as f64 * voxel_ml;
+    let count = |l: u8| expert.as_slice().iter().filter(|&&x| x == l).count() as f64 * voxel_ml;
     Ok(CipSegmentationBench {
         time: TimeStats::new(&times),
         dice_lungs: dice(&union(&seg.lungs), 1, &union(&expert), 1)?,

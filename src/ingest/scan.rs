@@ -124,7 +124,7 @@ pub fn load_ct(path: &Path) -> Result<LoadedScan> {
 pub fn check_hounsfield(ct: &Volume<f32>, path: &Path) -> Result<Vec<String>> {
     use rayon::prelude::*;
     let (non_finite, below_air, min, max) = ct
-        .data
+        .as_slice()
         .par_iter()
         .fold(
             || (0usize, 0usize, f32::INFINITY, f32::NEG_INFINITY),
@@ -146,7 +146,7 @@ pub fn check_hounsfield(ct: &Volume<f32>, path: &Path) -> Result<Vec<String>> {
             "{name}: {non_finite} voxels are NaN or infinite"
         )));
     }
-    let fraction = below_air as f64 / ct.data.len() as f64;
+    let fraction = below_air as f64 / ct.as_slice().len() as f64;
     if fraction < MIN_AIR_FRACTION {
         return Err(Error::InvalidScan(format!(
             "{name}: not a chest CT in Hounsfield units: only {:.2} % of voxels are below \
@@ -208,13 +208,13 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("mr.nii") && e.contains("Hounsfield"), "{e}");
-        for v in ct.data.iter_mut().take(100) {
+        for v in ct.as_slice_mut().iter_mut().take(100) {
             *v = -1000.0;
         }
         assert!(check_hounsfield(&ct, Path::new("ct.nii"))
             .unwrap()
             .is_empty());
-        ct.data[200] = f32::NAN;
+        ct.as_slice_mut()[200] = f32::NAN;
         let e = check_hounsfield(&ct, Path::new("ct.nii"))
             .unwrap_err()
             .to_string();

@@ -86,7 +86,7 @@ impl FieldSampler {
         let g = lungs.geometry;
         let [nx, ny, _] = g.dims;
         let located: Vec<(u32, Option<Location>)> = lungs
-            .data
+            .as_slice()
             .par_iter()
             .enumerate()
             .filter(|(_, &l)| l != 0)
@@ -381,7 +381,7 @@ mod tests {
                         && p.z > 0.0
                         && p.z < 20.0
                     {
-                        lungs.data[geometry.index(i, j, k)] = 1;
+                        lungs.as_slice_mut()[geometry.index(i, j, k)] = 1;
                         inside += 1;
                     }
                 }
@@ -402,7 +402,7 @@ mod tests {
         for (idx, u) in field.iter().enumerate() {
             let (i, j, k) = (idx % 24, (idx / 24) % 20, idx / 480);
             let p_m = geometry.voxel_to_lps_mm(V3::new(i as f64, j as f64, k as f64)) * 1e-3;
-            let expected = if lungs.data[idx] != 0 {
+            let expected = if lungs.as_slice()[idx] != 0 {
                 (a * p_m + b) * 1e3
             } else {
                 V3::zeros()

@@ -121,7 +121,7 @@ pub fn lung_centroid_lps_mm(lungs: &Volume<u8>) -> [f64; 3] {
     let g = &lungs.geometry;
     let [nx, ny, _] = g.dims;
     let (mut sum, mut n) = (Vector3::zeros(), 0usize);
-    for (idx, &v) in lungs.data.iter().enumerate() {
+    for (idx, &v) in lungs.as_slice().iter().enumerate() {
         if v != 0 {
             let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
             sum += Vector3::new(i as f64, j as f64, k as f64);

@@ -446,12 +446,12 @@ fn argument(what: &str, reason: String) -> Error {
 
 fn check_volume<T>(v: &Volume<T>, what: &str) -> Result<()> {
     v.geometry.validate(what)?;
-    if v.data.len() != v.geometry.voxel_count() {
+    if v.as_slice().len() != v.geometry.voxel_count() {
         return Err(argument(
             what,
             format!(
                 "{} voxels for a grid of {:?}",
-                v.data.len(),
+                v.as_slice().len(),
                 v.geometry.dims
             ),
         ));
@@ -576,12 +576,20 @@ fn sample_trilinear(v: &Volume<f32>, ijk: Vector3<f64>) -> Option<f32> {
     ];
     let i = v.geometry.index(base[0], base[1], base[2]);
     let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-    let x00 = lerp(v.data[i], v.data[i + step[0]], frac[0]);
-    let x10 = lerp(v.data[i + step[1]], v.data[i + step[1] + step[0]], frac[0]);
-    let x01 = lerp(v.data[i + step[2]], v.data[i + step[2] + step[0]], frac[0]);
+    let x00 = lerp(v.as_slice()[i], v.as_slice()[i + step[0]], frac[0]);
+    let x10 = lerp(
+        v.as_slice()[i + step[1]],
+        v.as_slice()[i + step[1] + step[0]],
+        frac[0],
+    );
+    let x01 = lerp(
+        v.as_slice()[i + step[2]],
+        v.as_slice()[i + step[2] + step[0]],
+        frac[0],
+    );
     let x11 = lerp(
-        v.data[i + step[2] + step[1]],
-        v.data[i + step[2] + step[1] + step[0]],
+        v.as_slice()[i + step[2] + step[1]],
+        v.as_slice()[i + step[2] + step[1] + step[0]],
         frac[0],
     );
     Some(lerp(

@@ -56,12 +56,12 @@ fn series_error(what: &str, m: String) -> Error {
 fn check_volume_fits(volume: &Volume<f32>, what: &str) -> Result<()> {
     let g = volume.geometry;
     g.validate(&format!("DICOM series {what}"))?;
-    if volume.data.len() != g.voxel_count() {
+    if volume.as_slice().len() != g.voxel_count() {
         return Err(series_error(
             what,
             format!(
                 "volume holds {} voxels, its grid {:?} needs {}",
-                volume.data.len(),
+                volume.as_slice().len(),
                 g.dims,
                 g.voxel_count()
             ),
@@ -80,7 +80,7 @@ fn check_volume_fits(volume: &Volume<f32>, what: &str) -> Result<()> {
 /// shift that puts the minimum at −32768; values must be finite and span at most 16 bits.
 fn shared_rescale_intercept(volume: &Volume<f32>, what: &str) -> Result<f64> {
     let (min_hu, max_hu) = volume
-        .data
+        .as_slice()
         .par_iter()
         .try_fold(
             || (f32::INFINITY, f32::NEG_INFINITY),
@@ -256,7 +256,7 @@ fn put_image_pixel_elements(
     let g = volume.geometry;
     let frame_len = g.dims[0] * g.dims[1];
     let intercept = series.intercept;
-    let pixels: Vec<u16> = volume.data[k * frame_len..(k + 1) * frame_len]
+    let pixels: Vec<u16> = volume.as_slice()[k * frame_len..(k + 1) * frame_len]
         .iter()
         .map(|&hu| ((hu.round() as f64 - intercept) as i16) as u16)
         .collect();
@@ -344,7 +344,10 @@ impl UidRoot {
             .chain(&g.origin_lps_mm)
             .chain(g.direction_lps.iter().flatten())
             .for_each(|v| mix(v.to_bits()));
-        volume.data.iter().for_each(|v| mix(u64::from(v.to_bits())));
+        volume
+            .as_slice()
+            .iter()
+            .for_each(|v| mix(u64::from(v.to_bits())));
         UidRoot { key: h }
     }
 

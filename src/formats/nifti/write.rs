@@ -24,14 +24,14 @@ const NIFTI1_VOX_OFFSET: usize = 352;
 /// Writes a CT volume (HU) as NIfTI-1: int16 when lossless, float32 otherwise.
 pub fn write_nifti_ct(path: &Path, volume: &Volume<f32>) -> Result<()> {
     let what = path.display().to_string();
-    check_volume(&volume.geometry, volume.data.len(), &what)?;
+    check_volume(&volume.geometry, volume.as_slice().len(), &what)?;
     refuse_non_finite(
-        &volume.data,
+        volume.as_slice(),
         &volume.geometry,
         &format!("{what}: CT to write"),
     )?;
     let fits_int16 = volume
-        .data
+        .as_slice()
         .par_iter()
         .all(|&v| v.fract() == 0.0 && (i16::MIN as f32..=i16::MAX as f32).contains(&v));
     let datatype = if fits_int16 {
@@ -49,13 +49,13 @@ pub fn write_nifti_ct(path: &Path, volume: &Volume<f32>) -> Result<()> {
     };
     let mut bytes = nifti1_header(&header);
     let start = bytes.len();
-    bytes.resize(start + volume.data.len() * datatype.bytes(), 0);
+    bytes.resize(start + volume.as_slice().len() * datatype.bytes(), 0);
     if fits_int16 {
-        encode(&volume.data, &mut bytes[start..], |v| {
+        encode(volume.as_slice(), &mut bytes[start..], |v| {
             (v as i16).to_le_bytes()
         });
     } else {
-        encode(&volume.data, &mut bytes[start..], |v| v.to_le_bytes());
+        encode(volume.as_slice(), &mut bytes[start..], |v| v.to_le_bytes());
     }
     write_file(path, bytes)
 }
@@ -63,7 +63,7 @@ pub fn write_nifti_ct(path: &Path, volume: &Volume<f32>) -> Result<()> {
 /// Writes a label map as uint8 NIfTI-1 with the label intent.
 pub fn write_nifti_labels(path: &Path, labels: &Volume<u8>) -> Result<()> {
     let what = path.display().to_string();
-    check_volume(&labels.geometry, labels.data.len(), &what)?;
+    check_volume(&labels.geometry, labels.as_slice().len(), &what)?;
     let header = HeaderSpec {
         geometry: &labels.geometry,
         components: 1,
@@ -73,7 +73,7 @@ pub fn write_nifti_labels(path: &Path, labels: &Volume<u8>) -> Result<()> {
         description: LABELS_DESCRIPTION,
     };
     let mut bytes = nifti1_header(&header);
-    bytes.extend_from_slice(&labels.data);
+    bytes.extend_from_slice(labels.as_slice());
     write_file(path, bytes)
 }
 

@@ -115,16 +115,17 @@ fn check_inputs(
     settings: &LungModelSettings,
 ) -> Result<()> {
     lungs.geometry.validate("lung mask")?;
-    if lungs.data.len() != lungs.geometry.voxel_count() {
+    if lungs.as_slice().len() != lungs.geometry.voxel_count() {
         return Err(Error::InvalidInput(format!(
             "lung mask: grid {:?} needs {} voxels, has {}",
             lungs.geometry.dims,
             lungs.geometry.voxel_count(),
-            lungs.data.len()
+            lungs.as_slice().len()
         )));
     }
     let same = |other: &Volume<u8>, what: &str| -> Result<()> {
-        if !lungs.geometry.same_grid(&other.geometry, 1e-3) || other.data.len() != lungs.data.len()
+        if !lungs.geometry.same_grid(&other.geometry, 1e-3)
+            || other.as_slice().len() != lungs.as_slice().len()
         {
             return Err(Error::InvalidInput(format!(
                 "{what} is on a different grid than the lung mask ({:?} voxels of {:?} mm at \
@@ -143,24 +144,24 @@ fn check_inputs(
     if let Some(o) = &settings.group_overrides {
         same(o, "group override map")?;
         if let Some(i) = o
-            .data
+            .as_slice()
             .iter()
             .position(|&v| v > ConstraintGroup::Apex.code())
         {
             return Err(Error::InvalidInput(format!(
                 "group override map holds code {} at voxel {i}; codes are 0 (none) and 1–5 \
                  (hilum, mediastinal, costal, diaphragmatic, apex)",
-                o.data[i]
+                o.as_slice()[i]
             )));
         }
     }
-    if let Some(i) = lungs.data.iter().position(|&v| v > LEFT_LUNG) {
+    if let Some(i) = lungs.as_slice().iter().position(|&v| v > LEFT_LUNG) {
         return Err(Error::InvalidInput(format!(
             "lung mask holds label {} at voxel {i}; expected 0 background, 1 right lung, 2 left lung",
-            lungs.data[i]
+            lungs.as_slice()[i]
         )));
     }
-    if !lungs.data.iter().any(|&v| v != 0) {
+    if !lungs.as_slice().iter().any(|&v| v != 0) {
         return Err(Error::InvalidInput(
             "lung mask is empty: no voxel is labelled 1 (right lung) or 2 (left lung)".into(),
         ));

@@ -48,7 +48,7 @@ fn airway_contact(lungs: &Volume<u8>, airways: &Volume<u8>, lung: u8) -> (usize,
     let g = &lungs.geometry;
     let [nx, ny, _] = g.dims;
     airways
-        .data
+        .as_slice()
         .par_chunks(nx * ny)
         .enumerate()
         .map(|(k, slab)| {

@@ -32,7 +32,7 @@ impl CellLattice {
         let [nx, ny, _] = g.dims;
         // Voxel-index box of the lung voxels, per slab then reduced.
         let (lo, hi) = lungs
-            .data
+            .as_slice()
             .par_chunks(nx * ny)
             .enumerate()
             .map(|(k, slab)| {

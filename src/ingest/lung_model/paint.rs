@@ -20,7 +20,7 @@ pub(super) fn paint_groups(
     let index = SurfaceNodeIndex::new(lattice, meshes);
     let g = &lungs.geometry;
     let [nx, ny, _] = g.dims;
-    let mut out = vec![0u8; lungs.data.len()];
+    let mut out = vec![0u8; lungs.as_slice().len()];
     let origin = lattice.point_mm([0, 0, 0]);
     out.par_chunks_mut(nx * ny)
         .enumerate()

@@ -94,7 +94,7 @@ impl MaskVoxels {
     pub(super) fn count(lungs: &Volume<u8>) -> Self {
         MaskVoxels {
             per_lung: [RIGHT_LUNG, LEFT_LUNG]
-                .map(|l| lungs.data.par_iter().filter(|&&v| v == l).count()),
+                .map(|l| lungs.as_slice().par_iter().filter(|&&v| v == l).count()),
             voxel_ml: lungs.geometry.voxel_volume_mm3() * 1e-3,
         }
     }

@@ -110,7 +110,7 @@ fn sample_inside(lungs: &Volume<u8>, grid: &WallGrid) -> Vec<u8> {
 fn count_contact_voxels(lungs: &Volume<u8>) -> usize {
     let [cnx, cny, _] = lungs.geometry.dims;
     lungs
-        .data
+        .as_slice()
         .par_chunks(cnx * cny)
         .enumerate()
         .map(|(k, slab)| {

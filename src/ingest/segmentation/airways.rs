@@ -102,7 +102,7 @@ pub(super) fn find_trachea_seed(
             let (_, c) = best?;
             lab.voxels_of(c)
                 .map(|p| slice_voxel(dims, axial, s, p % nu, p / nu))
-                .min_by(|&a, &b| ct.data[a].total_cmp(&ct.data[b]))
+                .min_by(|&a, &b| ct.as_slice()[a].total_cmp(&ct.as_slice()[b]))
         })
         .collect();
     // The topmost slice from which the blob persists over `persist` slices downwards; the
@@ -134,7 +134,7 @@ pub(super) fn grow_airway(
     let max_voxels = (settings.airway_max_ml / voxel_ml).ceil() as usize;
     let min_voxels = (settings.airway_min_ml / voxel_ml).ceil() as usize;
     let ceiling = settings.airway_max_hu.min(threshold_hu);
-    let level = |idx: usize| ct.data[idx].ceil() as i32;
+    let level = |idx: usize| ct.as_slice()[idx].ceil() as i32;
     let mut queued = std::collections::HashSet::new();
     let mut heap = BinaryHeap::new();
     heap.push(std::cmp::Reverse((level(seed), seed as u32)));

@@ -91,16 +91,16 @@ pub const LEFT_LUNG: u8 = 2;
 /// Dice overlap 2|A∩B|/(|A|+|B|) of voxels labelled `label_a` in `a` and `label_b` in `b`
 /// (1 when both are empty); the grids must be the same.
 pub fn dice(a: &Volume<u8>, label_a: u8, b: &Volume<u8>, label_b: u8) -> Result<f64> {
-    if !a.geometry.same_grid(&b.geometry, 1e-3) || a.data.len() != b.data.len() {
+    if !a.geometry.same_grid(&b.geometry, 1e-3) || a.as_slice().len() != b.as_slice().len() {
         return Err(Error::InvalidInput(format!(
             "Dice needs two masks on the same grid (got {:?} and {:?})",
             a.geometry.dims, b.geometry.dims
         )));
     }
     let (both, na, nb) = a
-        .data
+        .as_slice()
         .par_iter()
-        .zip(&b.data)
+        .zip(b.as_slice())
         .fold(
             || (0usize, 0usize, 0usize),
             |(both, na, nb), (&x, &y)| {
@@ -207,12 +207,12 @@ impl ScanGrid {
     fn of(ct: &Volume<f32>) -> Result<Self> {
         let g = ct.geometry;
         g.validate("CT for segmentation")?;
-        if ct.data.len() != g.voxel_count() {
+        if ct.as_slice().len() != g.voxel_count() {
             return Err(Error::InvalidScan(format!(
                 "CT for segmentation: grid {:?} needs {} voxels, the volume holds {}",
                 g.dims,
                 g.voxel_count(),
-                ct.data.len()
+                ct.as_slice().len()
             )));
         }
         let dims = g.dims;
@@ -287,7 +287,7 @@ fn segment_body(
 ) -> Result<Body> {
     let dims = grid.geometry.dims;
     let mut body: Vec<u8> = ct
-        .data
+        .as_slice()
         .par_iter()
         .map(|&hu| (hu > settings.body_threshold_hu) as u8)
         .collect();
@@ -321,7 +321,7 @@ fn choose_threshold_hu(
     match settings.threshold_method {
         ThresholdMethod::Fixed => settings.air_threshold_hu,
         ThresholdMethod::Otsu => {
-            let t = otsu_threshold_hu(&ct.data, body);
+            let t = otsu_threshold_hu(ct.as_slice(), body);
             let clamped = t.clamp(-700.0, -200.0);
             if clamped != t {
                 warnings.push(format!(
@@ -345,7 +345,7 @@ fn lung_sized_air(
     dropped: &mut DroppedAir,
 ) -> Result<LungAir> {
     let air: Vec<u8> = ct
-        .data
+        .as_slice()
         .par_iter()
         .zip(body)
         .map(|(&hu, &b)| (b != 0 && hu < threshold_hu) as u8)

@@ -138,7 +138,7 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
 /// Refuses lung labels off the CT grid and a field of the wrong size or not finite.
 fn check_look_input(input: &DisplacementLookInput) -> Result<()> {
     let g = &input.ct.geometry;
-    if !input.lungs.geometry.same_grid(g, 1e-3) || input.lungs.data.len() != g.voxel_count() {
+    if !input.lungs.geometry.same_grid(g, 1e-3) || input.lungs.as_slice().len() != g.voxel_count() {
         return Err(Error::InvalidInput(format!(
             "displacement quick look: the lung labels ({:?}) are not on the CT grid ({:?})",
             input.lungs.geometry.dims, g.dims
@@ -178,7 +178,7 @@ fn colour_bar_top_mm(input: &DisplacementLookInput) -> Result<f32> {
             let largest = input
                 .displacement_mm
                 .par_iter()
-                .zip(&input.lungs.data)
+                .zip(input.lungs.as_slice())
                 .filter(|(_, &l)| l != 0)
                 .map(|(u, _)| magnitude(u))
                 .reduce(|| 0.0, f32::max);
@@ -345,7 +345,7 @@ fn paint_slice_and_magnitude(
     let (panel, base, refine) = (&slice.panel, &slice.base, slice.refine);
     let (pw, ph) = (panel.width_px, panel.height_px);
     let width = image.width;
-    let lungs = &input.lungs.data;
+    let lungs = input.lungs.as_slice();
     let field = input.displacement_mm;
     image
         .pixels
@@ -382,7 +382,7 @@ fn grid_arrows(
 ) -> Vec<Arrow> {
     let (pw, ph) = (panel.width_px, panel.height_px);
     let (spacing_px, arrow_px_per_mm) = (layout.spacing_px, layout.arrow_px_per_mm);
-    let lungs = &input.lungs.data;
+    let lungs = input.lungs.as_slice();
     let field = input.displacement_mm;
     let mut arrows = Vec::new();
     for row in (spacing_px / 2..ph).step_by(spacing_px) {
@@ -460,7 +460,7 @@ fn draw_look_annotations(
 pub fn lung_centroid_lps_mm(lungs: &Volume<u8>) -> Option<[f64; 3]> {
     let [nx, ny, _] = lungs.geometry.dims;
     let (sum, count) = lungs
-        .data
+        .as_slice()
         .par_iter()
         .enumerate()
         .filter(|(_, &l)| l != 0)
