@@ -41,6 +41,7 @@ use crate::datasets::cip_chest_ct64;
 use crate::ingest::lung_model::LungModelSettings;
 use crate::ingest::pipeline::{ingest_scan, IngestSettings};
 use crate::ingest::scan::load_ct;
+use crate::markdown::{mib, or_dash, Table};
 use crate::math::V3;
 use crate::model::Material;
 use crate::motion::{
@@ -715,12 +716,6 @@ fn bench_accuracy(
     })
 }
 
-fn mib(b: Option<u64>) -> String {
-    b.map_or("–".into(), |b| {
-        format!("{:.0} MiB", b as f64 / (1u64 << 20) as f64)
-    })
-}
-
 fn verdict(ok: bool) -> &'static str {
     if ok {
         "met"
@@ -792,30 +787,40 @@ impl ElementSizeBench {
                 let target = self.cycle_target_s.map_or("none stated".to_string(), |t| {
                     format!("≤ {t} s: {}", verdict(c.time.median_s <= t))
                 });
-                let _ = writeln!(
-                    s,
-                    "| Cycle s [min – max] ×runs | Target | Per phase s | CPU s per cycle | Solver set-up s | Keys | Key solves | Key solve s | Key check error mm | Max volume error mL (% tidal) | Peak RSS (before) |\n|---|---|---|---|---|---|---|---|---|---|---|"
-                );
-                let _ = writeln!(
-                    s,
-                    "| {:.3} [{:.3} – {:.3}] ×{} | {} | {:.4} | {} | {:.3} | {} | {} | {:.3} | {:.4} | {:.3} ({:.3} %) | {} ({}) |",
-                    c.time.median_s,
-                    c.time.min_s,
-                    c.time.max_s,
-                    c.time.runs,
+                let mut table = Table::new([
+                    "Cycle s [min – max] ×runs",
+                    "Target",
+                    "Per phase s",
+                    "CPU s per cycle",
+                    "Solver set-up s",
+                    "Keys",
+                    "Key solves",
+                    "Key solve s",
+                    "Key check error mm",
+                    "Max volume error mL (% tidal)",
+                    "Peak RSS (before)",
+                ]);
+                table.row([
+                    format!(
+                        "{:.3} [{:.3} – {:.3}] ×{}",
+                        c.time.median_s, c.time.min_s, c.time.max_s, c.time.runs
+                    ),
                     target,
-                    c.per_phase_s,
-                    c.cpu_per_cycle_s.map_or("–".into(), |v| format!("{v:.2}")),
-                    c.solver_setup_s,
-                    c.keys,
-                    c.key_solves,
-                    c.key_solve_time_s,
-                    c.key_measured_error_mm,
-                    c.max_volume_error_ml,
-                    100.0 * c.max_volume_error_ml / c.tidal_volume_ml.max(f64::MIN_POSITIVE),
-                    mib(c.peak_rss_bytes),
-                    mib(c.rss_before_bytes)
-                );
+                    format!("{:.4}", c.per_phase_s),
+                    or_dash(c.cpu_per_cycle_s, |v| format!("{v:.2}")),
+                    format!("{:.3}", c.solver_setup_s),
+                    c.keys.to_string(),
+                    c.key_solves.to_string(),
+                    format!("{:.3}", c.key_solve_time_s),
+                    format!("{:.4}", c.key_measured_error_mm),
+                    format!(
+                        "{:.3} ({:.3} %)",
+                        c.max_volume_error_ml,
+                        100.0 * c.max_volume_error_ml / c.tidal_volume_ml.max(f64::MIN_POSITIVE)
+                    ),
+                    format!("{} ({})", mib(c.peak_rss_bytes), mib(c.rss_before_bytes)),
+                ]);
+                table.write_to(s);
                 let frames: Vec<String> = c
                     .frame_wall_s
                     .iter()
@@ -844,27 +849,33 @@ impl ElementSizeBench {
         }
         match &self.serving {
             Outcome::Measured(v) => {
-                let _ = writeln!(
-                    s,
-                    "| Fields served per pass | Pass s [min – max] ×runs | Fields/s | Target ≥ {FIELDS_PER_S_TARGET} | Node states/s | Keys (build s) | Newton / GMRES of final key level |\n|---|---|---|---|---|---|---|"
-                );
-                let _ = writeln!(
-                    s,
-                    "| {} × {} voxels | {:.4} [{:.4} – {:.4}] ×{} | {:.0} | {} | {:.0} | {} ({:.3}) | {} / {} |\n",
-                    v.fields,
-                    v.voxels_per_field,
-                    v.fields_time.median_s,
-                    v.fields_time.min_s,
-                    v.fields_time.max_s,
-                    v.fields_time.runs,
-                    v.fields_per_s,
-                    verdict(v.fields_per_s >= FIELDS_PER_S_TARGET),
-                    v.node_states_per_s,
-                    v.keys,
-                    v.key_build_s,
-                    v.final_level_newton_iterations,
-                    v.final_level_linear_iterations
-                );
+                let mut table = Table::new([
+                    "Fields served per pass".to_string(),
+                    "Pass s [min – max] ×runs".into(),
+                    "Fields/s".into(),
+                    format!("Target ≥ {FIELDS_PER_S_TARGET}"),
+                    "Node states/s".into(),
+                    "Keys (build s)".into(),
+                    "Newton / GMRES of final key level".into(),
+                ]);
+                let t = &v.fields_time;
+                table.row([
+                    format!("{} × {} voxels", v.fields, v.voxels_per_field),
+                    format!(
+                        "{:.4} [{:.4} – {:.4}] ×{}",
+                        t.median_s, t.min_s, t.max_s, t.runs
+                    ),
+                    format!("{:.0}", v.fields_per_s),
+                    verdict(v.fields_per_s >= FIELDS_PER_S_TARGET).into(),
+                    format!("{:.0}", v.node_states_per_s),
+                    format!("{} ({:.3})", v.keys, v.key_build_s),
+                    format!(
+                        "{} / {}",
+                        v.final_level_newton_iterations, v.final_level_linear_iterations
+                    ),
+                ]);
+                table.write_to(s);
+                s.push('\n');
             }
             Outcome::Failed(e) => {
                 let _ = writeln!(s, "**Serving FAILED**: {e}\n");
@@ -902,28 +913,36 @@ impl ElementSizeBench {
                     a.interpolated_cycle_s,
                     a.direct_cycle_s
                 );
-                let _ = writeln!(
-                    s,
-                    "| Frame | t s | Target mL | Interp. mL | Direct mL | Node diff mm | Voxel diff mm | Node diff at direct volume mm | Direct solves / Newton / GMRES | Direct s |\n|---|---|---|---|---|---|---|---|---|---|"
-                );
+                let mut table = Table::new([
+                    "Frame",
+                    "t s",
+                    "Target mL",
+                    "Interp. mL",
+                    "Direct mL",
+                    "Node diff mm",
+                    "Voxel diff mm",
+                    "Node diff at direct volume mm",
+                    "Direct solves / Newton / GMRES",
+                    "Direct s",
+                ]);
                 for f in &a.frames {
-                    let _ = writeln!(
-                        s,
-                        "| {} | {:.2} | {:.1} | {:.1} | {:.1} | {:.4} | {:.4} | {:.4} | {} / {} / {} | {:.3} |",
-                        f.index,
-                        f.time_s,
-                        f.target_volume_ml,
-                        f.interpolated_volume_ml,
-                        f.direct_volume_ml,
-                        f.node_difference_mm,
-                        f.field_difference_mm,
-                        f.same_volume_node_difference_mm,
-                        f.direct_solves,
-                        f.direct_newton_iterations,
-                        f.direct_linear_iterations,
-                        f.direct_wall_s
-                    );
+                    table.row([
+                        f.index.to_string(),
+                        format!("{:.2}", f.time_s),
+                        format!("{:.1}", f.target_volume_ml),
+                        format!("{:.1}", f.interpolated_volume_ml),
+                        format!("{:.1}", f.direct_volume_ml),
+                        format!("{:.4}", f.node_difference_mm),
+                        format!("{:.4}", f.field_difference_mm),
+                        format!("{:.4}", f.same_volume_node_difference_mm),
+                        format!(
+                            "{} / {} / {}",
+                            f.direct_solves, f.direct_newton_iterations, f.direct_linear_iterations
+                        ),
+                        format!("{:.3}", f.direct_wall_s),
+                    ]);
                 }
+                table.write_to(s);
                 let _ = writeln!(s);
             }
             Outcome::Failed(e) => {
