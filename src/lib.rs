@@ -52,6 +52,7 @@ pub mod durable;
 pub mod error;
 pub mod formats;
 pub mod ingest;
+pub mod markdown;
 pub mod math;
 pub mod model;
 pub mod motion;

@@ -30,6 +30,7 @@ use crate::formats::nrrd::read_nrrd;
 use crate::ingest::segmentation::{
     dice, segment_lungs, SegmentationSettings, LEFT_LUNG, RIGHT_LUNG,
 };
+use crate::markdown::{mib, or_dash, Table};
 use crate::process::{current_rss_bytes, peak_rss_bytes, process_cpu_s, reset_peak_rss};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
@@ -311,12 +312,6 @@ fn bench_upsampled(
     })
 }
 
-fn mib(b: Option<u64>) -> String {
-    b.map_or("–".into(), |b| {
-        format!("{:.0} MiB", b as f64 / (1u64 << 20) as f64)
-    })
-}
-
 fn steps(s: &[(String, f64)]) -> String {
     s.iter()
         .map(|(n, t)| format!("{n} {t:.3}"))
@@ -338,26 +333,33 @@ impl IngestBench {
         let _ = writeln!(s, "## CIP chest CT (64 × 64 × 79, ≈ 4 mm)\n");
         match &self.cip {
             Outcome::Measured(c) => {
-                let _ = writeln!(
-                    s,
-                    "| Time s [min – max] | Target | Dice both | Dice right | Dice left | Right mL (expert) | Left mL (expert) |\n|---|---|---|---|---|---|---|"
-                );
-                let _ = writeln!(
-                    s,
-                    "| {:.3} [{:.3} – {:.3}] ×{} | ≤ {CIP_TARGET_S} s: {} | {:.4} | {:.4} | {:.4} | {:.0} ({:.0}) | {:.0} ({:.0}) |",
-                    c.time.median_s,
-                    c.time.min_s,
-                    c.time.max_s,
-                    c.time.runs,
-                    if c.time.median_s <= CIP_TARGET_S { "met" } else { "missed" },
-                    c.dice_lungs,
-                    c.dice_right,
-                    c.dice_left,
-                    c.volume_ml[0],
-                    c.expert_volume_ml[0],
-                    c.volume_ml[1],
-                    c.expert_volume_ml[1]
-                );
+                let mut table = Table::new([
+                    "Time s [min – max]",
+                    "Target",
+                    "Dice both",
+                    "Dice right",
+                    "Dice left",
+                    "Right mL (expert)",
+                    "Left mL (expert)",
+                ]);
+                let met = if c.time.median_s <= CIP_TARGET_S {
+                    "met"
+                } else {
+                    "missed"
+                };
+                table.row([
+                    format!(
+                        "{:.3} [{:.3} – {:.3}] ×{}",
+                        c.time.median_s, c.time.min_s, c.time.max_s, c.time.runs
+                    ),
+                    format!("≤ {CIP_TARGET_S} s: {met}"),
+                    format!("{:.4}", c.dice_lungs),
+                    format!("{:.4}", c.dice_right),
+                    format!("{:.4}", c.dice_left),
+                    format!("{:.0} ({:.0})", c.volume_ml[0], c.expert_volume_ml[0]),
+                    format!("{:.0} ({:.0})", c.volume_ml[1], c.expert_volume_ml[1]),
+                ]);
+                table.write_to(&mut s);
                 let _ = writeln!(s, "\nSteps (s): {}", steps(&c.step_times_s));
             }
             Outcome::Failed(e) | Outcome::Skipped(e) => {
@@ -370,38 +372,45 @@ impl IngestBench {
         );
         match &self.upsampled {
             Outcome::Measured(u) => {
-                let _ = writeln!(
-                    s,
-                    "| Grid | Spacing mm | Time s [min – max] | Target ≤ {FULL_TARGET_S} s | CPU s per run | RSS before | Peak RSS | Peak increase | Target ≤ 4 GiB | Lungs mL | Dice vs 4 mm result |\n|---|---|---|---|---|---|---|---|---|---|---|"
-                );
                 let full = u.dims == FULL_GRID;
                 let judge = |ok: bool| match (full, ok) {
                     (false, _) => "n/a (quick grid)",
                     (true, true) => "met",
                     (true, false) => "missed",
                 };
-                let _ = writeln!(
-                    s,
-                    "| {}×{}×{} | {:.2}×{:.2}×{:.2} | {:.2} [{:.2} – {:.2}] ×{} | {} | {} | {} | {} | {} | {} | {:.0} | {:.4} |",
-                    u.dims[0],
-                    u.dims[1],
-                    u.dims[2],
-                    u.spacing_mm[0],
-                    u.spacing_mm[1],
-                    u.spacing_mm[2],
-                    u.time.median_s,
-                    u.time.min_s,
-                    u.time.max_s,
-                    u.time.runs,
-                    judge(u.time.median_s <= FULL_TARGET_S),
-                    u.cpu_per_run_s.map_or("–".into(), |c| format!("{c:.2}")),
+                let mut table = Table::new([
+                    "Grid".to_string(),
+                    "Spacing mm".into(),
+                    "Time s [min – max]".into(),
+                    format!("Target ≤ {FULL_TARGET_S} s"),
+                    "CPU s per run".into(),
+                    "RSS before".into(),
+                    "Peak RSS".into(),
+                    "Peak increase".into(),
+                    "Target ≤ 4 GiB".into(),
+                    "Lungs mL".into(),
+                    "Dice vs 4 mm result".into(),
+                ]);
+                table.row([
+                    format!("{}×{}×{}", u.dims[0], u.dims[1], u.dims[2]),
+                    format!(
+                        "{:.2}×{:.2}×{:.2}",
+                        u.spacing_mm[0], u.spacing_mm[1], u.spacing_mm[2]
+                    ),
+                    format!(
+                        "{:.2} [{:.2} – {:.2}] ×{}",
+                        u.time.median_s, u.time.min_s, u.time.max_s, u.time.runs
+                    ),
+                    judge(u.time.median_s <= FULL_TARGET_S).into(),
+                    or_dash(u.cpu_per_run_s, |c| format!("{c:.2}")),
                     mib(u.rss_before_bytes),
                     mib(u.peak_rss_bytes),
                     mib(u.peak_increase_bytes),
-                    judge(u.peak_rss_bytes.is_some_and(|p| p <= FULL_TARGET_BYTES)),
-                    u.lung_volume_ml,
-                    u.dice_vs_coarse
-                );
+                    judge(u.peak_rss_bytes.is_some_and(|p| p <= FULL_TARGET_BYTES)).into(),
+                    format!("{:.0}", u.lung_volume_ml),
+                    format!("{:.4}", u.dice_vs_coarse),
+                ]);
+                table.write_to(&mut s);
                 let _ = writeln!(
                     s,
                     "\nUpsampling took {:.2} s (not included).{} Steps of the last run (s): {}",

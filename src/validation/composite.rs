@@ -751,13 +751,10 @@ fn stats_cell(s: &Option<ErrorStats>, failure: &Option<String>) -> String {
     }
 }
 
-fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
-    v.map(f).unwrap_or_else(|| "–".into())
-}
-
 impl CompositeReport {
     /// Markdown: one table per case, thesis anchors beside our numbers, then notes.
     pub fn to_markdown(&self) -> String {
+        use crate::markdown::{first_line, or_dash, Table};
         let mut s = String::new();
         s.push_str("## Composite cases against CalculiX C3D8 NLGEOM\n\n");
         s.push_str(
@@ -785,12 +782,22 @@ impl CompositeReport {
                     ))
                     .unwrap_or_default()
             );
-            s.push_str(
-                "| Resolution | Elements | Ours vs ref (mm) | max (mm) | order | CalculiX same mesh \
-                 vs ref (mm) | order | Ours vs CalculiX same mesh (mm) | max strain ours / ccx | \
-                 t ours (s) | t ccx (s) | Thesis |\n",
-            );
-            s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+            let mut table = Table::new([
+                "Resolution",
+                "Elements",
+                "Ours vs ref (mm)",
+                "max (mm)",
+                "order",
+                "CalculiX same mesh vs ref (mm)",
+                "order",
+                "Ours vs CalculiX same mesh (mm)",
+                "max strain ours / ccx",
+                "t ours (s)",
+                "t ccx (s)",
+                "Thesis",
+            ]);
+            let strain = |v: f64| format!("{:.1} %", 100.0 * v);
+            let two_places = |v: f64| format!("{v:.2}");
             for r in &c.rows {
                 let thesis = c
                     .thesis
@@ -801,29 +808,31 @@ impl CompositeReport {
                         _ => a.note.clone(),
                     })
                     .unwrap_or_else(|| "–".into());
-                let _ = writeln!(
-                    s,
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} |",
-                    r.label,
-                    r.elements,
+                table.row([
+                    r.label.clone(),
+                    r.elements.to_string(),
                     stats_cell(&r.mass_spring_error, &r.mass_spring_failure),
-                    opt(r.mass_spring_error.map(|e| e.max_m), mm),
-                    opt(r.mass_spring_order, |v| format!("{v:.2}")),
+                    or_dash(r.mass_spring_error.map(|e| e.max_m), mm),
+                    or_dash(r.mass_spring_order, two_places),
                     stats_cell(&r.calculix_error, &r.calculix_failure),
-                    opt(r.calculix_order, |v| format!("{v:.2}")),
-                    opt(r.mass_spring_vs_calculix_same_mesh.map(|e| e.mean_m), mm),
-                    opt(r.mass_spring_max_strain, |v| format!("{:.1} %", 100.0 * v)),
-                    opt(r.calculix_max_strain, |v| format!("{:.1} %", 100.0 * v)),
-                    opt(r.mass_spring_wall_time_s, |v| format!("{v:.2}")),
-                    opt(r.calculix_wall_time_s, |v| format!("{v:.2}")),
-                    thesis
-                );
+                    or_dash(r.calculix_order, two_places),
+                    or_dash(r.mass_spring_vs_calculix_same_mesh.map(|e| e.mean_m), mm),
+                    format!(
+                        "{} / {}",
+                        or_dash(r.mass_spring_max_strain, strain),
+                        or_dash(r.calculix_max_strain, strain)
+                    ),
+                    or_dash(r.mass_spring_wall_time_s, two_places),
+                    or_dash(r.calculix_wall_time_s, two_places),
+                    thesis,
+                ]);
             }
+            table.write_to(&mut s);
             let _ = writeln!(
                 s,
                 "\nFitted order of the mean error: ours {}, CalculiX {}.",
-                opt(c.mass_spring_fitted_order, |v| format!("{v:.2}")),
-                opt(c.calculix_fitted_order, |v| format!("{v:.2}"))
+                or_dash(c.mass_spring_fitted_order, two_places),
+                or_dash(c.calculix_fitted_order, two_places)
             );
             for r in &c.rows {
                 if let Some(m) = r
@@ -854,10 +863,6 @@ impl CompositeReport {
         }
         s
     }
-}
-
-fn first_line(s: &str) -> &str {
-    s.lines().next().unwrap_or("")
 }
 
 #[cfg(test)]

@@ -510,6 +510,7 @@ fn fmt3(v: [f64; 3]) -> String {
 }
 
 fn difference_markdown(s: &mut String, d: &DisplacementDifference) {
+    use crate::markdown::Table;
     let _ = writeln!(
         s,
         "|Δu| mean {:.3} mm ({:.1} % of the reference's mean displacement), median {:.3} mm, \
@@ -526,21 +527,31 @@ fn difference_markdown(s: &mut String, d: &DisplacementDifference) {
         fmt3(d.max_node_displacement_a_mm),
         fmt3(d.max_node_displacement_b_mm)
     );
-    s.push_str("| Group | Nodes | mean |Δu| (mm) | max |Δu| (mm) | reference mean |u| (mm) |\n");
-    s.push_str("|---|---|---|---|---|\n");
+    // The headings' |Δu| and |u| are not escaped: kept as the published reports have them.
+    let mut table = Table::new([
+        "Group",
+        "Nodes",
+        "mean |Δu| (mm)",
+        "max |Δu| (mm)",
+        "reference mean |u| (mm)",
+    ]);
     for g in &d.per_group {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {:.3} | {:.3} | {:.3} |",
-            g.group, g.nodes, g.mean_mm, g.max_mm, g.reference_mean_displacement_mm
-        );
+        table.row([
+            g.group.clone(),
+            g.nodes.to_string(),
+            format!("{:.3}", g.mean_mm),
+            format!("{:.3}", g.max_mm),
+            format!("{:.3}", g.reference_mean_displacement_mm),
+        ]);
     }
+    table.write_to(s);
     s.push('\n');
 }
 
 impl LungCalculixReport {
     /// The report as a markdown section.
     pub fn to_markdown(&self) -> String {
+        use crate::markdown::{or_dash, Table};
         let mut s = String::new();
         s.push_str("## End-inhale frame against CalculiX\n\n");
         let _ = writeln!(
@@ -562,38 +573,43 @@ impl LungCalculixReport {
             self.pressure_pa,
             self.settings.target_volume_ml
         );
-        s.push_str(
-            "| Solver | max |u| (mm) | mean |u| (mm) | diaphragm mean u_z (mm) | ΔV (mL) | wall \
-             time (s) | memory (MB) |\n|---|---|---|---|---|---|---|\n",
-        );
+        let mut table = Table::new([
+            "Solver",
+            "max |u| (mm)",
+            "mean |u| (mm)",
+            "diaphragm mean u_z (mm)",
+            "ΔV (mL)",
+            "wall time (s)",
+            "memory (MB)",
+        ]);
         let o = &self.ours;
-        let _ = writeln!(
-            s,
-            "| lungmotion (mass–spring) | {:.2} | {:.2} | {:.2} | {:.1} | {:.2} (volume search: \
-             {:.2}, {} solves) | – |",
-            o.field.max_displacement_mm,
-            o.field.mean_displacement_mm,
-            o.field.diaphragm_mean_dz_mm,
-            o.field.volume_change_ml,
-            o.pressure_solve_wall_time_s,
-            o.volume_solve_wall_time_s,
-            o.volume_solves
-        );
+        table.row([
+            "lungmotion (mass–spring)".to_string(),
+            format!("{:.2}", o.field.max_displacement_mm),
+            format!("{:.2}", o.field.mean_displacement_mm),
+            format!("{:.2}", o.field.diaphragm_mean_dz_mm),
+            format!("{:.1}", o.field.volume_change_ml),
+            format!(
+                "{:.2} (volume search: {:.2}, {} solves)",
+                o.pressure_solve_wall_time_s, o.volume_solve_wall_time_s, o.volume_solves
+            ),
+            "–".into(),
+        ]);
         for c in &self.calculix {
-            let _ = writeln!(
-                s,
-                "| CalculiX {:?} ({} increments) | {:.2} | {:.2} | {:.2} | {:.1} | {:.2} | {} |",
-                c.element_type,
-                c.increments,
-                c.field.max_displacement_mm,
-                c.field.mean_displacement_mm,
-                c.field.diaphragm_mean_dz_mm,
-                c.field.volume_change_ml,
-                c.wall_time_s,
-                c.peak_memory_mb
-                    .map_or("–".to_string(), |m| format!("{m:.0}"))
-            );
+            table.row([
+                format!(
+                    "CalculiX {:?} ({} increments)",
+                    c.element_type, c.increments
+                ),
+                format!("{:.2}", c.field.max_displacement_mm),
+                format!("{:.2}", c.field.mean_displacement_mm),
+                format!("{:.2}", c.field.diaphragm_mean_dz_mm),
+                format!("{:.1}", c.field.volume_change_ml),
+                format!("{:.2}", c.wall_time_s),
+                or_dash(c.peak_memory_mb, |m| format!("{m:.0}")),
+            ]);
         }
+        table.write_to(&mut s);
         s.push('\n');
         for c in &self.calculix {
             let _ = writeln!(s, "### Ours against CalculiX {:?}\n", c.element_type);

@@ -853,6 +853,7 @@ fn shape_label(edges: [f64; 3]) -> String {
 impl PatchReport {
     /// Markdown tables: measured over imposed, beside what the thesis and its extraction state.
     pub fn to_markdown(&self) -> String {
+        use crate::markdown::Table;
         let mut s = String::new();
         s.push_str("## Single-element patch tests\n\n");
         s.push_str(&format!(
@@ -863,8 +864,16 @@ impl PatchReport {
              ν and K exact for any admissible brick, G exact for cubes.\n\n",
             self.config.strain, self.config.youngs_modulus_pa
         ));
-        s.push_str("| shape | ν | model | E/E (x, y, z) | worst ν/ν | K/K | max error E, ν, K | thesis |\n");
-        s.push_str("|---|---|---|---|---|---|---|---|\n");
+        let mut table = Table::new([
+            "shape",
+            "ν",
+            "model",
+            "E/E (x, y, z)",
+            "worst ν/ν",
+            "K/K",
+            "max error E, ν, K",
+            "thesis",
+        ]);
         for c in &self.cases {
             let worst_nu = c
                 .poisson_ratio_ratios
@@ -872,19 +881,19 @@ impl PatchReport {
                 .map(|p| p.2)
                 .max_by(|a, b| (a - 1.0).abs().total_cmp(&(b - 1.0).abs()))
                 .unwrap_or(f64::NAN);
-            s.push_str(&format!(
-                "| {} | {} | {} | {:.9}, {:.9}, {:.9} | {:.9} | {:.9} | {:.1e} | exact |\n",
+            let [ex, ey, ez] = c.youngs_ratio;
+            table.row([
                 shape_label(c.edges_m),
-                c.poisson_ratio,
-                c.model.label(),
-                c.youngs_ratio[0],
-                c.youngs_ratio[1],
-                c.youngs_ratio[2],
-                worst_nu,
-                c.bulk_ratio,
-                c.max_error_e_nu_k
-            ));
+                c.poisson_ratio.to_string(),
+                c.model.label().into(),
+                format!("{ex:.9}, {ey:.9}, {ez:.9}"),
+                format!("{worst_nu:.9}"),
+                format!("{:.9}", c.bulk_ratio),
+                format!("{:.1e}", c.max_error_e_nu_k),
+                "exact".into(),
+            ]);
         }
+        table.write_to(&mut s);
         s.push_str("\n### Shear modulus, G_measured / G\n\n");
         s.push_str(
             "*Affine*: all corners imposed at u_i = γ·x_j, τ = reaction on the +j face / area \
@@ -896,47 +905,52 @@ impl PatchReport {
              relieves the body diagonals through the k-edges (in series); for a cube this is \
              (1+4ν)/(2+4ν).\n\n",
         );
-        s.push_str("| shape | ν | model | plane | affine | extraction | free | free, predicted | free-test support reaction |\n");
-        s.push_str("|---|---|---|---|---|---|---|---|---|\n");
+        let mut table = Table::new([
+            "shape",
+            "ν",
+            "model",
+            "plane",
+            "affine",
+            "extraction",
+            "free",
+            "free, predicted",
+            "free-test support reaction",
+        ]);
         for c in &self.cases {
             for g in &c.shear {
-                s.push_str(&format!(
-                    "| {} | {} | {} | {}{} | {:.6} | {:.6} | {:.6} | {:.6} | {:.1e} |\n",
+                table.row([
                     shape_label(c.edges_m),
-                    c.poisson_ratio,
-                    c.model.label(),
-                    AXES[g.plane.0],
-                    AXES[g.plane.1],
-                    g.affine_ratio,
-                    g.predicted_ratio,
-                    g.free_ratio,
-                    g.predicted_free_ratio,
-                    g.free_support_reaction
-                ));
+                    c.poisson_ratio.to_string(),
+                    c.model.label().into(),
+                    format!("{}{}", AXES[g.plane.0], AXES[g.plane.1]),
+                    format!("{:.6}", g.affine_ratio),
+                    format!("{:.6}", g.predicted_ratio),
+                    format!("{:.6}", g.free_ratio),
+                    format!("{:.6}", g.predicted_free_ratio),
+                    format!("{:.1e}", g.free_support_reaction),
+                ]);
             }
         }
+        table.write_to(&mut s);
         if !self.grid_shear.is_empty() {
             s.push_str(
                 "\n### Free-traction shear of n × n × n cube grids (linearised, xy plane)\n\n\
                  The warping mode that softens a lone element must alternate in sign between \
                  neighbours, so a grid under homogeneous shear can only use it in a boundary \
-                 layer: G_measured / G should rise towards 1 with n.\n\n\
-                 | n | ν | G_measured / G |\n|---|---|---|\n",
+                 layer: G_measured / G should rise towards 1 with n.\n\n",
             );
+            let mut table = Table::new(["n", "ν", "G_measured / G"]);
             for (n, nu, r) in &self.grid_shear {
-                s.push_str(&format!("| {n} | {nu} | {r:.6} |\n"));
+                table.row([n.to_string(), nu.to_string(), format!("{r:.6}")]);
             }
+            table.write_to(&mut s);
         }
         s.push_str("\n### Force kernel vs `linear_stiffness()`\n\n");
-        s.push_str("| shape | ν | max abs(J_kernel + K) / max abs(K) |\n|---|---|---|\n");
+        let mut table = Table::new(["shape", "ν", "max abs(J_kernel + K) / max abs(K)"]);
         for (edges, nu, err) in &self.kernel_linearisation {
-            s.push_str(&format!(
-                "| {} | {} | {:.1e} |\n",
-                shape_label(*edges),
-                nu,
-                err
-            ));
+            table.row([shape_label(*edges), nu.to_string(), format!("{err:.1e}")]);
         }
+        table.write_to(&mut s);
         s.push_str(&format!(
             "\nAll E, ν, K (and cube G) within {:.0e}: **{}**\n",
             self.config.tolerance,

@@ -687,6 +687,7 @@ fn overstep_kind(run: &RunOutcome) -> &'static str {
 impl StabilityReport {
     /// Markdown: the automatic step's outcomes over the grid, and the measured critical steps.
     pub fn to_markdown(&self) -> String {
+        use crate::markdown::Table;
         let c = &self.config;
         let mut s = String::new();
         s.push_str("## Explicit integrator: automatic time step and blow-up detection\n\n");
@@ -718,12 +719,19 @@ impl StabilityReport {
             c.overstep_factor,
             c.divergence_steps
         ));
-        s.push_str(
-            "| shape | ν | runs | automatic passed | automatic diverged (earliest step) | \
-             automatic failed unflagged | steps (max) | worst equilibrium error (passed runs) | \
-             worst KE / work | overstep / linearised limit | overstep outcomes |\n\
-             |---|---|---|---|---|---|---|---|---|---|---|\n",
-        );
+        let mut table = Table::new([
+            "shape",
+            "ν",
+            "runs",
+            "automatic passed",
+            "automatic diverged (earliest step)",
+            "automatic failed unflagged",
+            "steps (max)",
+            "worst equilibrium error (passed runs)",
+            "worst KE / work",
+            "overstep / linearised limit",
+            "overstep outcomes",
+        ]);
         for &shape in &c.element_shapes {
             let same_shape = |edges: [f64; 3]| {
                 (edges[1] / edges[0] - shape[1] / shape[0]).abs() < 1e-9
@@ -772,12 +780,15 @@ impl StabilityReport {
                         format!("{} {kind}", runs.len())
                     });
                 }
-                s.push_str(&format!(
-                    "| {:?} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
-                    shape,
-                    nu,
-                    group.len(),
-                    group.iter().filter(|k| k.automatic.passed()).count(),
+                table.row([
+                    format!("{shape:?}"),
+                    nu.to_string(),
+                    group.len().to_string(),
+                    group
+                        .iter()
+                        .filter(|k| k.automatic.passed())
+                        .count()
+                        .to_string(),
                     if diverged.is_empty() {
                         "0".to_string()
                     } else {
@@ -790,15 +801,22 @@ impl StabilityReport {
                     group
                         .iter()
                         .filter(|k| !k.automatic.passed() && k.automatic.divergence.is_none())
-                        .count(),
-                    group.iter().map(|k| k.automatic.steps).max().unwrap_or(0),
+                        .count()
+                        .to_string(),
+                    group
+                        .iter()
+                        .map(|k| k.automatic.steps)
+                        .max()
+                        .unwrap_or(0)
+                        .to_string(),
                     opt_max(group.iter().map(|k| passed_error(&k.automatic))),
                     opt_max(group.iter().map(|k| k.automatic.peak_kinetic_over_work)),
                     limit,
                     outcomes.join(", "),
-                ));
+                ]);
             }
         }
+        table.write_to(&mut s);
         let range = |f: &dyn Fn(&StabilityCase) -> f64| {
             let v: Vec<f64> = self.cases.iter().map(f).collect();
             (
@@ -904,26 +922,36 @@ impl StabilityReport {
                  with the full-step velocity at every check, which shifts its limit). \
                  *Undamped*: linearised, dampers removed (bound recomputed). A ratio below 1 \
                  means the bound is not a bound; above the overstep factor, the overstep \
-                 cannot diverge.\n\n\
-                 | shape | ν | ζ | linearised / `TimeStepBound` | empirical / `TimeStepBound` | \
-                 `run_to_equilibrium` / `TimeStepBound` | undamped linearised / \
-                 `TimeStepBound` | kernel vs K | kernel vs C |\n\
-                 |---|---|---|---|---|---|---|---|---|\n",
+                 cannot diverge.\n\n",
             );
+            let mut table = Table::new([
+                "shape",
+                "ν",
+                "ζ",
+                "linearised / `TimeStepBound`",
+                "empirical / `TimeStepBound`",
+                "`run_to_equilibrium` / `TimeStepBound`",
+                "undamped linearised / `TimeStepBound`",
+                "kernel vs K",
+                "kernel vs C",
+            ]);
             for k in &self.critical_steps {
-                s.push_str(&format!(
-                    "| {:?} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0e} | {:.0e} |\n",
-                    k.element_shape.map(|v| (v * 1000.0).round() / 1000.0),
-                    k.poisson_ratio,
-                    k.damping_ratio,
-                    k.linear_ratio,
-                    k.empirical_ratio,
-                    k.run_to_equilibrium_ratio,
-                    k.undamped_linear_ratio,
-                    k.kernel_stiffness_mismatch,
-                    k.kernel_damping_mismatch
-                ));
+                table.row([
+                    format!(
+                        "{:?}",
+                        k.element_shape.map(|v| (v * 1000.0).round() / 1000.0)
+                    ),
+                    k.poisson_ratio.to_string(),
+                    k.damping_ratio.to_string(),
+                    format!("{:.3}", k.linear_ratio),
+                    format!("{:.3}", k.empirical_ratio),
+                    format!("{:.3}", k.run_to_equilibrium_ratio),
+                    format!("{:.3}", k.undamped_linear_ratio),
+                    format!("{:.0e}", k.kernel_stiffness_mismatch),
+                    format!("{:.0e}", k.kernel_damping_mismatch),
+                ]);
             }
+            table.write_to(&mut s);
         }
         s.push_str(&format!(
             "\nEvery automatic run stable and at equilibrium: **{}**. Every overstep caught: \

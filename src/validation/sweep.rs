@@ -393,6 +393,7 @@ fn opt_pct(v: Option<f64>, beyond: f64) -> String {
 impl SweepReport {
     /// Markdown tables of the error curves, ours beside the thesis's stated numbers.
     pub fn to_markdown(&self) -> String {
+        use crate::markdown::Table;
         let mut s = String::new();
         let e0 = self
             .config
@@ -420,8 +421,15 @@ impl SweepReport {
             self.production_solver_difference
         ));
         s.push_str("### Summary against the thesis\n\n");
-        s.push_str("| ν | E error at 10 % (ours) | thesis | strain where the E error passes 5 % (ours) | thesis | strain where the ν error passes 5 % (ours) | thesis |\n");
-        s.push_str("|---|---|---|---|---|---|---|\n");
+        let mut summary = Table::new([
+            "ν",
+            "E error at 10 % (ours)",
+            "thesis",
+            "strain where the E error passes 5 % (ours)",
+            "thesis",
+            "strain where the ν error passes 5 % (ours)",
+            "thesis",
+        ]);
         for c in self.traction.iter().filter(|c| c.youngs_modulus_pa == e0) {
             let at10 = c
                 .points
@@ -443,101 +451,96 @@ impl SweepReport {
             } else {
                 "not stated".into()
             };
-            s.push_str(&format!(
-                "| {} | {} | {} | {} | {:.0} % | {} | {} |\n",
-                c.poisson_ratio,
+            summary.row([
+                c.poisson_ratio.to_string(),
                 at10,
                 thesis_at10,
                 opt_pct(c.youngs_5_percent_strain, self.config.max_strain),
-                100.0 * thesis::YOUNGS_5_PERCENT_STRAIN,
+                format!("{:.0} %", 100.0 * thesis::YOUNGS_5_PERCENT_STRAIN),
                 opt_pct(c.poisson_5_percent_strain, self.config.max_strain),
-                thesis_nu
-            ));
+                thesis_nu,
+            ]);
         }
-        s.push_str("\n| ν | K error within 5 % in compression down to ΔV/V0 = (ours) | in inflation up to (ours) | thesis |\n|---|---|---|---|\n");
+        summary.write_to(&mut s);
+        s.push('\n');
+        let mut bulk_summary = Table::new([
+            "ν",
+            "K error within 5 % in compression down to ΔV/V0 = (ours)",
+            "in inflation up to (ours)",
+            "thesis",
+        ]);
         let vmax = self
             .config
             .volume_changes
             .iter()
             .fold(0.0f64, |m, v| m.max(v.abs()));
         for c in self.bulk.iter().filter(|c| c.youngs_modulus_pa == e0) {
-            s.push_str(&format!(
-                "| {} | −{} | +{} | ±{:.0} % |\n",
-                c.poisson_ratio,
-                opt_pct(c.compression_5_percent_volume, vmax),
-                opt_pct(c.inflation_5_percent_volume, vmax),
-                100.0 * thesis::BULK_5_PERCENT_VOLUME
-            ));
+            bulk_summary.row([
+                c.poisson_ratio.to_string(),
+                format!("−{}", opt_pct(c.compression_5_percent_volume, vmax)),
+                format!("+{}", opt_pct(c.inflation_5_percent_volume, vmax)),
+                format!("±{:.0} %", 100.0 * thesis::BULK_5_PERCENT_VOLUME),
+            ]);
         }
+        bulk_summary.write_to(&mut s);
         s.push_str("\n### Traction: E error (F/S0), ν error, and E error with true stress F/S\n\n");
         let curves: Vec<&TractionCurve> = self
             .traction
             .iter()
             .filter(|c| c.youngs_modulus_pa == e0)
             .collect();
-        s.push_str("| strain |");
+        let mut header = vec!["strain".to_string()];
         for c in &curves {
-            s.push_str(&format!(
-                " E err ν={} | ν err ν={} | E err (F/S) ν={} |",
-                c.poisson_ratio, c.poisson_ratio, c.poisson_ratio
-            ));
+            let nu = c.poisson_ratio;
+            header.extend([
+                format!("E err ν={nu}"),
+                format!("ν err ν={nu}"),
+                format!("E err (F/S) ν={nu}"),
+            ]);
         }
-        s.push_str("\n|---|");
-        for _ in &curves {
-            s.push_str("---|---|---|");
-        }
-        s.push('\n');
+        let mut traction = Table::new(header);
         if let Some(first) = curves.first() {
             for (i, p) in first.points.iter().enumerate() {
                 let k = (p.strain / 0.01).round();
                 if (p.strain - k * 0.01).abs() > 1e-9 {
                     continue;
                 }
-                s.push_str(&format!("| {:.0} % |", 100.0 * p.strain));
+                let mut row = vec![format!("{:.0} %", 100.0 * p.strain)];
                 for c in &curves {
                     let q = &c.points[i];
-                    s.push_str(&format!(
-                        " {} | {} | {} |",
+                    row.extend([
                         pct(q.youngs_error),
                         pct(q.poisson_error),
-                        pct(q.youngs_error_true_stress)
-                    ));
+                        pct(q.youngs_error_true_stress),
+                    ]);
                 }
-                s.push('\n');
+                traction.row(row);
             }
         }
+        traction.write_to(&mut s);
         s.push_str("\n### Bulk: K error against measured volume change\n\n");
         let bulks: Vec<&BulkCurve> = self
             .bulk
             .iter()
             .filter(|c| c.youngs_modulus_pa == e0)
             .collect();
-        s.push_str("| target ΔV/V0 | measured ΔV/V0 |");
-        for c in &bulks {
-            s.push_str(&format!(" K err ν={} |", c.poisson_ratio));
-        }
-        s.push_str(" closed form |\n|---|---|");
-        for _ in &bulks {
-            s.push_str("---|");
-        }
-        s.push_str("---|\n");
+        let mut header = vec!["target ΔV/V0".to_string(), "measured ΔV/V0".into()];
+        header.extend(bulks.iter().map(|c| format!("K err ν={}", c.poisson_ratio)));
+        header.push("closed form".into());
+        let mut bulk = Table::new(header);
         if let Some(first) = bulks.first() {
             for (i, p) in first.points.iter().enumerate() {
                 let k = (p.target_volume_change / 0.01).round() as i64;
                 if k % 3 != 0 && k.abs() != 1 {
                     continue;
                 }
-                s.push_str(&format!(
-                    "| {} | {} |",
-                    pct(p.target_volume_change),
-                    pct(p.volume_change)
-                ));
-                for c in &bulks {
-                    s.push_str(&format!(" {} |", pct(c.points[i].bulk_error)));
-                }
-                s.push_str(&format!(" {} |\n", pct(p.predicted_bulk_error)));
+                let mut row = vec![pct(p.target_volume_change), pct(p.volume_change)];
+                row.extend(bulks.iter().map(|c| pct(c.points[i].bulk_error)));
+                row.push(pct(p.predicted_bulk_error));
+                bulk.row(row);
             }
         }
+        bulk.write_to(&mut s);
         s
     }
 }
