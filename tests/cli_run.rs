@@ -264,7 +264,10 @@ fn exit_status_is_2_for_refused_input_in_every_subcommand_and_1_for_failures_whi
     let o = phantom(&blocked);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("cannot write"), "{stderr}");
+    assert!(
+        stderr.contains("cannot replace") && stderr.contains("phantom-ct.nii.gz"),
+        "{stderr}"
+    );
 
     let o = bin().arg("--help").output().unwrap();
     let help = String::from_utf8_lossy(&o.stdout);
