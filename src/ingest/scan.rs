@@ -96,7 +96,7 @@ pub fn classify_header(head: &[u8]) -> Option<ScanFormat> {
 /// assert_eq!(scan.format, ScanFormat::Nifti);
 /// // Voxels are in Hounsfield units on a grid placed in LPS millimetres.
 /// let g = scan.ct.geometry;
-/// assert_eq!(scan.ct.data.len(), g.dims[0] * g.dims[1] * g.dims[2]);
+/// assert_eq!(scan.ct.as_slice().len(), g.dims[0] * g.dims[1] * g.dims[2]);
 /// # Ok::<(), lungmotion::Error>(())
 /// ```
 pub fn load_ct(path: &Path) -> Result<LoadedScan> {
