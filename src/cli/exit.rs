@@ -14,17 +14,6 @@ Exit status (the same for every subcommand):
      directory; no usable lungs in the CT; service settings it cannot serve with (such as
      an address it cannot listen on)";
 
-/// A refusal the command line finds itself rather than the library (an output directory
-/// that cannot be created); shown as its message, it exits 2.
-#[derive(Debug)]
-pub struct Refusal(pub String);
-
-impl std::fmt::Display for Refusal {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
 /// Exit status when the usage or the input was refused (as clap's own usage errors).
 pub const REFUSED: u8 = 2;
 
@@ -69,12 +58,9 @@ pub fn exit_code(error: &lungmotion::Error) -> ExitCode {
     ExitCode::from(if is_refusal(error) { REFUSED } else { FAILED })
 }
 
-/// The exit status of a subcommand's error: a [`Refusal`] of the command line's own, else
-/// decided by the outermost library error in its chain; anything else failed while working.
+/// The exit status of a subcommand's error: decided by the outermost library error in its
+/// chain; anything else failed while working.
 pub fn exit_code_of_chain(error: &anyhow::Error) -> ExitCode {
-    if error.downcast_ref::<Refusal>().is_some() {
-        return ExitCode::from(REFUSED);
-    }
     match error
         .chain()
         .find_map(|cause| cause.downcast_ref::<lungmotion::Error>())

@@ -12,17 +12,14 @@ pub mod run;
 pub mod serve;
 pub mod validate;
 
-use anyhow::Context;
-
-use exit::Refusal;
-
 /// Creates the report directory before any work, so a bad `--out` fails at once, by name
 /// (refused, exit 2, as `run` refuses an output directory it cannot use).
 pub fn prepare_out(out: &std::path::Path) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| {
-        Refusal(format!(
-            "cannot create the output directory {}",
-            out.display()
-        ))
+    std::fs::create_dir_all(out).map_err(|e| {
+        lungmotion::Error::OutputDir {
+            path: out.to_path_buf(),
+            reason: format!("cannot create the output directory: {e}"),
+        }
+        .into()
     })
 }
