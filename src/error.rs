@@ -255,6 +255,32 @@ impl<T> IoContext<T> for std::io::Result<T> {
 }
 
 impl Error {
+    /// Data handed to a stage that does not fit: `what` was handed over, `reason` says why.
+    pub fn argument(what: impl Into<String>, reason: impl Into<String>) -> Self {
+        Error::Argument {
+            what: what.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// Unusable `settings` (not read from a file, no single key to blame).
+    pub fn settings(settings: &'static str, reason: impl Into<String>) -> Self {
+        Error::Config {
+            settings,
+            file: None,
+            key: None,
+            reason: reason.into(),
+        }
+    }
+
+    /// A file whose content is malformed or cannot be encoded.
+    pub fn format(path: impl AsRef<Path>, reason: impl Into<String>) -> Self {
+        Error::Format {
+            path: path.as_ref().to_path_buf(),
+            reason: reason.into(),
+        }
+    }
+
     /// An I/O failure of `op` on `path`.
     pub fn io(op: IoOp, path: impl AsRef<Path>, cause: std::io::Error) -> Self {
         Error::IoAt {

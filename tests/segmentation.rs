@@ -327,7 +327,7 @@ fn bad_settings_and_mismatched_grids_are_refused() {
     let ct = Volume::filled(grid(8.0, IDENTITY), 0.0f32).unwrap();
     assert!(matches!(
         segment_lungs(&ct, &settings),
-        Err(Error::InvalidInput(_))
+        Err(Error::Config { .. })
     ));
     let a = Volume::filled(
         VolumeGeometry::axis_aligned([4, 4, 4], [1.0; 3], [0.0; 3]),

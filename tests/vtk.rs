@@ -250,13 +250,14 @@ fn malformed_files_are_refused_with_the_file_and_the_problem() {
         let path = scratch(&format!("bad{n}.vtu"));
         std::fs::write(&path, text).unwrap();
         match read_vtu(&path) {
-            Err(Error::InvalidInput(m)) => {
+            Err(e @ Error::Format { .. }) => {
+                let m = e.to_string();
                 assert!(
                     m.contains(&format!("bad{n}.vtu")) && m.contains(word),
                     "case {n}: {m}"
                 )
             }
-            other => panic!("case {n}: expected InvalidInput, got {other:?}"),
+            other => panic!("case {n}: expected Format, got {other:?}"),
         }
     }
     assert!(read_vtu(&scratch("missing.vtu")).is_err());

@@ -73,7 +73,7 @@ impl Default for DynamicSettings {
 impl DynamicSettings {
     /// Refuses non-physical or meaningless values.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(Error::InvalidInput(format!("dynamic breathing: {m}")));
+        let bad = |m: String| Err(Error::settings("dynamic breathing settings", m));
         if let Some(c) = self.compliance_ml_per_pa {
             if !(c.is_finite() && c > 0.0) {
                 return bad(format!("compliance {c} mL/Pa must be positive"));
@@ -308,10 +308,10 @@ fn bellows_compliance(
                 }
             });
             if extreme.abs() < 1e-9 {
-                return Err(Error::InvalidInput(
-                    "dynamic breathing: the trace never leaves the scanned volume, so the \
-                     compliance cannot be calibrated; give compliance_ml_per_pa"
-                        .into(),
+                return Err(Error::settings(
+                    "dynamic breathing settings",
+                    "the trace never leaves the scanned volume, so the \
+                     compliance cannot be calibrated; give compliance_ml_per_pa",
                 ));
             }
             let s = driver
@@ -438,10 +438,13 @@ impl<'s> ExplicitState<'s> {
                 self.guard.check(self.scene, &self.x, ke, steps)?;
             }
             if steps >= settings.max_steps {
-                return Err(Error::InvalidInput(format!(
-                    "dynamic breathing: {steps} steps of {h_max:.3e} s reached the limit before \
+                return Err(Error::settings(
+                    "dynamic breathing settings",
+                    format!(
+                        "{steps} steps of {h_max:.3e} s reached the limit before \
                      t = {t_out} s"
-                )));
+                    ),
+                ));
             }
         }
         Ok(())
@@ -489,22 +492,29 @@ impl<'s> ExplicitState<'s> {
 
 fn check_output_times(times: &[f64], t_start: f64, t_end: f64) -> Result<()> {
     if times.is_empty() {
-        return Err(Error::InvalidInput(
-            "dynamic breathing: no output time requested".into(),
+        return Err(Error::settings(
+            "output instants",
+            "dynamic breathing: no output time requested",
         ));
     }
     for (i, &t) in times.iter().enumerate() {
         if !(t.is_finite() && t >= t_start && t <= t_end) {
-            return Err(Error::InvalidInput(format!(
-                "dynamic breathing: output time {t} s (index {i}) is outside the trace \
+            return Err(Error::settings(
+                "output instants",
+                format!(
+                    "dynamic breathing: output time {t} s (index {i}) is outside the trace \
                  ({t_start} … {t_end} s)"
-            )));
+                ),
+            ));
         }
         if i > 0 && t < times[i - 1] {
-            return Err(Error::InvalidInput(format!(
-                "dynamic breathing: output times must ascend; {t} s (index {i}) follows {} s",
-                times[i - 1]
-            )));
+            return Err(Error::settings(
+                "output instants",
+                format!(
+                    "dynamic breathing: output times must ascend; {t} s (index {i}) follows {} s",
+                    times[i - 1]
+                ),
+            ));
         }
     }
     Ok(())

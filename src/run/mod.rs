@@ -204,7 +204,7 @@ pub fn run_breathing(
     let t = Instant::now();
     let capture = written
         .end_inhale
-        .ok_or_else(|| Error::InvalidInput("the run produced no frame".into()))?;
+        .ok_or_else(|| Error::argument("run output", "the run produced no frame"))?;
     let end_inhale = summary::end_inhale_summary(
         &outcome.model,
         &lung.scene,
@@ -274,14 +274,18 @@ fn build_lung_scene(outcome: &IngestOutcome, tracked: &[TrackedPoint]) -> Result
     let field = FieldSampler::new(&outcome.segmentation.lungs, mesh, &model.element_lung)?;
     let point_positions: Vec<[f64; 3]> = tracked.iter().map(|p| p.rest_lps_mm).collect();
     let points = PointSampler::new(&point_positions, mesh, &model.element_lung).map_err(|e| {
-        Error::InvalidInput(format!(
-            "tracked points ({}): {e}",
-            tracked
-                .iter()
-                .map(|p| p.name.as_str())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ))
+        Error::Points {
+            file: None,
+            point: None,
+            reason: format!(
+                "{}: {e}",
+                tracked
+                    .iter()
+                    .map(|p| p.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }
     })?;
     Ok(LungScene {
         scene,
@@ -354,7 +358,7 @@ fn write_summary(staging_dir: &Path, summary: &RunSummary) -> Result<()> {
     write_atomic(
         &staging_dir.join(SUMMARY_FILE),
         serde_json::to_string_pretty(summary)
-            .map_err(|e| Error::InvalidInput(format!("summary: {e}")))?
+            .map_err(|e| Error::format(staging_dir.join(SUMMARY_FILE), format!("summary: {e}")))?
             .as_bytes(),
     )
 }

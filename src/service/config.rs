@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use crate::error::{IoContext, IoOp};
 use crate::run::RunConfig;
 use crate::{Error, Result};
 
@@ -147,15 +148,20 @@ impl ServiceConfig {
     }
 
     fn apply_file(&mut self, path: &Path) -> Result<()> {
-        let bad = |m: String| Error::InvalidInput(format!("configuration {}: {m}", path.display()));
-        let meta = std::fs::metadata(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        let bad = |m: String| Error::Config {
+            settings: "configuration",
+            file: Some(path.to_path_buf()),
+            key: None,
+            reason: m,
+        };
+        let meta = std::fs::metadata(path).at(IoOp::Read, path)?;
         if meta.len() > MAX_CONFIG_BYTES {
             return Err(bad(format!(
                 "{} bytes is not a configuration file",
                 meta.len()
             )));
         }
-        let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+        let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
         let file: ServiceFile =
             toml::from_str(&text).map_err(|e| bad(e.message().trim().to_string()))?;
         if let Some(listen) = file.listen {
@@ -191,14 +197,19 @@ impl ServiceConfig {
     fn apply_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<()> {
         fn parsed<T: std::str::FromStr>(name: &str, value: &str) -> Result<T> {
             value.trim().parse().map_err(|_| {
-                Error::InvalidInput(format!(
-                    "environment {name}={value:?} is not a valid number"
-                ))
+                Error::settings(
+                    "service configuration",
+                    format!("environment {name}={value:?} is not a valid number"),
+                )
             })
         }
         if let Some(v) = env("LUNGMOTION_LISTEN") {
-            self.listen = parse_listen(&v)
-                .map_err(|m| Error::InvalidInput(format!("environment LUNGMOTION_LISTEN: {m}")))?;
+            self.listen = parse_listen(&v).map_err(|m| {
+                Error::settings(
+                    "service configuration",
+                    format!("environment LUNGMOTION_LISTEN: {m}"),
+                )
+            })?;
         }
         if let Some(v) = env("LUNGMOTION_DATA_DIR") {
             self.data_dir = PathBuf::from(v);
@@ -225,8 +236,8 @@ impl ServiceConfig {
     /// Applies the command line's values over the file's and the environment's.
     fn apply_overrides(&mut self, overrides: &ServeOverrides) -> Result<()> {
         if let Some(listen) = &overrides.listen {
-            self.listen =
-                parse_listen(listen).map_err(|m| Error::InvalidInput(format!("--listen {m}")))?;
+            self.listen = parse_listen(listen)
+                .map_err(|m| Error::settings("service configuration", format!("--listen {m}")))?;
         }
         if let Some(dir) = &overrides.data_dir {
             self.data_dir = dir.clone();
@@ -238,7 +249,7 @@ impl ServiceConfig {
 
     /// Refuses settings the service cannot run with, naming the key.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: &str| Err(Error::InvalidInput(format!("service configuration: {m}")));
+        let bad = |m: &str| Err(Error::settings("service configuration", m));
         if self.workers == 0 || self.workers > 256 {
             return bad("workers must be 1–256");
         }
@@ -287,12 +298,7 @@ pub fn parse_listen(text: &str) -> std::result::Result<SocketAddr, String> {
 }
 
 fn read_token_file(path: &Path) -> Result<String> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
-        Error::InvalidInput(format!(
-            "API token file {}: cannot read: {e}",
-            path.display()
-        ))
-    })?;
+    let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
     Ok(text.trim().to_string())
 }
 

@@ -321,7 +321,7 @@ fn http_runtime() -> Result<tokio::runtime::Runtime> {
 }
 
 fn bind_error(addr: SocketAddr, e: std::io::Error) -> Error {
-    Error::InvalidInput(format!("cannot listen on {addr}: {e}"))
+    Error::Listen { addr, cause: e }
 }
 
 /// Runs the server in the foreground until SIGTERM or Ctrl-C (the CLI's `serve`); prints the

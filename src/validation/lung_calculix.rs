@@ -217,8 +217,9 @@ pub fn compare_model_with_calculix(
 ) -> Result<LungCalculixReport> {
     let start = Instant::now();
     if settings.element_types.is_empty() {
-        return Err(Error::InvalidInput(
-            "the CalculiX comparison needs at least one element type".into(),
+        return Err(Error::argument(
+            "CalculiX comparison settings",
+            "the CalculiX comparison needs at least one element type",
         ));
     }
     calculix::require_ccx()?;
@@ -371,9 +372,10 @@ fn small_strain_check(
     settings: &LungCalculixSettings,
 ) -> Result<SmallStrainCheck> {
     if !(pressure_pa.is_finite() && pressure_pa != 0.0) {
-        return Err(Error::InvalidInput(format!(
-            "small-strain check pressure {pressure_pa} Pa must be finite and non-zero"
-        )));
+        return Err(Error::argument(
+            "small-strain check",
+            format!("small-strain check pressure {pressure_pa} Pa must be finite and non-zero"),
+        ));
     }
     let rest = &scene.mesh.rest_positions_m;
     let mut driver =
@@ -445,13 +447,16 @@ pub fn displacement_difference(
 ) -> Result<DisplacementDifference> {
     let n = a.len();
     if n == 0 || b.len() != n || rest.len() != n || groups.len() != n {
-        return Err(Error::InvalidInput(format!(
-            "displacement fields of {n}, {} nodes, {} rest positions and {} group codes: \
+        return Err(Error::argument(
+            "displacement difference",
+            format!(
+                "displacement fields of {n}, {} nodes, {} rest positions and {} group codes: \
              they must be the same non-zero count",
-            b.len(),
-            rest.len(),
-            groups.len()
-        )));
+                b.len(),
+                rest.len(),
+                groups.len()
+            ),
+        ));
     }
     let diff: Vec<f64> = a.iter().zip(b).map(|(x, y)| (x - y).norm()).collect();
     let (max_node, max) =

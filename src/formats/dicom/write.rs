@@ -48,7 +48,7 @@ pub fn write_ct_series(
 
 /// The error for series `what` with message `m`.
 fn series_error(what: &str, m: String) -> Error {
-    Error::InvalidInput(format!("DICOM series {what}: {m}"))
+    Error::argument(format!("DICOM series {what}"), m)
 }
 
 /// Refuses an invalid grid, a volume that does not fill it, and slices larger than DICOM's

@@ -112,10 +112,13 @@ pub fn write_nifti_vector_field(
     check_volume(geometry, vectors_lps_mm.len(), &what)?;
     if let Some(bad) = first_position(vectors_lps_mm, |v| v.iter().any(|c| !c.is_finite())) {
         let [i, j, k] = voxel_ijk(bad, geometry);
-        return Err(Error::InvalidInput(format!(
-            "{what}: displacement at voxel ({i}, {j}, {k}) is not finite: {:?}",
-            vectors_lps_mm[bad]
-        )));
+        return Err(Error::format(
+            what,
+            format!(
+                "displacement at voxel ({i}, {j}, {k}) is not finite: {:?}",
+                vectors_lps_mm[bad]
+            ),
+        ));
     }
     let full_description = if description.is_empty() {
         VECTOR_FIELD_CONVENTION.to_string()
@@ -154,17 +157,23 @@ struct HeaderSpec<'a> {
 fn check_volume(geometry: &VolumeGeometry, values: usize, what: &str) -> Result<()> {
     geometry.validate(what)?;
     if geometry.dims.iter().any(|&n| n > i16::MAX as usize) {
-        return Err(Error::InvalidInput(format!(
-            "{what}: grid {:?} exceeds NIfTI-1's 32767 voxels per axis",
-            geometry.dims
-        )));
+        return Err(Error::format(
+            what,
+            format!(
+                "grid {:?} exceeds NIfTI-1's 32767 voxels per axis",
+                geometry.dims
+            ),
+        ));
     }
     if values != geometry.voxel_count() {
-        return Err(Error::InvalidInput(format!(
-            "{what}: grid {:?} has {} voxels but {values} values were given",
-            geometry.dims,
-            geometry.voxel_count()
-        )));
+        return Err(Error::format(
+            what,
+            format!(
+                "grid {:?} has {} voxels but {values} values were given",
+                geometry.dims,
+                geometry.voxel_count()
+            ),
+        ));
     }
     Ok(())
 }

@@ -215,11 +215,14 @@ pub fn surface_from_hex_mesh(
     check_positions(mesh, positions_m)?;
     if let Some(g) = face_group {
         if g.len() != mesh.external_faces.len() {
-            return Err(Error::InvalidInput(format!(
-                "{} face groups for {} external faces",
-                g.len(),
-                mesh.external_faces.len()
-            )));
+            return Err(Error::argument(
+                "surface face groups",
+                format!(
+                    "{} face groups for {} external faces",
+                    g.len(),
+                    mesh.external_faces.len()
+                ),
+            ));
         }
     }
     let nodes = mesh.surface_nodes();
@@ -266,19 +269,23 @@ pub fn surface_from_hex_mesh(
 
 fn check_positions(mesh: &HexMesh, positions_m: &[Vector3<f64>]) -> Result<()> {
     if positions_m.len() != mesh.node_count() {
-        return Err(Error::InvalidInput(format!(
-            "{} positions for a mesh of {} nodes",
-            positions_m.len(),
-            mesh.node_count()
-        )));
+        return Err(Error::argument(
+            "mesh positions",
+            format!(
+                "{} positions for a mesh of {} nodes",
+                positions_m.len(),
+                mesh.node_count()
+            ),
+        ));
     }
     if let Some(n) = positions_m
         .iter()
         .position(|p| !p.iter().all(|v| v.is_finite()))
     {
-        return Err(Error::InvalidInput(format!(
-            "node {n} has a non-finite position"
-        )));
+        return Err(Error::argument(
+            "mesh positions",
+            format!("node {n} has a non-finite position"),
+        ));
     }
     Ok(())
 }

@@ -5,14 +5,13 @@ use std::path::Path;
 
 use super::base64::base64_decode;
 use super::{DataArray, Kind, VTK_HEXAHEDRON};
+use crate::error::{IoContext, IoOp};
 use crate::{Error, Result};
 
 /// The file as UTF-8 text (XML).
 pub(super) fn read_text(path: &Path) -> Result<String> {
-    let bytes = std::fs::read(path)
-        .map_err(|e| Error::InvalidInput(format!("{}: cannot read: {e}", path.display())))?;
-    String::from_utf8(bytes)
-        .map_err(|_| Error::InvalidInput(format!("{}: not a text (XML) file", path.display())))
+    let bytes = std::fs::read(path).at(IoOp::Read, path)?;
+    String::from_utf8(bytes).map_err(|_| Error::format(path, "not a text (XML) file"))
 }
 
 /// A parsed piece before its connectivity is cut into fixed-size cells.
@@ -65,7 +64,7 @@ fn parse_tag(inner: &str) -> Option<Tag<'_>> {
 /// Parses one piece of `kind`: scans the tags, then checks every array against the counts
 /// the Piece announced and cuts the connectivity into cells of `N` corners.
 pub(super) fn parse_piece<const N: usize>(text: &str, kind: Kind, what: &str) -> Result<Piece<N>> {
-    let bad = |m: String| Error::InvalidInput(format!("{what}: {m}"));
+    let bad = |m: String| Error::format(what, m);
     let found = scan_piece(text, kind).map_err(bad)?;
     let n_points = found.n_points.ok_or_else(|| bad("no Piece".into()))?;
     let n_cells = found.n_cells.unwrap_or(0);

@@ -16,8 +16,7 @@ pub(super) fn piece_xml(
     point_data: &[(String, DataArray)],
     cell_data: &[(String, DataArray)],
 ) -> Result<String> {
-    check_piece(points, cells, point_data, cell_data)
-        .map_err(|m| Error::InvalidInput(format!("{}: {m}", path.display())))?;
+    check_piece(points, cells, point_data, cell_data).map_err(|m| Error::format(path, m))?;
     let mut xml = String::with_capacity(
         64 * (points.len() + cells.len())
             + point_data

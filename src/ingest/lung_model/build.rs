@@ -116,27 +116,32 @@ fn check_inputs(
 ) -> Result<()> {
     lungs.geometry.validate("lung mask")?;
     if lungs.as_slice().len() != lungs.geometry.voxel_count() {
-        return Err(Error::InvalidInput(format!(
-            "lung mask: grid {:?} needs {} voxels, has {}",
-            lungs.geometry.dims,
-            lungs.geometry.voxel_count(),
-            lungs.as_slice().len()
-        )));
+        return Err(Error::argument(
+            "lung mask",
+            format!(
+                "grid {:?} needs {} voxels, has {}",
+                lungs.geometry.dims,
+                lungs.geometry.voxel_count(),
+                lungs.as_slice().len()
+            ),
+        ));
     }
     let same = |other: &Volume<u8>, what: &str| -> Result<()> {
-        if !lungs.geometry.same_grid(&other.geometry, 1e-3)
-            || other.as_slice().len() != lungs.as_slice().len()
+        if !lungs.geometry.same_grid(&other.geometry, 1e-3) || other.as_slice().len() != lungs.as_slice().len()
         {
-            return Err(Error::InvalidInput(format!(
-                "{what} is on a different grid than the lung mask ({:?} voxels of {:?} mm at \
+            return Err(Error::argument(
+                what,
+                format!(
+                    "{what} is on a different grid than the lung mask ({:?} voxels of {:?} mm at \
                  {:?} vs {:?} voxels of {:?} mm at {:?}); resample it onto the CT grid",
-                other.geometry.dims,
-                other.geometry.spacing_mm,
-                other.geometry.origin_lps_mm,
-                lungs.geometry.dims,
-                lungs.geometry.spacing_mm,
-                lungs.geometry.origin_lps_mm
-            )));
+                    other.geometry.dims,
+                    other.geometry.spacing_mm,
+                    other.geometry.origin_lps_mm,
+                    lungs.geometry.dims,
+                    lungs.geometry.spacing_mm,
+                    lungs.geometry.origin_lps_mm
+                ),
+            ));
         }
         Ok(())
     };
@@ -148,22 +153,28 @@ fn check_inputs(
             .iter()
             .position(|&v| v > ConstraintGroup::Apex.code())
         {
-            return Err(Error::InvalidInput(format!(
-                "group override map holds code {} at voxel {i}; codes are 0 (none) and 1–5 \
+            return Err(Error::argument(
+                "group override map",
+                format!(
+                    "group override map holds code {} at voxel {i}; codes are 0 (none) and 1–5 \
                  (hilum, mediastinal, costal, diaphragmatic, apex)",
-                o.as_slice()[i]
-            )));
+                    o.as_slice()[i]
+                ),
+            ));
         }
     }
     if let Some(i) = lungs.as_slice().iter().position(|&v| v > LEFT_LUNG) {
-        return Err(Error::InvalidInput(format!(
+        return Err(Error::argument(
+            "lung mask",
+            format!(
             "lung mask holds label {} at voxel {i}; expected 0 background, 1 right lung, 2 left lung",
             lungs.as_slice()[i]
         )));
     }
     if !lungs.as_slice().iter().any(|&v| v != 0) {
-        return Err(Error::InvalidInput(
-            "lung mask is empty: no voxel is labelled 1 (right lung) or 2 (left lung)".into(),
+        return Err(Error::argument(
+            "lung mask",
+            "lung mask is empty: no voxel is labelled 1 (right lung) or 2 (left lung)",
         ));
     }
     Ok(())

@@ -78,13 +78,16 @@ impl CellLattice {
             std::array::from_fn(|a| (max_mm[a] / h_mm).ceil() as i64 + LATTICE_PAD_CELLS);
         let cells: [usize; 3] = std::array::from_fn(|a| (last[a] - first[a]) as usize);
         if cells.iter().product::<usize>() > u32::MAX as usize / 8 {
-            return Err(Error::InvalidInput(format!(
+            return Err(Error::settings(
+                "lung model settings",
+                format!(
                 "{h_mm} mm elements over the lungs' {:.0} × {:.0} × {:.0} mm box make {cells:?} \
                  cells: too many",
                 max_mm.x - min_mm.x,
                 max_mm.y - min_mm.y,
                 max_mm.z - min_mm.z
-            )));
+            ),
+            ));
         }
         Ok(CellLattice { first, cells, h_mm })
     }

@@ -95,29 +95,35 @@ impl LungModelSettings {
     pub fn validate(&self) -> Result<()> {
         let h = self.element_size_mm;
         if !h.is_finite() || !(MIN_ELEMENT_SIZE_MM..=MAX_ELEMENT_SIZE_MM).contains(&h) {
-            return Err(Error::InvalidInput(format!(
-                "element size {h} mm is outside the supported \
+            return Err(Error::settings(
+                "lung model settings",
+                format!(
+                    "element size {h} mm is outside the supported \
                  {MIN_ELEMENT_SIZE_MM}–{MAX_ELEMENT_SIZE_MM} mm"
-            )));
+                ),
+            ));
         }
         self.material.validate()?;
         let t = self.occupancy_threshold;
         if !(t.is_finite() && t > 0.0 && t <= 1.0) {
-            return Err(Error::InvalidInput(format!(
-                "occupancy threshold {t} must be in (0, 1]"
-            )));
+            return Err(Error::settings(
+                "lung model settings",
+                format!("occupancy threshold {t} must be in (0, 1]"),
+            ));
         }
         let r = self.hilum_radius_mm;
         if !(r.is_finite() && r > 0.0) {
-            return Err(Error::InvalidInput(format!(
-                "hilum radius {r} mm must be positive"
-            )));
+            return Err(Error::settings(
+                "lung model settings",
+                format!("hilum radius {r} mm must be positive"),
+            ));
         }
         let a = self.apex_height_fraction;
         if !(a.is_finite() && (0.0..0.5).contains(&a)) {
-            return Err(Error::InvalidInput(format!(
-                "apex height fraction {a} must be in [0, 0.5)"
-            )));
+            return Err(Error::settings(
+                "lung model settings",
+                format!("apex height fraction {a} must be in [0, 0.5)"),
+            ));
         }
         Ok(())
     }

@@ -92,10 +92,13 @@ pub const LEFT_LUNG: u8 = 2;
 /// (1 when both are empty); the grids must be the same.
 pub fn dice(a: &Volume<u8>, label_a: u8, b: &Volume<u8>, label_b: u8) -> Result<f64> {
     if !a.geometry.same_grid(&b.geometry, 1e-3) || a.as_slice().len() != b.as_slice().len() {
-        return Err(Error::InvalidInput(format!(
-            "Dice needs two masks on the same grid (got {:?} and {:?})",
-            a.geometry.dims, b.geometry.dims
-        )));
+        return Err(Error::argument(
+            "Dice masks",
+            format!(
+                "Dice needs two masks on the same grid (got {:?} and {:?})",
+                a.geometry.dims, b.geometry.dims
+            ),
+        ));
     }
     let (both, na, nb) = a
         .as_slice()

@@ -85,7 +85,7 @@ impl Default for SegmentationSettings {
 impl SegmentationSettings {
     /// Refuses settings that cannot work (NaN, negative sizes, inverted ranges).
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: &str| Err(Error::InvalidInput(format!("segmentation settings: {m}")));
+        let bad = |m: &str| Err(Error::settings("segmentation settings", m));
         let finite = [
             self.air_threshold_hu as f64,
             self.body_threshold_hu as f64,

@@ -277,7 +277,7 @@ fn draw_curve_legend(image: &mut RgbImage, with_simulated: bool) {
 
 /// Refuses series that are empty, of mismatched lengths, non-finite or not increasing in time.
 fn check_curve(c: &BreathingCurve) -> Result<()> {
-    let bad = |m: String| Err(Error::InvalidInput(format!("breathing-curve plot: {m}")));
+    let bad = |m: String| Err(Error::argument("breathing-curve plot", m));
     if c.trace_time_s.len() != c.trace_volume_ml.len() {
         return bad(format!(
             "{} trace times for {} trace volumes",

@@ -139,27 +139,36 @@ pub fn render_displacement_look(input: &DisplacementLookInput) -> Result<Displac
 fn check_look_input(input: &DisplacementLookInput) -> Result<()> {
     let g = &input.ct.geometry;
     if !input.lungs.geometry.same_grid(g, 1e-3) || input.lungs.as_slice().len() != g.voxel_count() {
-        return Err(Error::InvalidInput(format!(
-            "displacement quick look: the lung labels ({:?}) are not on the CT grid ({:?})",
-            input.lungs.geometry.dims, g.dims
-        )));
+        return Err(Error::argument(
+            "displacement quick look",
+            format!(
+                "the lung labels ({:?}) are not on the CT grid ({:?})",
+                input.lungs.geometry.dims, g.dims
+            ),
+        ));
     }
     if input.displacement_mm.len() != g.voxel_count() {
-        return Err(Error::InvalidInput(format!(
-            "displacement quick look: {} displacements for {} CT voxels",
-            input.displacement_mm.len(),
-            g.voxel_count()
-        )));
+        return Err(Error::argument(
+            "displacement quick look",
+            format!(
+                "{} displacements for {} CT voxels",
+                input.displacement_mm.len(),
+                g.voxel_count()
+            ),
+        ));
     }
     if let Some(i) = input
         .displacement_mm
         .par_iter()
         .position_any(|u| u.iter().any(|v| !v.is_finite()))
     {
-        return Err(Error::InvalidInput(format!(
-            "displacement quick look: voxel {i} has a non-finite displacement {:?}",
-            input.displacement_mm[i]
-        )));
+        return Err(Error::argument(
+            "displacement quick look",
+            format!(
+                "voxel {i} has a non-finite displacement {:?}",
+                input.displacement_mm[i]
+            ),
+        ));
     }
     Ok(())
 }
@@ -170,9 +179,10 @@ fn colour_bar_top_mm(input: &DisplacementLookInput) -> Result<f32> {
     Ok(match input.colour_max_mm {
         Some(m) if m.is_finite() && m > 0.0 => m,
         Some(m) => {
-            return Err(Error::InvalidInput(format!(
-                "displacement quick look: colour-bar top {m} mm must be positive"
-            )))
+            return Err(Error::argument(
+                "displacement quick look",
+                format!("colour-bar top {m} mm must be positive"),
+            ))
         }
         None => {
             let largest = input
@@ -279,10 +289,13 @@ fn look_layout(
         .max(note_left_px + text_width_px(&note, TEXT_SCALE) + PANEL_LEFT_PX);
     let height = PANEL_TOP_PX + ph + PANEL_BOTTOM_MARGIN_PX;
     if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-        return Err(Error::InvalidInput(format!(
-            "displacement quick look would be {width}×{height} pixels (more than \
+        return Err(Error::argument(
+            "displacement quick look",
+            format!(
+                "it would be {width}×{height} pixels (more than \
              {MAX_IMAGE_SIDE} per side)"
-        )));
+            ),
+        ));
     }
     Ok(LookLayout {
         subtitle,
