@@ -131,10 +131,10 @@ pub struct IngestBench {
 pub fn upsample_trilinear(ct: &Volume<f32>, dims: [usize; 3]) -> Result<Volume<f32>> {
     let src = ct.geometry;
     if dims.contains(&0) || src.dims.contains(&0) {
-        return Err(Error::InvalidInput(format!(
-            "cannot resample grid {:?} to {dims:?}",
-            src.dims
-        )));
+        return Err(Error::argument(
+            "resampling target",
+            format!("cannot resample grid {:?} to {dims:?}", src.dims),
+        ));
     }
     let scale = [0, 1, 2].map(|a| {
         if dims[a] > 1 {
@@ -229,7 +229,7 @@ fn bench_cip(
         times.push(start.elapsed().as_secs_f64());
         last = Some(seg);
     }
-    let seg = last.ok_or_else(|| Error::InvalidInput("no run".into()))?;
+    let seg = last.ok_or_else(|| Error::argument("ingest benchmark", "no run"))?;
     let union = |v: &Volume<u8>| v.map(|l| (l == RIGHT_LUNG || l == LEFT_LUNG) as u8);
     let voxel_ml = ct.geometry.voxel_volume_mm3() / 1000.0;
     let count = |l: u8| expert.as_slice().iter().filter(|&&x| x == l).count() as f64 * voxel_ml;
@@ -271,7 +271,7 @@ fn bench_upsampled(
     let cpu_per_run_s = cpu_before
         .zip(process_cpu_s())
         .map(|(b, a)| (a - b) / repeats as f64);
-    let seg = last.ok_or_else(|| Error::InvalidInput("no run".into()))?;
+    let seg = last.ok_or_else(|| Error::argument("ingest benchmark", "no run"))?;
     // The coarse result on the fine grid, nearest voxel.
     let g = fine.geometry;
     let cg = coarse.lungs.geometry;

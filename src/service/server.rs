@@ -24,6 +24,7 @@ use super::openapi::openapi_document;
 use super::problem::{ApiError, PROBLEM_JSON};
 use super::routes::{self, AppState, SharedState};
 use super::store::Store;
+use crate::error::{IoContext, IoOp};
 use crate::{Error, Result};
 
 const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
@@ -293,7 +294,10 @@ pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
     let listener = runtime
         .block_on(tokio::net::TcpListener::bind(state.config.listen))
         .map_err(|e| bind_error(state.config.listen, e))?;
-    let addr = listener.local_addr().map_err(Error::Io)?;
+    let addr = listener.local_addr().map_err(|cause| Error::Listen {
+        addr: state.config.listen,
+        cause,
+    })?;
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let thread = std::thread::Builder::new()
         .name("lungmotion-server".into())
@@ -302,7 +306,7 @@ pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
                 let _ = stop_rx.await;
             }))
         })
-        .map_err(Error::Io)?;
+        .at(IoOp::Spawn, "the thread lungmotion-server")?;
     Ok(ServerHandle {
         addr,
         base_url: format!("http://{addr}"),
@@ -317,7 +321,7 @@ fn http_runtime() -> Result<tokio::runtime::Runtime> {
         .enable_all()
         .thread_name("lungmotion-http")
         .build()
-        .map_err(Error::Io)
+        .at(IoOp::Spawn, "the threads lungmotion-http")
 }
 
 fn bind_error(addr: SocketAddr, e: std::io::Error) -> Error {
@@ -332,7 +336,10 @@ pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
             .map_err(|e| bind_error(config.listen, e))?;
-        let addr = listener.local_addr().map_err(Error::Io)?;
+        let addr = listener.local_addr().map_err(|cause| Error::Listen {
+            addr: config.listen,
+            cause,
+        })?;
         let (state, workers) = tokio::task::block_in_place(|| prepare(config))?;
         tracing::info!(
             %addr,

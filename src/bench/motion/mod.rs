@@ -498,7 +498,7 @@ fn bench_cycle(
     let cpu_per_cycle_s = cpu_before
         .zip(process_cpu_s())
         .map(|(b, a)| (a - b) / repeats as f64);
-    let report = last.ok_or_else(|| Error::InvalidInput("no cycle ran".into()))?;
+    let report = last.ok_or_else(|| Error::argument("motion benchmark", "no cycle ran"))?;
     let time = TimeStats::new(&times);
     let frames = report.frames.len();
     let keys = report.keyframes.as_ref();

@@ -301,7 +301,7 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         .no_proxy()
         .pool_max_idle_per_host(LOAD_CONCURRENCY * 2)
         .build()
-        .map_err(|e| Error::InvalidInput(format!("HTTP client: {e}")))?;
+        .map_err(|e| Error::External(format!("HTTP client: {e}")))?;
     let bench = Bench {
         base_url: server.base_url.clone(),
         client,
@@ -374,7 +374,7 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
 
 /// An HTTP failure as an error naming the request.
 fn http_error(what: &str, e: impl std::fmt::Display) -> Error {
-    Error::InvalidInput(format!("{what}: {e}"))
+    Error::External(format!("{what}: {e}"))
 }
 
 /// The response's JSON body if its status is `expected`, else an error with the body.

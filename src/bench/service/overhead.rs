@@ -29,7 +29,7 @@ impl Bench {
             "trace": {"time_s": trace.time_s, "volume_ml": trace.volume_change_ml}
         });
         let request = serde_json::to_vec(&request)
-            .map_err(|e| Error::InvalidInput(format!("simulation request: {e}")))?;
+            .map_err(|e| Error::argument("simulation request", e.to_string()))?;
         let (scan_id, nifti_upload_s) = self.runtime.block_on(async {
             let t = self.upload(&ct_path, "application/gzip").await?;
             let id = t.scan["scan_id"]

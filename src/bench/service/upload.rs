@@ -226,7 +226,6 @@ struct UploadRounds {
 
 /// Zips `files` (flat, by file name) into `zip_path`; returns the zip's size.
 fn write_zip(files: &[PathBuf], zip_path: &Path, method: zip::CompressionMethod) -> Result<u64> {
-    let what = zip_path.display().to_string();
     let out = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(zip_path)?);
     let mut zip = zip::ZipWriter::new(out);
     let options = zip::write::SimpleFileOptions::default().compression_method(method);
@@ -234,15 +233,15 @@ fn write_zip(files: &[PathBuf], zip_path: &Path, method: zip::CompressionMethod)
         let name = f
             .file_name()
             .and_then(|n| n.to_str())
-            .ok_or_else(|| Error::InvalidInput(format!("{what}: odd file name {}", f.display())))?;
+            .ok_or_else(|| Error::format(zip_path, format!("odd file name {}", f.display())))?;
         zip.start_file(name, options)
-            .map_err(|e| Error::InvalidInput(format!("{what}: {e}")))?;
+            .map_err(|e| Error::format(zip_path, e.to_string()))?;
         let mut input = std::fs::File::open(f)?;
         std::io::copy(&mut input, &mut zip)?;
     }
     let out = zip
         .finish()
-        .map_err(|e| Error::InvalidInput(format!("{what}: {e}")))?;
+        .map_err(|e| Error::format(zip_path, e.to_string()))?;
     drop(out);
     Ok(std::fs::metadata(zip_path)?.len())
 }

@@ -15,6 +15,7 @@ use super::{
     INTENT_VECTOR, LABELS_DESCRIPTION, VECTOR_FIELD_CONVENTION,
 };
 use crate::durable::write_atomic;
+use crate::error::{IoContext, IoOp};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -295,16 +296,10 @@ fn write_file(path: &Path, bytes: Vec<u8>) -> Result<()> {
             Vec::with_capacity(bytes.len() / 2),
             flate2::Compression::fast(),
         );
-        encoder.write_all(&bytes)?;
-        encoder.finish()?
+        encoder.write_all(&bytes).at(IoOp::Write, path)?;
+        encoder.finish().at(IoOp::Write, path)?
     } else {
         bytes
     };
-    write_atomic(path, &bytes).map_err(|e| match e {
-        Error::Io(io) => Error::Io(std::io::Error::new(
-            io.kind(),
-            format!("{}: cannot write: {io}", path.display()),
-        )),
-        other => other,
-    })
+    write_atomic(path, &bytes)
 }
