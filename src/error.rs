@@ -142,11 +142,8 @@ pub enum Error {
     },
 
     /// A file or directory operation failed.
-    ///
-    /// Named `IoAt` while [`Error::Io`] still holds unattributed I/O errors; it takes the name
-    /// `Io` when that goes.
     #[error("cannot {op} {}: {cause}", path.display())]
-    IoAt {
+    Io {
         /// The file or directory.
         path: PathBuf,
         /// What was being done to it.
@@ -175,20 +172,6 @@ pub enum Error {
     /// The run was cancelled by its caller (nothing was published).
     #[error("cancelled: {0}")]
     Cancelled(String),
-
-    /// A breathing trace, configuration or other user input is unusable; the message says why.
-    ///
-    /// Being replaced by the domain variants ([`Error::Config`], [`Error::Trace`],
-    /// [`Error::Points`], [`Error::Argument`], …); do not add uses.
-    #[error("invalid input: {0}")]
-    InvalidInput(String),
-
-    /// File or process I/O failed, without saying on what.
-    ///
-    /// Being replaced by [`Error::IoAt`] (attach the path with [`IoContext::at`]); do not add
-    /// uses, including `?` on a bare `std::io::Error`.
-    #[error(transparent)]
-    Io(#[from] std::io::Error),
 }
 
 /// What was being done to a file or directory when it failed; shown as a verb phrase
@@ -244,7 +227,7 @@ impl std::fmt::Display for IoOp {
 /// Attaches the operation and the path to an I/O result, so a call site stays one line:
 /// `std::fs::read(path).at(IoOp::Read, path)?`.
 pub trait IoContext<T> {
-    /// The value, or the error as [`Error::IoAt`] naming `op` on `path`.
+    /// The value, or the error as [`Error::Io`] naming `op` on `path`.
     fn at(self, op: IoOp, path: impl AsRef<Path>) -> Result<T>;
 }
 
@@ -283,7 +266,7 @@ impl Error {
 
     /// An I/O failure of `op` on `path`.
     pub fn io(op: IoOp, path: impl AsRef<Path>, cause: std::io::Error) -> Self {
-        Error::IoAt {
+        Error::Io {
             path: path.as_ref().to_path_buf(),
             op,
             cause,
@@ -294,9 +277,9 @@ impl Error {
     /// path only in their message text return `None`).
     pub fn path(&self) -> Option<&Path> {
         match self {
-            Error::IoAt { path, .. }
-            | Error::Format { path, .. }
-            | Error::OutputDir { path, .. } => Some(path),
+            Error::Io { path, .. } | Error::Format { path, .. } | Error::OutputDir { path, .. } => {
+                Some(path)
+            }
             Error::Config { file: p, .. }
             | Error::Trace { path: p, .. }
             | Error::Points { file: p, .. }
@@ -310,9 +293,9 @@ impl Error {
     /// data directory, or what the file is to the client).
     pub fn with_path_shown_as(mut self, shown_as: impl FnOnce(&Path) -> PathBuf) -> Self {
         let slot = match &mut self {
-            Error::IoAt { path, .. }
-            | Error::Format { path, .. }
-            | Error::OutputDir { path, .. } => Some(path),
+            Error::Io { path, .. } | Error::Format { path, .. } | Error::OutputDir { path, .. } => {
+                Some(path)
+            }
             Error::Config { file: p, .. }
             | Error::Trace { path: p, .. }
             | Error::Points { file: p, .. }

@@ -488,6 +488,6 @@ mod tests {
         );
         std::fs::remove_file(&path).unwrap();
         let e = BreathingTrace::read(&path, &TraceOptions::default()).unwrap_err();
-        assert!(matches!(e, Error::IoAt { op: IoOp::Read, .. }), "{e:?}");
+        assert!(matches!(e, Error::Io { op: IoOp::Read, .. }), "{e:?}");
     }
 }

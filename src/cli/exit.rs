@@ -26,8 +26,7 @@ pub const FAILED: u8 = 1;
 pub fn is_refusal(error: &lungmotion::Error) -> bool {
     use lungmotion::{Error, IoOp};
     match error {
-        Error::InvalidInput(_)
-        | Error::InvalidScan(_)
+        Error::InvalidScan(_)
         | Error::InvalidMaterial(_)
         | Error::Ingest(_)
         | Error::Config { .. }
@@ -39,7 +38,7 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::MissingData { .. }
         | Error::Listen { .. } => true,
         // An input that cannot be read is refused; an output that cannot be written failed.
-        Error::IoAt { op, .. } => {
+        Error::Io { op, .. } => {
             matches!(op, IoOp::Read | IoOp::Open | IoOp::List | IoOp::Metadata)
         }
         Error::InadmissibleElement(_)
@@ -48,8 +47,7 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::NotConverged { .. }
         | Error::External(_)
         | Error::Cancelled(_)
-        | Error::Store { .. }
-        | Error::Io(_) => false,
+        | Error::Store { .. } => false,
     }
 }
 

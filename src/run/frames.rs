@@ -15,7 +15,7 @@ use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
-use crate::Result;
+use crate::{IoContext, IoOp, Result};
 
 /// Everything written per frame, shared by the quasi-static and the dynamic paths.
 pub(super) struct FrameSink<'a> {
@@ -48,7 +48,7 @@ impl<'a> FrameSink<'a> {
         times: &[f64],
     ) -> Result<Self> {
         let frames_dir = staging_dir.join("frames");
-        std::fs::create_dir_all(&frames_dir)?;
+        std::fs::create_dir_all(&frames_dir).at(IoOp::CreateDir, &frames_dir)?;
         Ok(FrameSink {
             field: &lung.field,
             points: &lung.points,
@@ -139,7 +139,7 @@ impl FrameSink<'_> {
         let mesh = self.mesh;
         self.field.sample_mm(mesh, positions, &mut self.field_mm);
         let dir = self.frames_dir.join(frame.index.to_string());
-        std::fs::create_dir_all(&dir)?;
+        std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
         let description = format!("frame {} t={:.3}s", frame.index, frame.time_s);
         nifti::write_nifti_vector_field(
             &dir.join("displacement.nii.gz"),

@@ -47,7 +47,7 @@ use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
 use crate::simulation::Scene;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
 use quicklooks::write_quicklooks;
 use staging::{OutputStaging, SUMMARY_FILE};
@@ -301,7 +301,7 @@ fn write_ingest_files(
     outcome: &IngestOutcome,
 ) -> Result<()> {
     let dir = staging_dir.join("ingest");
-    std::fs::create_dir_all(&dir)?;
+    std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
     write_ingest_outputs(&dir, ct, outcome)?;
     Ok(())
 }

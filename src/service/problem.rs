@@ -103,8 +103,7 @@ impl ApiError {
         match error {
             Error::InvalidScan(_) => Self::unprocessable("invalid-scan", detail),
             Error::Ingest(_) => Self::unprocessable("ingest-failed", detail),
-            Error::InvalidInput(_)
-            | Error::InvalidMaterial(_)
+            Error::InvalidMaterial(_)
             | Error::Config { .. }
             | Error::Trace { .. }
             | Error::Points { .. }

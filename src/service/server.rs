@@ -266,6 +266,10 @@ async fn serve_on(
     let jobs = state.jobs.clone();
     let grace = Duration::from_secs_f64(state.config.shutdown_grace_s);
     let app = router(state);
+    // For the error's address only: axum reports accept failures it cannot retry as io errors.
+    let addr = listener
+        .local_addr()
+        .unwrap_or_else(|_| SocketAddr::from(([0, 0, 0, 0], 0)));
     let (begin_tx, begin_rx) = tokio::sync::oneshot::channel::<()>();
     let jobs_for_signal = jobs.clone();
     let shutdown_signal = async move {
@@ -278,7 +282,7 @@ async fn serve_on(
     axum::serve(listener, app)
         .with_graceful_shutdown(shutdown_signal)
         .await
-        .map_err(Error::Io)?;
+        .map_err(|cause| Error::Listen { addr, cause })?;
     let _ = begin_rx.await;
     tokio::task::spawn_blocking(move || jobs.shutdown(workers, grace))
         .await

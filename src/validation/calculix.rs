@@ -21,7 +21,7 @@ use crate::math::V3;
 use crate::model::mesh::HEX_FACES;
 use crate::model::{HexMesh, Material, NodeConstraint};
 use crate::simulation::Scene;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Environment variable naming the `ccx` executable, overriding the search of `PATH`.
 pub const CCX_ENV: &str = "LUNGMOTION_CCX";
@@ -653,7 +653,7 @@ pub fn solve(scene: &Scene, options: &CalculixOptions) -> Result<CalculixSolutio
             .map(|d| d.subsec_nanos())
             .unwrap_or(0)
     ));
-    std::fs::create_dir_all(&dir)?;
+    std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
     let result = run_in(&ccx, &dir, &deck, scene.node_count(), options);
     if options.keep_files {
         result.map_err(|e| match e {
@@ -673,7 +673,8 @@ fn run_in(
     node_count: usize,
     options: &CalculixOptions,
 ) -> Result<CalculixSolution> {
-    std::fs::write(dir.join("job.inp"), deck)?;
+    let deck_path = dir.join("job.inp");
+    std::fs::write(&deck_path, deck).at(IoOp::Write, &deck_path)?;
     // Output goes to files, not pipes: nobody reads a pipe while we poll, and a full one
     // would stall ccx.
     let stdout_path = dir.join("ccx.stdout");
@@ -684,14 +685,21 @@ fn run_in(
         .arg("job")
         .current_dir(dir)
         .env("OMP_NUM_THREADS", options.threads.max(1).to_string())
-        .stdout(Stdio::from(File::create(&stdout_path)?))
-        .stderr(Stdio::from(File::create(&stderr_path)?))
+        .stdout(Stdio::from(
+            File::create(&stdout_path).at(IoOp::Create, &stdout_path)?,
+        ))
+        .stderr(Stdio::from(
+            File::create(&stderr_path).at(IoOp::Create, &stderr_path)?,
+        ))
         .spawn()
         .map_err(|e| Error::External(format!("cannot run {}: {e}", ccx.display())))?;
     let status_path = format!("/proc/{}/status", child.id());
     let mut peak_kb: Option<f64> = None;
     let status = loop {
-        if let Some(s) = child.try_wait()? {
+        if let Some(s) = child
+            .try_wait()
+            .map_err(|e| Error::External(format!("waiting for {}: {e}", ccx.display())))?
+        {
             break s;
         }
         if let Some(kb) = std::fs::read_to_string(&status_path)

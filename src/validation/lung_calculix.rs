@@ -26,7 +26,7 @@ use crate::math::V3;
 use crate::model::{Material, NodeConstraint};
 use crate::motion::{elastic_compliance_ml_per_pa, lung_scene, REFERENCE_PRESSURE_PA};
 use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Settings of the end-inhale comparison.
 #[derive(Debug, Clone, Serialize)]
@@ -644,7 +644,7 @@ impl LungCalculixReport {
     /// Writes `lung_calculix.json` and `lung_calculix.md` into `dir` (created if needed),
     /// each atomically.
     pub fn write(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir)?;
+        std::fs::create_dir_all(dir).at(IoOp::CreateDir, dir)?;
         let json = serde_json::to_string_pretty(self)
             .map_err(|e| Error::External(format!("serialising the report: {e}")))?;
         write_atomic(&dir.join("lung_calculix.json"), json.as_bytes())?;

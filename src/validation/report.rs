@@ -10,7 +10,7 @@ use super::patch::{run_patch_tests, PatchConfig, PatchReport};
 use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
 use super::sweep::{run_strain_sweeps, SweepConfig, SweepReport};
 use crate::durable::write_atomic;
-use crate::Result;
+use crate::{IoContext, IoOp, Result};
 
 /// Which studies to run.
 #[derive(Debug, Clone, Serialize)]
@@ -106,7 +106,7 @@ impl ValidationReport {
     /// Writes `validation.json` and `validation.md` into `dir` (created if needed), each via a
     /// temporary file and a rename so a reader never sees half a report.
     pub fn write(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir)?;
+        std::fs::create_dir_all(dir).at(IoOp::CreateDir, dir)?;
         let json = serde_json::to_string_pretty(self)
             .map_err(|e| crate::Error::External(format!("serialising the report: {e}")))?;
         write_atomic(&dir.join("validation.json"), json.as_bytes())?;

@@ -45,7 +45,7 @@ use super::{cpu_model, utc_now, Outcome, TimeStats};
 use crate::process::{load_average, peak_rss_bytes};
 use crate::run::RunConfig;
 use crate::service::{start, ServerHandle, ServiceConfig};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 use load::wrk_load;
 
 /// Slices of the uploaded DICOM series (the 300).
@@ -278,7 +278,7 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         "lungmotion-bench-service-{}-{unique}",
         std::process::id()
     )));
-    std::fs::create_dir_all(&work.0)?;
+    std::fs::create_dir_all(&work.0).at(IoOp::CreateDir, &work.0)?;
     let run_config = RunConfig {
         element_size_mm: BENCH_ELEMENT_SIZE_MM,
         ..RunConfig::default()
@@ -296,7 +296,8 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         .worker_threads(cores.max(1))
         .enable_all()
         .thread_name("bench-client")
-        .build()?;
+        .build()
+        .map_err(|e| Error::External(format!("the benchmark client's runtime: {e}")))?;
     let client = reqwest::Client::builder()
         .no_proxy()
         .pool_max_idle_per_host(LOAD_CONCURRENCY * 2)

@@ -10,7 +10,7 @@ use crate::bench::TimeStats;
 use crate::breathing::LujanBreathing;
 use crate::run::demo::sample_volumes_dir;
 use crate::run::{run_breathing, RunInputs, SilentObserver};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 impl Bench {
     /// Interleaved rounds of the same job in-process and through the service; returns the
@@ -60,7 +60,7 @@ impl Bench {
                             .join("frames")
                             .join(k.to_string())
                             .join("displacement.nii.gz");
-                        reference.push(std::fs::read(&path)?);
+                        reference.push(std::fs::read(&path).at(IoOp::Read, &path)?);
                     }
                 }
                 let _ = std::fs::remove_dir_all(&out);

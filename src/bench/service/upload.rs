@@ -13,7 +13,7 @@ use crate::bench::{Outcome, TimeStats};
 use crate::formats::dicom::{write_ct_series, CtSeriesMetadata};
 use crate::ingest::scan::load_ct;
 use crate::run::demo::sample_volumes_dir;
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 /// Timings of one streamed upload.
 pub(super) struct UploadTiming {
@@ -26,8 +26,8 @@ impl Bench {
     /// Streams `path` to `POST /v1/scans` and waits for the 201.
     pub(super) async fn upload(&self, path: &Path, content_type: &str) -> Result<UploadTiming> {
         let what = format!("POST /v1/scans ({})", path.display());
-        let len = std::fs::metadata(path)?.len();
-        let file = tokio::fs::File::open(path).await?;
+        let len = std::fs::metadata(path).at(IoOp::Metadata, path)?.len();
+        let file = tokio::fs::File::open(path).await.at(IoOp::Open, path)?;
         let body_end: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
         let mark = body_end.clone();
         let mut handed_over = 0u64;
@@ -112,7 +112,7 @@ impl Bench {
         drop(ct);
         let mut dicom_bytes = 0u64;
         for f in &files {
-            dicom_bytes += std::fs::metadata(f)?.len();
+            dicom_bytes += std::fs::metadata(f).at(IoOp::Metadata, f)?.len();
         }
         let mut out = Vec::new();
         for (name, method) in [
@@ -226,7 +226,10 @@ struct UploadRounds {
 
 /// Zips `files` (flat, by file name) into `zip_path`; returns the zip's size.
 fn write_zip(files: &[PathBuf], zip_path: &Path, method: zip::CompressionMethod) -> Result<u64> {
-    let out = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(zip_path)?);
+    let out = std::io::BufWriter::with_capacity(
+        1 << 20,
+        std::fs::File::create(zip_path).at(IoOp::Create, zip_path)?,
+    );
     let mut zip = zip::ZipWriter::new(out);
     let options = zip::write::SimpleFileOptions::default().compression_method(method);
     for f in files {
@@ -236,14 +239,16 @@ fn write_zip(files: &[PathBuf], zip_path: &Path, method: zip::CompressionMethod)
             .ok_or_else(|| Error::format(zip_path, format!("odd file name {}", f.display())))?;
         zip.start_file(name, options)
             .map_err(|e| Error::format(zip_path, e.to_string()))?;
-        let mut input = std::fs::File::open(f)?;
-        std::io::copy(&mut input, &mut zip)?;
+        let mut input = std::fs::File::open(f).at(IoOp::Open, f)?;
+        std::io::copy(&mut input, &mut zip).at(IoOp::Write, zip_path)?;
     }
     let out = zip
         .finish()
         .map_err(|e| Error::format(zip_path, e.to_string()))?;
     drop(out);
-    Ok(std::fs::metadata(zip_path)?.len())
+    Ok(std::fs::metadata(zip_path)
+        .at(IoOp::Metadata, zip_path)?
+        .len())
 }
 
 #[cfg(test)]

@@ -127,7 +127,8 @@ fn check_inputs(
         ));
     }
     let same = |other: &Volume<u8>, what: &str| -> Result<()> {
-        if !lungs.geometry.same_grid(&other.geometry, 1e-3) || other.as_slice().len() != lungs.as_slice().len()
+        if !lungs.geometry.same_grid(&other.geometry, 1e-3)
+            || other.as_slice().len() != lungs.as_slice().len()
         {
             return Err(Error::argument(
                 what,
