@@ -49,10 +49,15 @@ pub enum Error {
         tolerance: f64,
     },
 
-    /// A scan (DICOM series, NIfTI, NRRD, zip) is unreadable, inconsistent or implausible;
-    /// the message names the file and the problem.
-    #[error("invalid scan: {0}")]
-    InvalidScan(String),
+    /// A scan (DICOM series, NIfTI, NRRD, zip) is unreadable, inconsistent or implausible.
+    #[error("invalid scan: {}: {reason}", scan.display())]
+    InvalidScan {
+        /// The scan as the user named it: a file or directory, `archive.zip:entry`, or what a
+        /// stage was handed (`CT for segmentation`).
+        scan: PathBuf,
+        /// What is wrong, naming the tag, field or value at fault.
+        reason: String,
+    },
 
     /// A setting is unusable: a key of the run or service configuration, a setting of a stage
     /// (segmentation, lung model, phantom, breathing model) or the output instants.
@@ -252,6 +257,14 @@ impl Error {
             settings,
             file: None,
             key: None,
+            reason: reason.into(),
+        }
+    }
+
+    /// A scan that is unreadable, inconsistent or implausible; `scan` names it as the user did.
+    pub fn scan(scan: impl AsRef<Path>, reason: impl Into<String>) -> Self {
+        Error::InvalidScan {
+            scan: scan.as_ref().to_path_buf(),
             reason: reason.into(),
         }
     }

@@ -50,7 +50,7 @@ impl VolumeGeometry {
     /// Checks dimensions, spacing and direction before anything is allocated; `what` names
     /// the input in the error (a path, "NIfTI header", …).
     pub fn validate(&self, what: &str) -> Result<()> {
-        let bad = |reason: String| Err(Error::InvalidScan(format!("{what}: {reason}")));
+        let bad = |reason: String| Err(Error::scan(what, reason));
         if self.dims.contains(&0) {
             return bad(format!("empty grid {:?}", self.dims));
         }
@@ -237,12 +237,15 @@ impl<T: Copy> Volume<T> {
     pub fn from_data(geometry: VolumeGeometry, data: Vec<T>) -> Result<Self> {
         geometry.validate("volume")?;
         if data.len() != geometry.voxel_count() {
-            return Err(Error::InvalidScan(format!(
-                "grid {:?} needs {} voxels, got {}",
-                geometry.dims,
-                geometry.voxel_count(),
-                data.len()
-            )));
+            return Err(Error::scan(
+                "volume",
+                format!(
+                    "grid {:?} needs {} voxels, got {}",
+                    geometry.dims,
+                    geometry.voxel_count(),
+                    data.len()
+                ),
+            ));
         }
         let data = Array3::from_shape_vec(array_shape(&geometry), data)
             .expect("length checked against the grid above");

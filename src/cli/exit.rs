@@ -26,7 +26,7 @@ pub const FAILED: u8 = 1;
 pub fn is_refusal(error: &lungmotion::Error) -> bool {
     use lungmotion::{Error, IoOp};
     match error {
-        Error::InvalidScan(_)
+        Error::InvalidScan { .. }
         | Error::InvalidMaterial(_)
         | Error::Ingest(_)
         | Error::Config { .. }

@@ -80,7 +80,7 @@ pub fn read_zip_entries<R: Read + Seek>(
     zip_name: &str,
     limits: &ArchiveLimits,
 ) -> Result<Vec<ArchiveEntry>> {
-    let bad = |m: String| Error::InvalidScan(format!("{zip_name}: {m}"));
+    let bad = |m: String| Error::scan(zip_name, m);
     let mut archive = zip::ZipArchive::new(reader)
         .map_err(|e| bad(format!("not a readable zip archive ({e})")))?;
     if archive.len() > limits.max_entries {

@@ -70,7 +70,7 @@ pub fn write_mha(
 
 /// Reads a float32 MetaImage written as [`write_mha`] writes it: geometry, channels, values.
 pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
-    let bad = |m: String| Error::InvalidScan(format!("{}: {m}", path.display()));
+    let bad = |m: String| Error::scan(path, m);
     let bytes = std::fs::read(path).at(IoOp::Read, path)?;
     let mut pos = 0;
     let mut fields = std::collections::HashMap::new();

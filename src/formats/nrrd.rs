@@ -15,8 +15,7 @@ use crate::{Error, Result};
 
 /// Reads a 3-D NRRD file into a volume of f32 values (HU for CT, codes for label maps).
 pub fn read_nrrd(path: &Path) -> Result<Volume<f32>> {
-    let bytes = std::fs::read(path)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot read: {e}", path.display())))?;
+    let bytes = std::fs::read(path).map_err(|e| Error::scan(path, format!("cannot read: {e}")))?;
     parse_nrrd(&bytes, &path.display().to_string())
 }
 
@@ -53,7 +52,7 @@ struct Header<'a> {
 impl Header<'_> {
     /// The error for this file with message `m`.
     fn error(&self, m: String) -> Error {
-        Error::InvalidScan(format!("{}: {m}", self.what))
+        Error::scan(self.what, m)
     }
 
     /// The value of field `name` (lower case), if present.
@@ -74,7 +73,7 @@ impl Header<'_> {
 /// Checks the magic and reads the header up to its first empty line; comments and the magic
 /// line are skipped.
 fn read_header<'a>(bytes: &[u8], what: &'a str) -> Result<Header<'a>> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     if !bytes.starts_with(b"NRRD000") {
         return Err(bad("not a NRRD file (no NRRD000x magic)".into()));
     }

@@ -51,11 +51,13 @@ pub fn detect_scan_format(path: &Path) -> Result<ScanFormat> {
         .and_then(|f| f.take(544).read_to_end(&mut head))
         .at(IoOp::Read, path)?;
     classify_header(&head).ok_or_else(|| {
-        Error::InvalidScan(format!(
-            "{}: not a DICOM directory, zip, DICOM, NIfTI or NRRD file (first bytes {:02x?})",
-            path.display(),
-            &head[..head.len().min(8)]
-        ))
+        Error::scan(
+            path,
+            format!(
+                "not a DICOM directory, zip, DICOM, NIfTI or NRRD file (first bytes {:02x?})",
+                &head[..head.len().min(8)]
+            ),
+        )
     })
 }
 
@@ -140,25 +142,30 @@ pub fn check_hounsfield(ct: &Volume<f32>, path: &Path) -> Result<Vec<String>> {
             || (0, 0, f32::INFINITY, f32::NEG_INFINITY),
             |a, b| (a.0 + b.0, a.1 + b.1, a.2.min(b.2), a.3.max(b.3)),
         );
-    let name = path.display();
+    let name = path;
     if non_finite > 0 {
-        return Err(Error::InvalidScan(format!(
-            "{name}: {non_finite} voxels are NaN or infinite"
-        )));
+        return Err(Error::scan(
+            name,
+            format!("{non_finite} voxels are NaN or infinite"),
+        ));
     }
     let fraction = below_air as f64 / ct.as_slice().len() as f64;
     if fraction < MIN_AIR_FRACTION {
-        return Err(Error::InvalidScan(format!(
-            "{name}: not a chest CT in Hounsfield units: only {:.2} % of voxels are below \
+        return Err(Error::scan(
+            name,
+            format!(
+                "not a chest CT in Hounsfield units: only {:.2} % of voxels are below \
              {AIR_LIKE_HU} HU (values {min} … {max}); lungs and outside air should be near −1000 \
              HU (an MR, or raw detector counts without the rescale?)",
-            100.0 * fraction
-        )));
+                100.0 * fraction
+            ),
+        ));
     }
     let mut warnings = Vec::new();
     if max > 5000.0 {
         warnings.push(format!(
-            "{name}: maximum {max} HU is far above bone (≈ 1000–2000 HU): metal, or an unusual rescale"
+            "{}: maximum {max} HU is far above bone (≈ 1000–2000 HU): metal, or an unusual rescale",
+            name.display()
         ));
     }
     Ok(warnings)

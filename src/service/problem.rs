@@ -101,7 +101,7 @@ impl ApiError {
         let error = error.with_path_shown_as(shown_as);
         let detail = error.to_string();
         match error {
-            Error::InvalidScan(_) => Self::unprocessable("invalid-scan", detail),
+            Error::InvalidScan { .. } => Self::unprocessable("invalid-scan", detail),
             Error::Ingest(_) => Self::unprocessable("ingest-failed", detail),
             Error::InvalidMaterial(_)
             | Error::Config { .. }
@@ -113,8 +113,8 @@ impl ApiError {
         }
     }
 
-    /// Replaces a server path in the detail text with what it is to the client, for errors
-    /// that still carry their path only in the message (scan readers' `InvalidScan`).
+    /// Replaces a server path in the detail text with what it is to the client, for paths
+    /// inside an error's reason (a DICOM series lists the files it skipped).
     pub fn redact_path(mut self, path: &Path, shown_as: &str) -> Self {
         self.detail = self.detail.replace(&path.display().to_string(), shown_as);
         self

@@ -11,7 +11,7 @@ const MAX_SHEAR: f64 = 1e-3;
 
 /// The grid in LPS millimetres from the sform, the qform or the ANALYZE fallback.
 pub(super) fn geometry(header: &Header, dims: [usize; 3], what: &str) -> Result<VolumeGeometry> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let mm_per_unit = match header.xyzt_units & 0x07 {
         0 | 2 => 1.0,
         1 => 1000.0,

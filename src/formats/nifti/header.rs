@@ -95,10 +95,13 @@ pub(super) fn header_length(bytes: &[u8], what: &str) -> Result<usize> {
         .get(..4)
         .and_then(|b| b.try_into().ok())
         .ok_or_else(|| {
-            Error::InvalidScan(format!(
-                "{what}: not a NIfTI file: {} bytes, too short for a header",
-                bytes.len()
-            ))
+            Error::scan(
+                what,
+                format!(
+                    "not a NIfTI file: {} bytes, too short for a header",
+                    bytes.len()
+                ),
+            )
         })?;
     let (le, be) = (i32::from_le_bytes(first), i32::from_be_bytes(first));
     for size in [NIFTI1_HEADER_BYTES, NIFTI2_HEADER_BYTES] {
@@ -106,9 +109,10 @@ pub(super) fn header_length(bytes: &[u8], what: &str) -> Result<usize> {
             return Ok(size);
         }
     }
-    Err(Error::InvalidScan(format!(
-        "{what}: not a NIfTI file: sizeof_hdr is {le}, not 348 (NIfTI-1) or 540 (NIfTI-2)"
-    )))
+    Err(Error::scan(
+        what,
+        format!("not a NIfTI file: sizeof_hdr is {le}, not 348 (NIfTI-1) or 540 (NIfTI-2)"),
+    ))
 }
 
 /// Little- or big-endian field access to a header of known length.
@@ -157,7 +161,7 @@ pub(super) fn parse_header(bytes: &[u8], what: &str) -> Result<Header> {
 
 /// The 348-byte NIfTI-1 header's fields, after its magic is checked.
 fn parse_nifti1_header(f: &Fields, what: &str) -> Result<Header> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let (bytes, big_endian) = (f.bytes, f.big_endian);
     let magic = &bytes[344..348];
     if magic == b"ni1\0" {
@@ -198,7 +202,7 @@ pub(super) fn layout(
     what: &str,
     wanted: Components,
 ) -> Result<(VolumeGeometry, DataType, usize)> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let rank = header.dim[0];
     if !(1..=7).contains(&rank) {
         return Err(bad(format!(
@@ -282,9 +286,10 @@ pub(super) fn scaling(header: &Header, what: &str) -> Result<(f64, f64)> {
     }
     let inter = if inter.is_nan() { 0.0 } else { inter };
     if !slope.is_finite() || !inter.is_finite() {
-        return Err(Error::InvalidScan(format!(
-            "{what}: scl_slope {slope} / scl_inter {inter} are not finite"
-        )));
+        return Err(Error::scan(
+            what,
+            format!("scl_slope {slope} / scl_inter {inter} are not finite"),
+        ));
     }
     Ok((slope, inter))
 }

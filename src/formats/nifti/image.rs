@@ -52,8 +52,7 @@ impl Image<'_> {
 
 /// The whole file; a failure names the path.
 pub(super) fn read_file(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot read: {e}", path.display())))
+    std::fs::read(path).map_err(|e| Error::scan(path, format!("cannot read: {e}")))
 }
 
 /// Parses the header, checks it against the wanted components and the available bytes,
@@ -74,7 +73,7 @@ pub(super) fn parse_image<'a>(
 /// A gzipped file: header, extensions and voxels are inflated in turn, the voxels into a
 /// buffer that grows with what the stream delivers.
 fn parse_gzipped_image(bytes: &[u8], what: &str, wanted: Components) -> Result<Image<'static>> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let mut stream = flate2::read::MultiGzDecoder::new(bytes);
     let mut head = Vec::with_capacity(NIFTI2_HEADER_BYTES);
     read_gz(&mut stream, &mut head, 4, what)?;
@@ -125,7 +124,7 @@ fn parse_gzipped_image(bytes: &[u8], what: &str, wanted: Components) -> Result<I
 
 /// A raw file: the voxels are borrowed from `bytes`.
 fn parse_raw_image<'a>(bytes: &'a [u8], what: &str, wanted: Components) -> Result<Image<'a>> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let header_len = header_length(bytes, what)?;
     let head = bytes.get(..header_len).ok_or_else(|| {
         bad(format!(
@@ -178,10 +177,13 @@ fn read_gz(stream: &mut impl Read, buf: &mut Vec<u8>, count: usize, what: &str) 
         .read_to_end(buf)
         .map_err(|e| gz_error(e, what))?;
     if buf.len() - before < count {
-        return Err(Error::InvalidScan(format!(
-            "{what}: truncated: the gzip stream ends inside the NIfTI header ({} bytes)",
-            buf.len()
-        )));
+        return Err(Error::scan(
+            what,
+            format!(
+                "truncated: the gzip stream ends inside the NIfTI header ({} bytes)",
+                buf.len()
+            ),
+        ));
     }
     Ok(())
 }
@@ -189,8 +191,8 @@ fn read_gz(stream: &mut impl Read, buf: &mut Vec<u8>, count: usize, what: &str) 
 /// A gzip failure as a scan error, truncation named as such.
 fn gz_error(e: std::io::Error, what: &str) -> Error {
     if e.kind() == std::io::ErrorKind::UnexpectedEof {
-        Error::InvalidScan(format!("{what}: truncated gzip stream: {e}"))
+        Error::scan(what, format!("truncated gzip stream: {e}"))
     } else {
-        Error::InvalidScan(format!("{what}: corrupt or truncated gzip stream: {e}"))
+        Error::scan(what, format!("corrupt or truncated gzip stream: {e}"))
     }
 }

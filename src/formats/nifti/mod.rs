@@ -90,10 +90,13 @@ fn refuse_non_finite(data: &[f32], geometry: &VolumeGeometry, what: &str) -> Res
     };
     let count = data.par_iter().filter(|v| !v.is_finite()).count();
     let [i, j, k] = voxel_ijk(first, geometry);
-    Err(Error::InvalidScan(format!(
-        "{what}: {count} voxels are NaN or infinite (first at voxel ({i}, {j}, {k}) = {})",
-        data[first]
-    )))
+    Err(Error::scan(
+        what,
+        format!(
+            "{count} voxels are NaN or infinite (first at voxel ({i}, {j}, {k}) = {})",
+            data[first]
+        ),
+    ))
 }
 
 /// Index of the first element for which `bad` holds, searched in parallel chunks: rayon's

@@ -8,7 +8,7 @@ const NIFTI2_MAGIC: &[u8; 8] = b"n+2\0\r\n\x1a\n";
 
 /// The 540-byte NIfTI-2 header's fields, after its magic is checked.
 pub(super) fn parse_nifti2_header(f: &Fields, what: &str) -> Result<Header> {
-    let bad = |m: String| Error::InvalidScan(format!("{what}: {m}"));
+    let bad = |m: String| Error::scan(what, m);
     let (bytes, big_endian) = (f.bytes, f.big_endian);
     let magic = &bytes[4..12];
     if magic.starts_with(b"ni2\0") {

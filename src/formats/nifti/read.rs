@@ -50,10 +50,13 @@ pub fn read_nifti_labels_bytes(bytes: &[u8], what: &str) -> Result<Volume<u8>> {
         let count = codes.par_iter().filter(|&&c| c > 255).count();
         let value = image.sample(first) * slope + inter;
         let [i, j, k] = voxel_ijk(first, &image.geometry);
-        return Err(Error::InvalidScan(format!(
-            "{what}: not a label map: {count} voxels are not integers in 0..=255 \
+        return Err(Error::scan(
+            what,
+            format!(
+                "not a label map: {count} voxels are not integers in 0..=255 \
              (first at voxel ({i}, {j}, {k}) = {value})"
-        )));
+            ),
+        ));
     }
     let labels = codes.par_iter().map(|&c| c as u8).collect();
     Volume::from_data(image.geometry, labels)

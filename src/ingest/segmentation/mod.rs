@@ -211,18 +211,22 @@ impl ScanGrid {
         let g = ct.geometry;
         g.validate("CT for segmentation")?;
         if ct.as_slice().len() != g.voxel_count() {
-            return Err(Error::InvalidScan(format!(
-                "CT for segmentation: grid {:?} needs {} voxels, the volume holds {}",
-                g.dims,
-                g.voxel_count(),
-                ct.as_slice().len()
-            )));
+            return Err(Error::scan(
+                "CT for segmentation",
+                format!(
+                    "grid {:?} needs {} voxels, the volume holds {}",
+                    g.dims,
+                    g.voxel_count(),
+                    ct.as_slice().len()
+                ),
+            ));
         }
         let dims = g.dims;
         if dims.iter().any(|&n| n < 3) {
-            return Err(Error::InvalidScan(format!(
-                "CT for segmentation: grid {dims:?} is too thin to hold lungs (3 voxels per axis at least)"
-            )));
+            return Err(Error::scan(
+                "CT for segmentation",
+                format!("grid {dims:?} is too thin to hold lungs (3 voxels per axis at least)"),
+            ));
         }
         let (axial, superior_up) = axial_axis(&g.direction_lps);
         Ok(ScanGrid {

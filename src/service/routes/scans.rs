@@ -92,7 +92,17 @@ pub async fn upload_scan(
     let settings = state.config.run.ingest_settings();
     let worker_state = state.clone();
     let record = blocking(move || {
-        let refused = |e| ApiError::from_input_error(e).redact_path(&named, "the upload");
+        let upload = named.display().to_string();
+        // The scan field names the upload (or `upload:entry` in a zip); reasons may list the
+        // files a DICOM reader skipped, so their text is redacted too.
+        let refused = |e: crate::Error| {
+            ApiError::from_input_error_showing(e, |p| {
+                p.to_string_lossy()
+                    .replacen(&upload, "the upload", 1)
+                    .into()
+            })
+            .redact_path(&named, "the upload")
+        };
         let scan = load_ct(&named).map_err(refused)?;
         let outcome = ingest_scan(&scan, &settings).map_err(refused)?;
         let record = ScanRecord {

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use super::{DicomReadOptions, DicomSeries, SeriesInfo};
 use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
 use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
-use crate::{Error, Result};
+use crate::{Error, IoContext, IoOp, Result};
 
 use pixels::decode_slice;
 
@@ -43,7 +43,7 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
     let what = input.display().to_string();
     let sources = gather_sources(input, options)?;
     if sources.is_empty() {
-        return Err(Error::InvalidScan(format!("{what}: no files found")));
+        return Err(Error::scan(what, "no files found"));
     }
     let parsed: Vec<std::result::Result<Option<ParsedFile>, String>> =
         sources.into_par_iter().map(parse_source).collect();
@@ -59,11 +59,14 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
         }
     }
     if files.is_empty() {
-        return Err(Error::InvalidScan(format!(
-            "{what}: no readable DICOM file ({} skipped: {})",
-            warnings.len(),
-            summarize(&warnings, 3)
-        )));
+        return Err(Error::scan(
+            what,
+            format!(
+                "no readable DICOM file ({} skipped: {})",
+                warnings.len(),
+                summarize(&warnings, 3)
+            ),
+        ));
     }
     let series = select_series(&what, files, options)?;
     build_volume(&what, series, warnings)
@@ -76,8 +79,7 @@ enum Source {
 }
 
 fn gather_sources(input: &Path, options: &DicomReadOptions) -> Result<Vec<Source>> {
-    let meta = std::fs::metadata(input)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot access: {e}", input.display())))?;
+    let meta = std::fs::metadata(input).at(IoOp::Metadata, input)?;
     if meta.is_dir() {
         let mut paths = Vec::new();
         collect_files(input, &mut paths)?;
@@ -100,16 +102,12 @@ fn gather_sources(input: &Path, options: &DicomReadOptions) -> Result<Vec<Source
 }
 
 fn collect_files(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
-    let listing = std::fs::read_dir(dir)
-        .map_err(|e| Error::InvalidScan(format!("{}: cannot list: {e}", dir.display())))?;
+    let listing = std::fs::read_dir(dir).at(IoOp::List, dir)?;
     for entry in listing {
-        let entry = entry
-            .map_err(|e| Error::InvalidScan(format!("{}: cannot list: {e}", dir.display())))?;
+        let entry = entry.at(IoOp::List, dir)?;
         let path = entry.path();
         // Follows symlinked files but not symlinked directories, which could loop.
-        let kind = entry
-            .file_type()
-            .map_err(|e| Error::InvalidScan(format!("{}: cannot inspect: {e}", path.display())))?;
+        let kind = entry.file_type().at(IoOp::Metadata, &path)?;
         if kind.is_dir() {
             collect_files(&path, out)?;
         } else if (kind.is_file() || path.is_file())
@@ -270,37 +268,46 @@ fn select_series(
         let found = all.iter().position(|s| &s.uid == wanted);
         return match found {
             Some(i) if all[i].is_ct_image() => Ok(all.swap_remove(i)),
-            Some(i) => Err(Error::InvalidScan(format!(
-                "{what}: series {wanted} is not a CT image series: {}",
-                all[i].describe()
-            ))),
-            None => Err(Error::InvalidScan(format!(
-                "{what}: no series {wanted}; found {}",
-                listing(&all)
-            ))),
+            Some(i) => Err(Error::scan(
+                what,
+                format!(
+                    "series {wanted} is not a CT image series: {}",
+                    all[i].describe()
+                ),
+            )),
+            None => Err(Error::scan(
+                what,
+                format!("no series {wanted}; found {}", listing(&all)),
+            )),
         };
     }
     let ct_count = all.iter().filter(|s| s.is_ct_image()).count();
     match ct_count {
-        0 => Err(Error::InvalidScan(format!(
-            "{what}: no CT image series; found modality {}: {}",
-            all.iter()
-                .map(|s| s.modality().to_string())
-                .collect::<Vec<_>>()
-                .join(", "),
-            listing(&all)
-        ))),
+        0 => Err(Error::scan(
+            what,
+            format!(
+                "no CT image series; found modality {}: {}",
+                all.iter()
+                    .map(|s| s.modality().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                listing(&all)
+            ),
+        )),
         1 => Ok(all
             .into_iter()
             .find(SeriesFiles::is_ct_image)
             .unwrap_or_else(|| unreachable!("one CT series was counted"))),
         _ => {
             let ct: Vec<SeriesFiles> = all.into_iter().filter(|s| s.is_ct_image()).collect();
-            Err(Error::InvalidScan(format!(
-                "{what}: {} CT series found, choose one by SeriesInstanceUID: {}",
-                ct.len(),
-                listing(&ct)
-            )))
+            Err(Error::scan(
+                what,
+                format!(
+                    "{} CT series found, choose one by SeriesInstanceUID: {}",
+                    ct.len(),
+                    listing(&ct)
+                ),
+            ))
         }
     }
 }
@@ -325,10 +332,10 @@ struct FrameLayout {
 
 fn floats(file: &ParsedFile, tag: Tag, tag_name: &str, count: usize) -> Result<Vec<f64>> {
     let bad = |m: String| {
-        Error::InvalidScan(format!(
-            "{}: {tag_name} ({:04X},{:04X}) {m}",
-            file.name, tag.0, tag.1
-        ))
+        Error::scan(
+            &file.name,
+            format!("{tag_name} ({:04X},{:04X}) {m}", tag.0, tag.1),
+        )
     };
     let element = file
         .object
@@ -351,10 +358,10 @@ fn floats(file: &ParsedFile, tag: Tag, tag_name: &str, count: usize) -> Result<V
 
 fn unsigned(file: &ParsedFile, tag: Tag, tag_name: &str) -> Result<usize> {
     let bad = |m: &str| {
-        Error::InvalidScan(format!(
-            "{}: {tag_name} ({:04X},{:04X}) {m}",
-            file.name, tag.0, tag.1
-        ))
+        Error::scan(
+            &file.name,
+            format!("{tag_name} ({:04X},{:04X}) {m}", tag.0, tag.1),
+        )
     };
     let element = file.object.get(tag).ok_or_else(|| bad("is missing"))?;
     element
@@ -364,7 +371,7 @@ fn unsigned(file: &ParsedFile, tag: Tag, tag_name: &str) -> Result<usize> {
 }
 
 fn frame_layout(file: &ParsedFile) -> Result<FrameLayout> {
-    let bad = |m: String| Error::InvalidScan(format!("{}: {m}", file.name));
+    let bad = |m: String| Error::scan(&file.name, m);
     let rows = unsigned(file, tags::ROWS, "Rows")?;
     let columns = unsigned(file, tags::COLUMNS, "Columns")?;
     if rows == 0 || columns == 0 {
@@ -410,9 +417,10 @@ fn check_same_layout(
     name: &str,
 ) -> Result<()> {
     let bad = |m: String| {
-        Err(Error::InvalidScan(format!(
-            "{name}: {m} differs from {name_ref} in the same series"
-        )))
+        Err(Error::scan(
+            name,
+            format!("{m} differs from {name_ref} in the same series"),
+        ))
     };
     if (other.rows, other.columns) != (reference.rows, reference.columns) {
         return bad(format!(
@@ -460,7 +468,7 @@ struct SeriesLabel<'a> {
 impl SeriesLabel<'_> {
     /// The error for this series with message `m`.
     fn error(&self, m: String) -> Error {
-        Error::InvalidScan(format!("{}: series {}: {m}", self.what, self.uid))
+        Error::scan(self.what, format!("series {}: {m}", self.uid))
     }
 }
 

@@ -26,19 +26,23 @@ impl PixelFormat {
             ..
         } = self;
         if !matches!(bits_allocated, 8 | 16 | 32) {
-            return Err(Error::InvalidScan(format!(
-                "{name}: BitsAllocated {bits_allocated} is not supported (8, 16 or 32)"
-            )));
+            return Err(Error::scan(
+                name,
+                format!("BitsAllocated {bits_allocated} is not supported (8, 16 or 32)"),
+            ));
         }
         if bits_stored == 0
             || bits_stored > bits_allocated
             || high_bit + 1 < bits_stored
             || high_bit >= bits_allocated
         {
-            return Err(Error::InvalidScan(format!(
-                "{name}: inconsistent BitsAllocated {bits_allocated}, BitsStored \
+            return Err(Error::scan(
+                name,
+                format!(
+                    "inconsistent BitsAllocated {bits_allocated}, BitsStored \
                  {bits_stored}, HighBit {high_bit}"
-            )));
+                ),
+            ));
         }
         Ok(self)
     }
@@ -65,7 +69,7 @@ impl PixelFormat {
 /// Decodes one slice into `out` (rows × columns HU values, i fastest).
 pub(super) fn decode_slice(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
     let name = &slice.file.name;
-    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
+    let bad = |m: String| Error::scan(name, m);
     let (slope, intercept) = (slice.rescale_slope, slice.rescale_intercept);
     let object = &slice.file.object;
     let tag_u16 = |tag: Tag| object.get(tag).and_then(|e| e.to_int::<u16>().ok());
@@ -125,7 +129,7 @@ pub(super) fn decode_slice(slice: &Slice, layout: &FrameLayout, out: &mut [f32])
 /// Decodes through dicom-pixeldata (every encapsulated syntax, unusual native layouts).
 fn decode_with_pixeldata(slice: &Slice, layout: &FrameLayout, out: &mut [f32]) -> Result<()> {
     let name = &slice.file.name;
-    let bad = |m: String| Error::InvalidScan(format!("{name}: {m}"));
+    let bad = |m: String| Error::scan(name, m);
     let pixels = slice
         .file
         .object
