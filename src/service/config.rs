@@ -425,6 +425,72 @@ mod tests {
     }
 
     #[test]
+    fn connection_limits_come_from_file_environment_and_flags_and_are_checked() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-conn-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            "max_connections = 40\nheader_read_timeout_s = 2.5\nbody_read_timeout_s = 7\n\
+             ingest_timeout_s = 90\n",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        assert_eq!(c.max_connections, 40);
+        assert_eq!(
+            (
+                c.header_read_timeout_s,
+                c.body_read_timeout_s,
+                c.ingest_timeout_s
+            ),
+            (2.5, 7.0, 90.0)
+        );
+        let env = |k: &str| match k {
+            "LUNGMOTION_MAX_CONNECTIONS" => Some("30".to_string()),
+            "LUNGMOTION_BODY_READ_TIMEOUT_S" => Some("3".to_string()),
+            _ => None,
+        };
+        let flags = ServeOverrides {
+            max_connections: Some(20),
+            header_read_timeout_s: Some(1.0),
+            ..ServeOverrides::default()
+        };
+        let c = ServiceConfig::resolve(Some(&path), &env, &flags).unwrap();
+        assert_eq!(c.max_connections, 20);
+        assert_eq!((c.header_read_timeout_s, c.body_read_timeout_s), (1.0, 3.0));
+        for (flags, named) in [
+            (
+                ServeOverrides {
+                    header_read_timeout_s: Some(0.0),
+                    ..ServeOverrides::default()
+                },
+                "header_read_timeout_s",
+            ),
+            (
+                ServeOverrides {
+                    body_read_timeout_s: Some(f64::INFINITY),
+                    ..ServeOverrides::default()
+                },
+                "body_read_timeout_s",
+            ),
+            (
+                ServeOverrides {
+                    max_connections: Some(0),
+                    ..ServeOverrides::default()
+                },
+                "max_connections",
+            ),
+        ] {
+            let e = ServiceConfig::resolve(None, &no_env, &flags).unwrap_err();
+            assert!(e.to_string().contains(named), "{e}");
+        }
+        let env = |k: &str| (k == "LUNGMOTION_INGEST_TIMEOUT_S").then(|| "soon".to_string());
+        let e = ServiceConfig::load(None, &env).unwrap_err();
+        assert!(e.to_string().contains("LUNGMOTION_INGEST_TIMEOUT_S"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn refuses_unknown_keys_bad_numbers_and_open_listening_without_token() {
         let dir = std::env::temp_dir().join(format!("lm-svc-config-bad-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
