@@ -66,8 +66,9 @@ enum Command {
     ///
     /// Settings come from --config (TOML), then the environment (LUNGMOTION_LISTEN,
     /// LUNGMOTION_DATA_DIR, LUNGMOTION_WORKERS, LUNGMOTION_QUEUE_CAPACITY,
-    /// LUNGMOTION_MAX_UPLOAD_MIB, LUNGMOTION_API_TOKEN, LUNGMOTION_API_TOKEN_FILE), then these
-    /// options. A bearer token is required to listen beyond loopback. SIGTERM or Ctrl-C stops
+    /// LUNGMOTION_MAX_UPLOAD_MIB, LUNGMOTION_API_TOKEN, LUNGMOTION_API_TOKEN_FILE,
+    /// LUNGMOTION_MAX_CONNECTIONS, LUNGMOTION_HEADER_READ_TIMEOUT_S,
+    /// LUNGMOTION_BODY_READ_TIMEOUT_S, LUNGMOTION_INGEST_TIMEOUT_S), then these options. A bearer token is required to listen beyond loopback. SIGTERM or Ctrl-C stops
     /// it gracefully: running jobs get shutdown_grace_s, then go back to the queue.
     #[command(verbatim_doc_comment)]
     Serve(ServeArgs),

@@ -358,3 +358,66 @@ fn sigterm_requeues_a_running_job_which_completes_after_restart() {
     server.get_json(&format!("/v1/jobs/{job_id}/summary"));
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
 }
+
+/// The names of a job directory's partial output directories.
+fn partial_outputs(data_dir: &Path, job_id: &str) -> Vec<String> {
+    entries(&data_dir.join("jobs").join(job_id))
+        .into_iter()
+        .filter(|n| n.contains("partial"))
+        .collect()
+}
+
+/// Waits until `job_id` has run (attempt `attempt`) on `server` for a while with partial
+/// outputs on disk, and kills the server with SIGKILL; the partial directories left.
+fn kill_during_run(mut server: ServerProcess, job_id: &str, attempt: u64) -> Vec<String> {
+    let data = server.data_dir().to_path_buf();
+    let data = data.as_path();
+    let running = server.wait_for_state(job_id, &["running"], JOB_TIMEOUT);
+    assert_eq!(running["attempts"], attempt, "{running}");
+    let deadline = Instant::now() + JOB_TIMEOUT;
+    while partial_outputs(data, job_id).is_empty() {
+        assert!(Instant::now() < deadline, "no partial outputs appeared");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    server.kill();
+    partial_outputs(data, job_id)
+}
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (service load and kill): cargo test --features slow-tests"
+)]
+fn a_job_killed_on_every_attempt_fails_and_leaves_no_partial_outputs() {
+    let scratch = Scratch::new("kill9twice");
+    let data = scratch.join("data");
+    let server = ServerProcess::start(&data, &["--workers", "1"]);
+    let scan_id = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    let job_id = server.submit(&scan_id, &long_request());
+    let left_first = kill_during_run(server, &job_id, 1);
+    let server = ServerProcess::start(&data, &["--workers", "1"]);
+    let left_second = kill_during_run(server, &job_id, 2);
+    println!("partial outputs after each kill -9: {left_first:?}, {left_second:?}");
+    assert!(!left_second.is_empty(), "the kill left nothing to clean up");
+
+    let server = ServerProcess::start(&data, &["--workers", "1"]);
+    let status = server.wait_for_state(&job_id, &["failed"], JOB_TIMEOUT);
+    assert_eq!(status["attempts"], 2, "{status}");
+    assert!(
+        status["error"].as_str().unwrap_or("").contains("stopped"),
+        "{status}"
+    );
+    assert_eq!(partial_outputs(&data, &job_id), Vec::<String>::new());
+    assert!(!data.join("jobs").join(&job_id).join("out").exists());
+    assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
+    // Deleting the failed job leaves the store as clean as it was.
+    let resp = server
+        .client()
+        .delete(server.url(&format!("/v1/jobs/{job_id}")))
+        .send()
+        .unwrap();
+    assert_eq!(resp.status(), 204);
+    assert_eq!(entries(&data.join("jobs")), Vec::<String>::new());
+    assert_eq!(entries(&data.join("scans")), vec![scan_id]);
+}

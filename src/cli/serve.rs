@@ -4,7 +4,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use lungmotion::service::{serve_blocking, ServeOverrides, ServiceConfig};
+use lungmotion::service::isolation::serve_ingest_child;
+use lungmotion::service::{serve_blocking, IngestIsolation, ServeOverrides, ServiceConfig};
 
 use super::exit::exit_code;
 
@@ -26,26 +27,59 @@ pub struct ServeArgs {
     /// Simulations that may wait for a worker; beyond, 429 (default 16).
     #[arg(long)]
     queue_capacity: Option<usize>,
+    /// Connections served at once; further ones wait to be accepted (default 256).
+    #[arg(long)]
+    max_connections: Option<usize>,
+    /// Seconds a client may take to send a request's headers before it is disconnected
+    /// (default 10).
+    #[arg(long)]
+    header_read_timeout_s: Option<f64>,
+    /// Seconds a request body may pause before the request is answered 408 (default 30).
+    #[arg(long)]
+    body_read_timeout_s: Option<f64>,
+    /// Internal: ingest one upload as the server's child process (request on stdin, answer
+    /// on stdout), so that a reader crashing on a hostile file ends only the child.
+    #[arg(long, hide = true)]
+    ingest_child: bool,
 }
 
 impl ServeArgs {
     /// Serves until SIGTERM or Ctrl-C. Refused settings exit 2 and a failure while serving
     /// exits 1, as for every subcommand ([`super::exit`]).
     pub fn execute(self) -> ExitCode {
+        if self.ingest_child {
+            return match serve_ingest_child(std::io::stdin().lock(), std::io::stdout().lock()) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("lungmotion serve --ingest-child: cannot answer the server: {e}");
+                    ExitCode::FAILURE
+                }
+            };
+        }
         let env = |name: &str| std::env::var(name).ok();
         let overrides = ServeOverrides {
             listen: self.listen,
             data_dir: self.data_dir,
             workers: self.workers,
             queue_capacity: self.queue_capacity,
+            max_connections: self.max_connections,
+            header_read_timeout_s: self.header_read_timeout_s,
+            body_read_timeout_s: self.body_read_timeout_s,
         };
-        let settings = match ServiceConfig::resolve(self.config.as_deref(), &env, &overrides) {
+        let mut settings = match ServiceConfig::resolve(self.config.as_deref(), &env, &overrides) {
             Ok(s) => s,
             Err(e) => {
                 eprintln!("lungmotion serve: {e}");
                 return exit_code(&e);
             }
         };
+        // Uploads are ingested by this very binary in a child process.
+        match std::env::current_exe() {
+            Ok(program) => settings.ingest_isolation = IngestIsolation::ChildProcess { program },
+            Err(e) => tracing::warn!(
+                "cannot find this program ({e}); uploads are ingested in the server's process"
+            ),
+        }
         match serve_blocking(settings) {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {

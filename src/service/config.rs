@@ -12,6 +12,10 @@
 //! api_token_file = "/etc/lungmotion/token"
 //! shutdown_grace_s = 30
 //! max_attempts = 2            # runs of one job across server restarts
+//! max_connections = 256       # open at once; beyond, new ones wait to be accepted
+//! header_read_timeout_s = 10  # a request's headers, whole
+//! body_read_timeout_s = 30    # the longest pause inside a request body
+//! ingest_timeout_s = 600      # reading and meshing one uploaded scan
 //! [run]                       # defaults of every simulation, as `lungmotion run --config`
 //! element_size_mm = 6
 //! ```
@@ -49,8 +53,33 @@ pub struct ServiceConfig {
     pub shutdown_grace_s: f64,
     /// Runs of one job (the first and re-runs after a server stopped during it).
     pub max_attempts: u32,
+    /// Connections served at once; further ones wait in the listen backlog.
+    pub max_connections: usize,
+    /// Longest time a client may take to send a request's headers, s.
+    pub header_read_timeout_s: f64,
+    /// Longest pause between two pieces of a request body, s.
+    pub body_read_timeout_s: f64,
+    /// Longest time the ingest of one upload may take before it is stopped, s.
+    pub ingest_timeout_s: f64,
+    /// Where an upload's ingest runs (set by the program embedding the service, not by files).
+    pub ingest_isolation: IngestIsolation,
     /// Defaults of every simulation; a request's options are merged over them.
     pub run: RunConfig,
+}
+
+/// Where the ingest of an uploaded scan runs.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub enum IngestIsolation {
+    /// On the server's blocking threads: a panic is contained, a reader that overflows its
+    /// stack aborts the whole process (Rust cannot unwind a stack overflow).
+    #[default]
+    Thread,
+    /// In a child process running `program serve --ingest-child` (the `lungmotion` binary),
+    /// so that a reader crashing on a hostile file ends only the child.
+    ChildProcess {
+        /// The `lungmotion` executable.
+        program: PathBuf,
+    },
 }
 
 impl Default for ServiceConfig {
@@ -67,6 +96,11 @@ impl Default for ServiceConfig {
             api_token: None,
             shutdown_grace_s: 30.0,
             max_attempts: 2,
+            max_connections: 256,
+            header_read_timeout_s: 10.0,
+            body_read_timeout_s: 30.0,
+            ingest_timeout_s: 600.0,
+            ingest_isolation: IngestIsolation::default(),
             run: RunConfig::default(),
         }
     }
@@ -85,6 +119,10 @@ struct ServiceFile {
     api_token_file: Option<PathBuf>,
     shutdown_grace_s: Option<f64>,
     max_attempts: Option<u32>,
+    max_connections: Option<usize>,
+    header_read_timeout_s: Option<f64>,
+    body_read_timeout_s: Option<f64>,
+    ingest_timeout_s: Option<f64>,
     run: Option<toml::Value>,
 }
 
@@ -100,10 +138,16 @@ pub struct ServeOverrides {
     pub workers: Option<usize>,
     /// `--queue-capacity`: simulations that may wait.
     pub queue_capacity: Option<usize>,
+    /// `--max-connections`: connections served at once.
+    pub max_connections: Option<usize>,
+    /// `--header-read-timeout-s`: longest time for a request's headers.
+    pub header_read_timeout_s: Option<f64>,
+    /// `--body-read-timeout-s`: longest pause inside a request body.
+    pub body_read_timeout_s: Option<f64>,
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 7] = [
+pub const ENV_VARS: [&str; 11] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -111,6 +155,10 @@ pub const ENV_VARS: [&str; 7] = [
     "LUNGMOTION_MAX_UPLOAD_MIB",
     "LUNGMOTION_API_TOKEN",
     "LUNGMOTION_API_TOKEN_FILE",
+    "LUNGMOTION_MAX_CONNECTIONS",
+    "LUNGMOTION_HEADER_READ_TIMEOUT_S",
+    "LUNGMOTION_BODY_READ_TIMEOUT_S",
+    "LUNGMOTION_INGEST_TIMEOUT_S",
 ];
 
 impl ServiceConfig {
@@ -187,6 +235,10 @@ impl ServiceConfig {
         }
         set(&mut self.shutdown_grace_s, file.shutdown_grace_s);
         set(&mut self.max_attempts, file.max_attempts);
+        set(&mut self.max_connections, file.max_connections);
+        set(&mut self.header_read_timeout_s, file.header_read_timeout_s);
+        set(&mut self.body_read_timeout_s, file.body_read_timeout_s);
+        set(&mut self.ingest_timeout_s, file.ingest_timeout_s);
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -224,6 +276,18 @@ impl ServiceConfig {
             let mib: u64 = parsed("LUNGMOTION_MAX_UPLOAD_MIB", &v)?;
             self.max_upload_bytes = mib.saturating_mul(1 << 20);
         }
+        if let Some(v) = env("LUNGMOTION_MAX_CONNECTIONS") {
+            self.max_connections = parsed("LUNGMOTION_MAX_CONNECTIONS", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_HEADER_READ_TIMEOUT_S") {
+            self.header_read_timeout_s = parsed("LUNGMOTION_HEADER_READ_TIMEOUT_S", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_BODY_READ_TIMEOUT_S") {
+            self.body_read_timeout_s = parsed("LUNGMOTION_BODY_READ_TIMEOUT_S", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_INGEST_TIMEOUT_S") {
+            self.ingest_timeout_s = parsed("LUNGMOTION_INGEST_TIMEOUT_S", &v)?;
+        }
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);
         }
@@ -244,6 +308,12 @@ impl ServiceConfig {
         }
         set(&mut self.workers, overrides.workers);
         set(&mut self.queue_capacity, overrides.queue_capacity);
+        set(&mut self.max_connections, overrides.max_connections);
+        set(
+            &mut self.header_read_timeout_s,
+            overrides.header_read_timeout_s,
+        );
+        set(&mut self.body_read_timeout_s, overrides.body_read_timeout_s);
         Ok(())
     }
 
@@ -267,6 +337,24 @@ impl ServiceConfig {
         }
         if self.max_attempts == 0 {
             return bad("max_attempts must be at least 1");
+        }
+        if self.max_connections == 0 || self.max_connections > 100_000 {
+            return bad(&format!(
+                "max_connections must be 1–100000, not {}",
+                self.max_connections
+            ));
+        }
+        for (key, seconds) in [
+            ("header_read_timeout_s", self.header_read_timeout_s),
+            ("body_read_timeout_s", self.body_read_timeout_s),
+            ("ingest_timeout_s", self.ingest_timeout_s),
+        ] {
+            // Zero or endless would hand every connection or ingest to whoever holds it.
+            if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
+                return bad(&format!(
+                    "{key} must be a number of seconds above 0 and at most 86400, not {seconds}"
+                ));
+            }
         }
         if let Some(token) = &self.api_token {
             if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
@@ -333,6 +421,72 @@ mod tests {
         };
         let c = ServiceConfig::load(Some(&path), &env).unwrap();
         assert_eq!((c.workers, c.max_upload_bytes), (1, 7 << 20));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn connection_limits_come_from_file_environment_and_flags_and_are_checked() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-conn-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            "max_connections = 40\nheader_read_timeout_s = 2.5\nbody_read_timeout_s = 7\n\
+             ingest_timeout_s = 90\n",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        assert_eq!(c.max_connections, 40);
+        assert_eq!(
+            (
+                c.header_read_timeout_s,
+                c.body_read_timeout_s,
+                c.ingest_timeout_s
+            ),
+            (2.5, 7.0, 90.0)
+        );
+        let env = |k: &str| match k {
+            "LUNGMOTION_MAX_CONNECTIONS" => Some("30".to_string()),
+            "LUNGMOTION_BODY_READ_TIMEOUT_S" => Some("3".to_string()),
+            _ => None,
+        };
+        let flags = ServeOverrides {
+            max_connections: Some(20),
+            header_read_timeout_s: Some(1.0),
+            ..ServeOverrides::default()
+        };
+        let c = ServiceConfig::resolve(Some(&path), &env, &flags).unwrap();
+        assert_eq!(c.max_connections, 20);
+        assert_eq!((c.header_read_timeout_s, c.body_read_timeout_s), (1.0, 3.0));
+        for (flags, named) in [
+            (
+                ServeOverrides {
+                    header_read_timeout_s: Some(0.0),
+                    ..ServeOverrides::default()
+                },
+                "header_read_timeout_s",
+            ),
+            (
+                ServeOverrides {
+                    body_read_timeout_s: Some(f64::INFINITY),
+                    ..ServeOverrides::default()
+                },
+                "body_read_timeout_s",
+            ),
+            (
+                ServeOverrides {
+                    max_connections: Some(0),
+                    ..ServeOverrides::default()
+                },
+                "max_connections",
+            ),
+        ] {
+            let e = ServiceConfig::resolve(None, &no_env, &flags).unwrap_err();
+            assert!(e.to_string().contains(named), "{e}");
+        }
+        let env = |k: &str| (k == "LUNGMOTION_INGEST_TIMEOUT_S").then(|| "soon".to_string());
+        let e = ServiceConfig::load(None, &env).unwrap_err();
+        assert!(e.to_string().contains("LUNGMOTION_INGEST_TIMEOUT_S"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

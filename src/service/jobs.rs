@@ -137,6 +137,18 @@ impl JobManager {
             run_times_s: VecDeque::new(),
         };
         for mut record in records {
+            // No run of this process has started yet, so every partial output directory is
+            // a leftover of a process that was killed (its pid may even be ours again, as in
+            // a container where the server is always the same pid).
+            match store.clear_partial_outputs(record.job_id) {
+                Ok(0) => {}
+                Ok(n) => {
+                    tracing::info!(job = %record.job_id, removed = n, "partial outputs of an interrupted run removed")
+                }
+                Err(e) => {
+                    tracing::warn!(job = %record.job_id, "cannot remove partial outputs: {e}")
+                }
+            }
             match record.state {
                 JobState::Queued => board.queue.push_back(record.job_id),
                 JobState::Running if record.attempts >= max_attempts => {
@@ -460,6 +472,13 @@ fn run_job(shared: &Shared, live: &LiveJob) {
             record.state = JobState::Failed;
             tracing::warn!(job = %id, "run failed: {e}");
             record.error = Some(client_message(e, shared.store.root()));
+        }
+    }
+    if matches!(record.state, JobState::Failed | JobState::Cancelled) {
+        // The run's staging directory removes itself when dropped; this covers a removal
+        // that failed there, so a finished job never keeps half its outputs.
+        if let Err(e) = shared.store.clear_partial_outputs(id) {
+            tracing::warn!(job = %id, "cannot remove partial outputs: {e}");
         }
     }
     if record.state.is_terminal() {

@@ -9,12 +9,17 @@
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
 //! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
 //!   [`problem`]: error bodies;
-//! * [`metrics`]: Prometheus series; [`server`]: middleware, listening, graceful shutdown.
+//! * [`metrics`]: Prometheus series; [`server`]: middleware, listening, graceful shutdown;
+//!   [`connections`]: the connection cap and header timeout; [`body_timeout`]: the body's;
+//! * [`isolation`]: an upload's ingest in a child process, so a crashing reader ends only it.
 //!
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
 
+pub mod body_timeout;
 pub mod config;
+pub mod connections;
 pub mod ids;
+pub mod isolation;
 pub mod jobs;
 pub mod metrics;
 pub mod openapi;
@@ -25,5 +30,5 @@ pub mod server;
 pub mod store;
 pub mod upload;
 
-pub use config::{ServeOverrides, ServiceConfig};
+pub use config::{IngestIsolation, ServeOverrides, ServiceConfig};
 pub use server::{router, serve_blocking, start, ServerHandle};

@@ -18,7 +18,12 @@ use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
         title = "lungmotion",
         description = "Predicts how every point of a patient's lungs moves while they breathe: \
             upload a CT, submit a breathing curve, fetch a displacement field per instant \
-            (NIfTI vector images, LPS millimetres). Errors are application/problem+json.",
+            (NIfTI vector images, LPS millimetres). Errors are application/problem+json. \
+            Every answer carries an `x-request-id` header (also in problem bodies and the \
+            server's log): the client's own when it is 1–64 characters of `[A-Za-z0-9._-]`, \
+            otherwise (or when absent) a fresh UUID. A request body that pauses longer than \
+            body_read_timeout_s is answered 408; headers slower than header_read_timeout_s \
+            close the connection.",
     ),
     paths(
         routes::upload_scan,
@@ -98,5 +103,20 @@ mod tests {
         assert!(doc["openapi"].as_str().unwrap().starts_with("3.1"));
         assert!(doc["components"]["securitySchemes"]["bearer"].is_object());
         assert!(doc["components"]["schemas"]["JobStatus"].is_object());
+        // The trace's options sit beside its samples, as in the CLI's [trace] table.
+        let trace = &doc["components"]["schemas"]["TraceBody"]["properties"];
+        for key in [
+            "time_s",
+            "time_ms",
+            "volume_ml",
+            "volume_l",
+            "reference",
+            "seconds_per_time_unit",
+            "ml_per_volume_unit",
+        ] {
+            assert!(trace[key].is_object(), "TraceBody lacks {key}: {trace}");
+        }
+        let description = doc["info"]["description"].as_str().unwrap();
+        assert!(description.contains("[A-Za-z0-9._-]"), "{description}");
     }
 }

@@ -8,17 +8,78 @@ use utoipa::ToSchema;
 
 use super::problem::{ApiError, ApiResult};
 use super::store::{JobRequest, StoredPoint};
-use crate::breathing::BreathingTrace;
+use crate::breathing::{BreathingTrace, TraceFormat, TraceOptions};
 use crate::run::RunConfig;
 
-/// A breathing trace in a JSON request.
+/// A breathing trace in a JSON request: the CLI's JSON trace file (`time_s` or `time_ms`,
+/// `volume_ml` or `volume_l`) with the run configuration's `[trace]` options beside the data,
+/// each over the server's `[run.trace]` default and applied exactly as `lungmotion run`
+/// applies them to a trace file.
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TraceBody {
     /// Sample times, s, strictly increasing.
-    pub time_s: Vec<f64>,
-    /// Lung volume change from the scanned state, mL.
-    pub volume_ml: Vec<f64>,
+    #[serde(default)]
+    pub time_s: Option<Vec<f64>>,
+    /// Sample times, ms (instead of `time_s`).
+    #[serde(default)]
+    pub time_ms: Option<Vec<f64>>,
+    /// Lung volume, mL: the change from the scanned state unless `reference` says absolute.
+    #[serde(default)]
+    pub volume_ml: Option<Vec<f64>>,
+    /// Lung volume, L (instead of `volume_ml`).
+    #[serde(default)]
+    pub volume_l: Option<Vec<f64>>,
+    /// `"change_from_scan"` (default) or `{"absolute": {"scanned_volume_ml": 2800}}`: the
+    /// volumes are absolute lung volumes and the scanned lung holds `scanned_volume_ml`.
+    #[serde(default)]
+    #[schema(value_type = Object)]
+    pub reference: Option<Value>,
+    /// Multiplies the times to get seconds (instead of the unit in the key's name).
+    #[serde(default)]
+    pub seconds_per_time_unit: Option<f64>,
+    /// Multiplies the volumes to get mL (instead of the unit in the key's name).
+    #[serde(default)]
+    pub ml_per_volume_unit: Option<f64>,
+}
+
+impl TraceBody {
+    /// The samples as the CLI's JSON trace file and the trace options, each option given
+    /// here replacing the server's default, `format` fixed to JSON.
+    fn split(self, defaults: &TraceOptions) -> ApiResult<(String, TraceOptions)> {
+        let mut samples = serde_json::Map::new();
+        for (key, values) in [
+            ("time_s", self.time_s),
+            ("time_ms", self.time_ms),
+            ("volume_ml", self.volume_ml),
+            ("volume_l", self.volume_l),
+        ] {
+            if let Some(values) = values {
+                samples.insert(key.into(), values.into());
+            }
+        }
+        let mut options = serde_json::to_value(defaults)
+            .map_err(|e| ApiError::internal(format!("default trace options: {e}")))?;
+        for (key, value) in [
+            ("reference", self.reference),
+            (
+                "seconds_per_time_unit",
+                self.seconds_per_time_unit.map(Value::from),
+            ),
+            (
+                "ml_per_volume_unit",
+                self.ml_per_volume_unit.map(Value::from),
+            ),
+        ] {
+            if let Some(value) = value {
+                options[key] = value;
+            }
+        }
+        let mut options: TraceOptions =
+            serde_json::from_value(options).map_err(|e| invalid(format!("trace: {e}")))?;
+        options.format = TraceFormat::Json;
+        Ok((Value::Object(samples).to_string(), options))
+    }
 }
 
 /// A simulation request: the trace, points to track, and any `lungmotion run` option.
@@ -110,10 +171,17 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
     let mut merged = serde_json::to_value(defaults)
         .map_err(|e| ApiError::internal(format!("default options: {e}")))?;
     merge_options(&mut merged, &request.options);
-    let config: RunConfig =
+    let mut config: RunConfig =
         serde_json::from_value(merged).map_err(|e| invalid(format!("options: {e}")))?;
-    let trace = BreathingTrace::new(request.trace.time_s, request.trace.volume_ml)
-        .map_err(|e| invalid(e.to_string()))?;
+    let (samples, trace_options) = request.trace.split(&defaults.trace)?;
+    // The CLI's own reader on the CLI's own file format: units and reference applied alike.
+    let trace = BreathingTrace::parse(&samples, &trace_options)
+        .map_err(|e| invalid(format!("breathing trace: {e}")))?;
+    // Recorded in request.json and summary.json as the CLI records its [trace] table.
+    config.trace = TraceOptions {
+        format: defaults.trace.format,
+        ..trace_options
+    };
     Ok(ParsedRequest {
         config,
         trace,
@@ -225,6 +293,68 @@ mod tests {
         );
         assert_eq!(request.points[0].name, "tumour");
         assert_eq!(request.time_s.len(), 81);
+    }
+
+    #[test]
+    fn the_traces_options_beside_its_samples_apply_as_the_clis() {
+        let defaults = RunConfig::default();
+        let (t, v) = two_breaths();
+        let absolute: Vec<f64> = v.iter().map(|v| v + 2800.0).collect();
+        let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": absolute,
+            "reference": {"absolute": {"scanned_volume_ml": 2800.0}}}});
+        let request =
+            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        let cli_options: TraceOptions =
+            toml::from_str("reference = { absolute = { scanned_volume_ml = 2800 } }").unwrap();
+        let absolute_text = serde_json::json!({"time_s": t, "volume_ml": absolute}).to_string();
+        let cli = BreathingTrace::parse(&absolute_text, &cli_options).unwrap();
+        assert_eq!(request.volume_ml, cli.volume_change_ml);
+        assert_eq!(request.config.trace.reference, cli_options.reference);
+        // Units: the key's name or a factor, as in a trace file.
+        let ms: Vec<f64> = t.iter().map(|t| t * 1000.0).collect();
+        let litres: Vec<f64> = v.iter().map(|v| v / 1000.0).collect();
+        let body = serde_json::json!({"trace": {"time_ms": ms, "volume_l": litres}});
+        let request =
+            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        assert!((request.time_s[80] - 8.0).abs() < 1e-12);
+        assert!((request.volume_ml[40] - v[40]).abs() < 1e-9);
+        let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": litres,
+            "ml_per_volume_unit": 1000.0}});
+        let request =
+            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        assert!((request.volume_ml[40] - v[40]).abs() < 1e-9);
+        // Absolute volumes of a large lung without the scanned volume: refused with the hint.
+        let large: Vec<f64> = v.iter().map(|v| v + 5800.0).collect();
+        let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": large}});
+        let e = parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
+            .unwrap_err();
+        assert!(
+            e.status == 422 && e.detail.contains("scanned lung volume"),
+            "{e}"
+        );
+        for (bad, named) in [
+            (
+                serde_json::json!({"referense": "change_from_scan"}),
+                "referense",
+            ),
+            (
+                serde_json::json!({"reference": {"absolute": {}}}),
+                "scanned_volume_ml",
+            ),
+            (
+                serde_json::json!({"reference": {"absolute": {"scanned_volume_ml": -1}}}),
+                "-1",
+            ),
+        ] {
+            let mut trace = serde_json::json!({"time_s": t, "volume_ml": v});
+            for (k, value) in bad.as_object().unwrap() {
+                trace[k] = value.clone();
+            }
+            let body = serde_json::json!({ "trace": trace });
+            let e = parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
+                .unwrap_err();
+            assert!(e.status == 422 && e.detail.contains(named), "{named}: {e}");
+        }
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! Assembling and running the server: routes, the middleware every request passes through
-//! (request id, tracing span, metrics, problem bodies, bearer authentication), listening,
-//! and a graceful shutdown that stops taking work, drains requests and gives running jobs
+//! (request id, tracing span, metrics, problem bodies, bearer authentication, body read
+//! timeout), listening (through [`super::connections`]), and a graceful shutdown that stops taking work, drains requests and gives running jobs
 //! `shutdown_grace_s` before putting them back in the queue.
 
 use std::net::SocketAddr;
@@ -17,7 +17,9 @@ use subtle::ConstantTimeEq;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
+use super::body_timeout::limit_body_pauses;
 use super::config::ServiceConfig;
+use super::connections::{serve_connections, ConnectionLimits};
 use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
@@ -28,6 +30,35 @@ use crate::error::{IoContext, IoOp};
 use crate::{Error, Result};
 
 const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
+/// Longest request id kept from a client.
+pub const MAX_REQUEST_ID_CHARS: usize = 64;
+
+/// Whether a client's request id may be kept, logged and echoed: 1–64 characters of
+/// `[A-Za-z0-9._-]`, so it can carry no markup, control or non-ASCII byte into a log or a page.
+pub fn is_safe_request_id(id: &[u8]) -> bool {
+    (1..=MAX_REQUEST_ID_CHARS).contains(&id.len())
+        && id
+            .iter()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+/// Drops a client's request id that is not safe (or given more than once); the request then
+/// gets a fresh UUID, as one that came without.
+async fn sanitize_request_id(mut request: Request) -> Request {
+    let given = request.headers().get_all(&REQUEST_ID);
+    let mut values = given.iter();
+    let keep = match (values.next(), values.next()) {
+        (None, _) => return request,
+        (Some(v), None) => is_safe_request_id(v.as_bytes()),
+        (Some(_), Some(_)) => false,
+    };
+    if !keep {
+        tracing::debug!("unsafe x-request-id from the client replaced");
+        request.headers_mut().remove(&REQUEST_ID);
+    }
+    request
+}
 
 /// Builds the router over `state`.
 pub fn router(state: SharedState) -> Router {
@@ -67,6 +98,10 @@ pub fn router(state: SharedState) -> Router {
         .route("/openapi.json", get(|| async { Json(openapi_document()) }))
         .fallback(routes::not_found)
         .with_state(state.clone())
+        .layer(middleware::from_fn_with_state(
+            Duration::from_secs_f64(state.config.body_read_timeout_s),
+            limit_body_pauses,
+        ))
         .layer(middleware::from_fn_with_state(state, observe))
         .layer(PropagateRequestIdLayer::new(REQUEST_ID))
         .layer(
@@ -86,6 +121,7 @@ pub fn router(state: SharedState) -> Router {
             }),
         )
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+        .layer(middleware::map_request(sanitize_request_id))
 }
 
 /// Requires the bearer token when one is configured.
@@ -265,11 +301,11 @@ async fn serve_on(
 ) -> Result<()> {
     let jobs = state.jobs.clone();
     let grace = Duration::from_secs_f64(state.config.shutdown_grace_s);
+    let limits = ConnectionLimits {
+        max_connections: state.config.max_connections,
+        header_read_timeout: Duration::from_secs_f64(state.config.header_read_timeout_s),
+    };
     let app = router(state);
-    // For the error's address only: axum reports accept failures it cannot retry as io errors.
-    let addr = listener
-        .local_addr()
-        .unwrap_or_else(|_| SocketAddr::from(([0, 0, 0, 0], 0)));
     let (begin_tx, begin_rx) = tokio::sync::oneshot::channel::<()>();
     let jobs_for_signal = jobs.clone();
     let shutdown_signal = async move {
@@ -279,10 +315,7 @@ async fn serve_on(
         jobs_for_signal.begin_shutdown();
         let _ = begin_tx.send(());
     };
-    axum::serve(listener, app)
-        .with_graceful_shutdown(shutdown_signal)
-        .await
-        .map_err(|cause| Error::Listen { addr, cause })?;
+    serve_connections(listener, app, limits, shutdown_signal).await;
     let _ = begin_rx.await;
     tokio::task::spawn_blocking(move || jobs.shutdown(workers, grace))
         .await

@@ -331,9 +331,10 @@ impl Store {
         Ok((jobs, problems))
     }
 
-    /// Removes a stopped run's partial output directories (`.out.partial-<pid>`).
-    pub fn clear_partial_outputs(&self, id: JobId) -> Result<()> {
+    /// Removes a stopped run's partial output directories (`.out.partial-<pid>`); how many.
+    pub fn clear_partial_outputs(&self, id: JobId) -> Result<usize> {
         let dir = self.job_dir(id);
+        let mut removed = 0;
         for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
             let entry = entry.at(IoOp::List, &dir)?;
             if entry
@@ -343,9 +344,10 @@ impl Store {
             {
                 let partial = entry.path();
                 std::fs::remove_dir_all(&partial).at(IoOp::Remove, &partial)?;
+                removed += 1;
             }
         }
-        Ok(())
+        Ok(removed)
     }
 
     fn remove_dir(&self, dir: &Path) -> Result<bool> {

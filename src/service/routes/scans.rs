@@ -1,6 +1,7 @@
 //! Scans: upload (stored and ingested at once), fetch and delete.
 
 use std::path::PathBuf;
+use std::time::Duration;
 
 use axum::extract::{Path, Request, State};
 use axum::http::StatusCode;
@@ -10,9 +11,8 @@ use serde::Serialize;
 use utoipa::ToSchema;
 
 use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
-use crate::ingest::pipeline::ingest_scan;
-use crate::ingest::scan::load_ct;
 use crate::service::ids::ScanId;
+use crate::service::isolation::ingest_isolated;
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::store::{now_rfc3339, ScanRecord};
 use crate::service::upload::{receive_scan, TempFileGuard};
@@ -63,7 +63,8 @@ impl From<ScanRecord> for ScanView {
         (status = 400, description = "Empty or broken upload", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Over max_upload_mib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "JSON or text instead of a scan", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Not a CT, truncated, unsafe zip, or no lungs found", body = Problem, content_type = "application/problem+json"),
+        (status = 408, description = "The body stopped arriving for body_read_timeout_s", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Not a CT, truncated, unsafe zip, no lungs found, a reader that crashed on the file (scan-reader-crashed) or an ingest over ingest_timeout_s", body = Problem, content_type = "application/problem+json"),
     ),
     security(("bearer" = []))
 )]
@@ -89,30 +90,23 @@ pub async fn upload_scan(
         .await
         .map_err(|_| shutting_down())?;
     let bytes = received.bytes;
-    let settings = state.config.run.ingest_settings();
     let worker_state = state.clone();
     let record = blocking(move || {
-        let upload = named.display().to_string();
-        // The scan field names the upload (or `upload:entry` in a zip); reasons may list the
-        // files a DICOM reader skipped, so their text is redacted too.
-        let refused = |e: crate::Error| {
-            ApiError::from_input_error_showing(e, |p| {
-                p.to_string_lossy()
-                    .replacen(&upload, "the upload", 1)
-                    .into()
-            })
-            .redact_path(&named, "the upload")
-        };
-        let scan = load_ct(&named).map_err(refused)?;
-        let outcome = ingest_scan(&scan, &settings).map_err(refused)?;
+        let config = &worker_state.config;
+        // Isolated: a reader crashing on a hostile file must not take the server down.
+        let ingest = ingest_isolated(
+            &config.ingest_isolation,
+            &named,
+            &config.run,
+            Duration::from_secs_f64(config.ingest_timeout_s),
+        )?;
         let record = ScanRecord {
             scan_id: ScanId::random(),
             created_at: now_rfc3339(),
             format: format_name.to_string(),
             upload_bytes: bytes,
             file_name: file_name.to_string(),
-            ingest: serde_json::to_value(&outcome.summary)
-                .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))?,
+            ingest,
         };
         worker_state
             .store

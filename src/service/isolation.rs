@@ -1,0 +1,257 @@
+//! Where the ingest of an uploaded scan runs, so that no upload can take the server down.
+//!
+//! A hostile file can make a reader recurse until the stack is exhausted (a DICOM data set of
+//! 200 000 nested sequences did); Rust does not unwind a stack overflow, it aborts the whole
+//! process, so no thread or `catch_unwind` contains it. The server therefore reads and
+//! meshes each upload in a child process, the `lungmotion` binary run as
+//! `lungmotion serve --ingest-child`: the request goes in on stdin as JSON, the ingest summary
+//! or the refusal comes back on stdout, and a child that crashes, is killed or overruns
+//! `ingest_timeout_s` costs one `422` answer, never the server. Embedders without the binary
+//! (the benchmarks, tests of the library) run it on the server's blocking threads instead,
+//! which contains panics, not an overflow.
+//!
+//! The child reads on a thread with the default stack, as the job workers have, not on its
+//! main thread (8 MiB under the usual `ulimit -s`): a file whose reading fits the child's
+//! stack then also fits the job worker's, which reads the stored scan again in the server's
+//! process. Measured on the 200 000-deep file with `lungmotion ingest`: it overflows a
+//! 1 GiB main-thread stack and is read (then refused, no pixel data) with 4 GiB, at 2.1 GB
+//! peak memory, so no stack size a server could give would contain it.
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use axum::http::StatusCode;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use super::config::IngestIsolation;
+use super::problem::{ApiError, ApiResult};
+use crate::ingest::pipeline::ingest_scan;
+use crate::ingest::scan::load_ct;
+use crate::run::RunConfig;
+
+/// Largest request a child reads on stdin and answer the server reads on stdout.
+const MAX_MESSAGE_BYTES: u64 = 64 << 20;
+
+/// How often the server looks whether the child has finished.
+const CHILD_POLL: Duration = Duration::from_millis(20);
+
+/// What the server asks of an ingest child.
+#[derive(Debug, Serialize, Deserialize)]
+struct ChildRequest {
+    /// The uploaded file, named as the readers expect (`.nii.gz`, `.zip` …).
+    upload: PathBuf,
+    /// The run defaults whose ingest settings apply.
+    run: RunConfig,
+}
+
+/// What an ingest child answers.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum ChildAnswer {
+    /// The ingest summary (the CLI's `ingest.json`).
+    Summary(Value),
+    /// The refusal as the client is to see it.
+    Refused {
+        status: u16,
+        slug: String,
+        detail: String,
+    },
+}
+
+/// Reads and meshes the upload at `upload` with the ingest settings of `run`; the ingest
+/// summary, or the refusal with the upload called "the upload" (never a server path).
+pub fn ingest_upload(upload: &Path, run: &RunConfig) -> ApiResult<Value> {
+    let shown = upload.display().to_string();
+    // The scan field names the upload (or `upload:entry` in a zip); reasons may list the
+    // files a DICOM reader skipped, so their text is redacted too.
+    let refused = |e: crate::Error| {
+        ApiError::from_input_error_showing(e, |p| {
+            p.to_string_lossy().replacen(&shown, "the upload", 1).into()
+        })
+        .redact_path(upload, "the upload")
+    };
+    let scan = load_ct(upload).map_err(refused)?;
+    let outcome = ingest_scan(&scan, &run.ingest_settings()).map_err(refused)?;
+    serde_json::to_value(&outcome.summary)
+        .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))
+}
+
+/// [`ingest_upload`] where `isolation` says, the child given at most `timeout`. Blocks.
+pub fn ingest_isolated(
+    isolation: &IngestIsolation,
+    upload: &Path,
+    run: &RunConfig,
+    timeout: Duration,
+) -> ApiResult<Value> {
+    match isolation {
+        IngestIsolation::Thread => ingest_upload(upload, run),
+        IngestIsolation::ChildProcess { program } => in_child(program, upload, run, timeout),
+    }
+}
+
+/// Runs `work` on a thread with the default stack (the job workers'); a panic becomes a 500.
+fn on_worker_sized_thread<T: Send>(work: impl FnOnce() -> ApiResult<T> + Send) -> ApiResult<T> {
+    std::thread::scope(|scope| {
+        let thread = std::thread::Builder::new()
+            .name("lungmotion-ingest".into())
+            .spawn_scoped(scope, work)
+            .map_err(|e| ApiError::internal(format!("cannot start the ingest thread: {e}")))?;
+        thread.join().unwrap_or_else(|panic| {
+            Err(ApiError::internal(format!(
+                "the scan reader panicked: {}",
+                panic_text(panic.as_ref())
+            )))
+        })
+    })
+}
+
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_else(|| "unknown panic".into())
+}
+
+/// The child's side (`lungmotion serve --ingest-child`): one request from `input`, its
+/// answer to `output`. A failure to read or answer is the server's to report.
+pub fn serve_ingest_child(input: impl Read, mut output: impl Write) -> std::io::Result<()> {
+    let mut request = Vec::new();
+    input.take(MAX_MESSAGE_BYTES).read_to_end(&mut request)?;
+    let answer = match serde_json::from_slice::<ChildRequest>(&request) {
+        Ok(request) => {
+            let ingest = on_worker_sized_thread(|| ingest_upload(&request.upload, &request.run));
+            match ingest {
+                Ok(summary) => ChildAnswer::Summary(summary),
+                Err(e) => ChildAnswer::Refused {
+                    status: e.status.as_u16(),
+                    slug: e.slug.to_string(),
+                    detail: e.detail,
+                },
+            }
+        }
+        Err(e) => ChildAnswer::Refused {
+            status: 500,
+            slug: "internal".into(),
+            detail: format!("ingest child: unreadable request: {e}"),
+        },
+    };
+    serde_json::to_writer(&mut output, &answer)?;
+    output.flush()
+}
+
+/// Runs the ingest in `program serve --ingest-child`, killed after `timeout`.
+fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -> ApiResult<Value> {
+    let request = serde_json::to_vec(&ChildRequest {
+        upload: upload.to_path_buf(),
+        run: run.clone(),
+    })
+    .map_err(|e| ApiError::internal(format!("ingest child request: {e}")))?;
+    let mut child = Command::new(program)
+        .args(["serve", "--ingest-child"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .map_err(|e| {
+            ApiError::internal(format!(
+                "cannot start {} for the ingest: {e}",
+                program.display()
+            ))
+        })?;
+    // The request is small next to the pipe's buffer; the answer is read on its own thread so
+    // a large one cannot block the child while the server waits for it to exit.
+    if let Some(mut stdin) = child.stdin.take() {
+        if let Err(e) = stdin.write_all(&request) {
+            tracing::warn!("ingest child: cannot send the request: {e}");
+        }
+    }
+    let stdout = child.stdout.take();
+    let reader = std::thread::spawn(move || {
+        let mut answer = Vec::new();
+        if let Some(out) = stdout {
+            let _ = out.take(MAX_MESSAGE_BYTES).read_to_end(&mut answer);
+        }
+        answer
+    });
+    let started = Instant::now();
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(status)) => break Some(status),
+            Ok(None) if started.elapsed() >= timeout => break None,
+            Ok(None) => std::thread::sleep(CHILD_POLL),
+            Err(e) => return Err(ApiError::internal(format!("ingest child: {e}"))),
+        }
+    };
+    let Some(status) = status else {
+        let _ = child.kill();
+        let _ = child.wait();
+        let _ = reader.join();
+        return Err(ApiError::unprocessable(
+            "ingest-timeout",
+            format!(
+                "reading and meshing the upload took longer than {} s (ingest_timeout_s) and was \
+                 stopped",
+                timeout.as_secs_f64()
+            ),
+        ));
+    };
+    let answer = reader.join().unwrap_or_default();
+    match serde_json::from_slice::<ChildAnswer>(&answer) {
+        Ok(ChildAnswer::Summary(summary)) => Ok(summary),
+        Ok(ChildAnswer::Refused {
+            status,
+            slug,
+            detail,
+        }) => Err(ApiError::new(
+            StatusCode::from_u16(status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR),
+            known_slug(&slug),
+            detail,
+        )),
+        Err(_) => Err(crashed(status)),
+    }
+}
+
+/// The refusal of an upload whose reader ended the child without an answer.
+fn crashed(status: ExitStatus) -> ApiError {
+    #[cfg(unix)]
+    let signal = {
+        use std::os::unix::process::ExitStatusExt;
+        status.signal()
+    };
+    #[cfg(not(unix))]
+    let signal: Option<i32> = None;
+    let how = match signal {
+        // What Rust's stack-overflow handler and `abort` raise.
+        Some(6) => "aborted (signal 6: a stack overflow or an abort)".to_string(),
+        Some(9) => "killed (signal 9: most likely out of memory)".to_string(),
+        Some(11) => "crashed (signal 11: invalid memory access)".to_string(),
+        Some(s) => format!("ended by signal {s}"),
+        None => format!("ended with status {}", status.code().unwrap_or(-1)),
+    };
+    tracing::error!("ingest child {how} on an upload");
+    ApiError::unprocessable(
+        "scan-reader-crashed",
+        format!(
+            "reading the upload {how}; the file is malformed beyond what the readers can \
+             refuse by name (for example nested far deeper than any CT); nothing was stored"
+        ),
+    )
+}
+
+/// The `'static` slug of a refusal the child named (an unknown one is internal).
+fn known_slug(slug: &str) -> &'static str {
+    [
+        "invalid-scan",
+        "ingest-failed",
+        "invalid-input",
+        "ingest-timeout",
+        "scan-reader-crashed",
+    ]
+    .into_iter()
+    .find(|known| *known == slug)
+    .unwrap_or("internal")
+}
