@@ -1,6 +1,8 @@
 //! A sub-box of the grid around one lung, so the per-lung steps work on a small copy.
 
-use rayon::prelude::*;
+use ndarray::{s, ArrayView3, ArrayViewMut3, Zip};
+
+use super::morphology::{grid_view, grid_view_mut};
 
 /// A sub-box of the grid: first voxel and size.
 #[derive(Debug, Clone, Copy)]
@@ -20,46 +22,37 @@ impl Crop {
         }
     }
 
+    /// The box inside `full` (voxels of a `grid`, i fastest), indexed `[k, j, i]`.
+    pub fn view<'a, T>(&self, full: &'a [T], grid: [usize; 3]) -> ArrayView3<'a, T> {
+        let ([i0, j0, k0], [ni, nj, nk]) = (self.lo, self.dims);
+        grid_view(full, grid).slice_move(s![k0..k0 + nk, j0..j0 + nj, i0..i0 + ni])
+    }
+
+    /// The box inside `full`, writable.
+    pub fn view_mut<'a, T>(&self, full: &'a mut [T], grid: [usize; 3]) -> ArrayViewMut3<'a, T> {
+        let ([i0, j0, k0], [ni, nj, nk]) = (self.lo, self.dims);
+        grid_view_mut(full, grid).slice_move(s![k0..k0 + nk, j0..j0 + nj, i0..i0 + ni])
+    }
+
     /// Copies the box out of `full`, mapping each value through `f`.
-    pub fn extract<F: Fn(usize, u8) -> u8 + Sync>(
+    pub fn extract<F: Fn(u8) -> u8 + Sync>(&self, full: &[u8], grid: [usize; 3], f: F) -> Vec<u8> {
+        self.extract_pair(full, full, grid, |v, _| f(v))
+    }
+
+    /// Copies the box out of two volumes on the same grid, combining their voxels with `f`.
+    pub fn extract_pair<F: Fn(u8, u8) -> u8 + Sync>(
         &self,
-        full: &[u8],
+        a: &[u8],
+        b: &[u8],
         grid: [usize; 3],
         f: F,
     ) -> Vec<u8> {
-        let [cx, cy, cz] = self.dims;
-        let mut out = vec![0u8; cx * cy * cz];
-        out.par_chunks_mut(cx * cy)
-            .enumerate()
-            .for_each(|(k, slice)| {
-                for j in 0..cy {
-                    let base = self.lo[0] + grid[0] * (self.lo[1] + j + grid[1] * (self.lo[2] + k));
-                    for i in 0..cx {
-                        slice[i + cx * j] = f(base + i, full[base + i]);
-                    }
-                }
-            });
+        let [ni, nj, nk] = self.dims;
+        let mut out = vec![0u8; ni * nj * nk];
+        Zip::from(grid_view_mut(&mut out, self.dims))
+            .and(self.view(a, grid))
+            .and(self.view(b, grid))
+            .par_for_each(|o, &x, &y| *o = f(x, y));
         out
-    }
-
-    /// Visits, in parallel, each row of the box inside `full`: `f` gets the row's `cx` voxels
-    /// of the full grid and the index of the row's first voxel in the cropped box.
-    pub fn for_each_row_mut<F: Fn(&mut [u8], usize) + Sync>(
-        &self,
-        full: &mut [u8],
-        grid: [usize; 3],
-        f: F,
-    ) {
-        let [cx, cy, cz] = self.dims;
-        full.par_chunks_mut(grid[0] * grid[1])
-            .enumerate()
-            .filter(|(k, _)| (self.lo[2]..self.lo[2] + cz).contains(k))
-            .for_each(|(k, slice)| {
-                let kc = k - self.lo[2];
-                for j in 0..cy {
-                    let base = self.lo[0] + grid[0] * (self.lo[1] + j);
-                    f(&mut slice[base..base + cx], cx * (j + cy * kc));
-                }
-            });
     }
 }

@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::components::{label_components, Labelling};
 use super::crop::Crop;
-use super::morphology::{axial_axis, squared_distance_mm2};
+use super::morphology::{axial_axis, grid_view, squared_distance_mm2};
 use super::report::Steps;
 use super::settings::SegmentationSettings;
 use super::{DroppedAir, LungAir, ScanGrid, LEFT_LUNG, RIGHT_LUNG};
@@ -134,7 +134,7 @@ pub(super) fn split_touching_lungs(
     let comp = &lab.components[component];
     let crop = Crop::around(comp.min_ijk, comp.max_ijk, [1; 3], dims);
     let full = lab.paint(|c| (c == component) as u8);
-    let mask = crop.extract(&full, dims, |_, v| v);
+    let mask = crop.extract(&full, dims, |v| v);
     drop(full);
     let cd = crop.dims;
     let (axial, _) = axial_axis(&g.direction_lps);
@@ -200,9 +200,8 @@ pub(super) fn split_touching_lungs(
     steps.mark("left/right: erosion until two cores");
     watershed_from_seeds(&mut labels_crop, &depth2, cd, step_mm * 0.5);
     let mut labels = vec![0u8; g.voxel_count()];
-    crop.for_each_row_mut(&mut labels, dims, |row, start| {
-        row.copy_from_slice(&labels_crop[start..start + row.len()]);
-    });
+    crop.view_mut(&mut labels, dims)
+        .assign(&grid_view(&labels_crop, cd));
     Ok((labels, r))
 }
 

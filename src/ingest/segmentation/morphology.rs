@@ -4,9 +4,11 @@
 //!
 //! The distance transform is Felzenszwalb & Huttenlocher's separable lower envelope of
 //! parabolas: one exact 1-D pass per axis, each line independent, so every pass runs on all
-//! cores. Lines along j and k are reached by grouping the rows (contiguous i-runs) they cross,
-//! which splits the volume into disjoint mutable borrows without copying it.
+//! cores. Lines along j and k are reached through ndarray views of the mask, one plane per
+//! task, without copying the volume.
 
+use ndarray::parallel::prelude::*;
+use ndarray::{ArrayView3, ArrayViewMut3, Axis};
 use rayon::prelude::*;
 
 /// The voxel axis closest to the patient's z (cranio-caudal) axis, and whether LPS z grows
@@ -22,17 +24,21 @@ pub(crate) fn axial_axis(direction_lps: &[[f64; 3]; 3]) -> (usize, bool) {
     (axis, direction_lps[axis][2] >= 0.0)
 }
 
-/// Groups the rows of a volume into the lines or planes along axis 1 (one group per k slice)
-/// or axis 2 (one group per j), each group's rows ordered along that axis.
-fn row_groups<T>(data: &mut [T], dims: [usize; 3], axis: usize) -> Vec<Vec<&mut [T]>> {
+/// `data` (i fastest) as an array indexed `[k, j, i]`.
+pub(crate) fn grid_view_mut<T>(data: &mut [T], dims: [usize; 3]) -> ArrayViewMut3<'_, T> {
     let [nx, ny, nz] = dims;
-    let (groups, per_group) = if axis == 1 { (nz, ny) } else { (ny, nz) };
-    let mut out: Vec<Vec<&mut [T]>> = (0..groups).map(|_| Vec::with_capacity(per_group)).collect();
-    for (row, slice) in data.chunks_mut(nx).enumerate() {
-        let g = if axis == 1 { row / ny } else { row % ny };
-        out[g].push(slice);
-    }
-    out
+    ArrayViewMut3::from_shape((nz, ny, nx), data).expect("a mask's length matches its grid")
+}
+
+/// `data` (i fastest) as an array indexed `[k, j, i]`.
+pub(crate) fn grid_view<T>(data: &[T], dims: [usize; 3]) -> ArrayView3<'_, T> {
+    let [nx, ny, nz] = dims;
+    ArrayView3::from_shape((nz, ny, nx), data).expect("a mask's length matches its grid")
+}
+
+/// The array axis of voxel axis `axis` (i, j, k → 2, 1, 0).
+pub(crate) fn array_axis(axis: usize) -> Axis {
+    Axis(2 - axis)
 }
 
 /// Applies `f(line, scratch)` to every line of `data` along `axis`, in parallel; the line is a
@@ -49,28 +55,28 @@ pub(crate) fn for_each_line<T, S, I, F>(
     I: Fn() -> S + Sync + Send,
     F: Fn(&mut [T], &mut S) + Sync + Send,
 {
-    let nx = dims[0];
     if axis == 0 {
-        data.par_chunks_mut(nx)
+        data.par_chunks_mut(dims[0])
             .for_each_init(&init, |s, row| f(row, s));
         return;
     }
     let n = dims[axis];
-    let mut groups = row_groups(data, dims, axis);
-    groups.par_iter_mut().for_each_init(
-        || (vec![T::default(); n], init()),
-        |(line, s), rows| {
-            for i in 0..nx {
-                for (m, row) in rows.iter().enumerate() {
-                    line[m] = row[i];
+    // Each line along j lies in one k-plane and each line along k in one j-plane: planes are
+    // disjoint, so they go to the cores whole, and a plane's lines (one per i) share cache lines.
+    let plane_axis = if axis == 1 { Axis(0) } else { Axis(1) };
+    grid_view_mut(data, dims)
+        .axis_iter_mut(plane_axis)
+        .into_par_iter()
+        .for_each_init(
+            || (vec![T::default(); n], init()),
+            |(line, s), mut plane| {
+                for mut lane in plane.lanes_mut(Axis(0)) {
+                    line.iter_mut().zip(&lane).for_each(|(l, &v)| *l = v);
+                    f(line, s);
+                    lane.iter_mut().zip(line.iter()).for_each(|(v, &l)| *v = l);
                 }
-                f(line, s);
-                for (m, row) in rows.iter_mut().enumerate() {
-                    row[i] = line[m];
-                }
-            }
-        },
-    );
+            },
+        );
 }
 
 /// Scratch of the 1-D distance transform.
@@ -190,43 +196,26 @@ pub(crate) fn squared_distance_mm2(
 /// to the slice border: the holes of a mask as a radiologist sees them on axial images.
 pub(crate) fn fill_holes_2d(mask: &mut [u8], dims: [usize; 3], axis: usize) {
     let [nx, ny, nz] = dims;
-    match axis {
-        2 => mask
-            .par_chunks_mut(nx * ny)
-            .for_each_init(Vec::new, |stack, s| fill_holes_slice(s, nx, ny, stack)),
-        1 => {
-            let mut groups = row_groups(mask, dims, 2);
-            groups.par_iter_mut().for_each_init(
-                || (vec![0u8; nx * nz], Vec::new()),
-                |(buf, stack), rows| {
-                    for (k, row) in rows.iter().enumerate() {
-                        buf[k * nx..(k + 1) * nx].copy_from_slice(row);
-                    }
-                    fill_holes_slice(buf, nx, nz, stack);
-                    for (k, row) in rows.iter_mut().enumerate() {
-                        row.copy_from_slice(&buf[k * nx..(k + 1) * nx]);
-                    }
-                },
-            );
-        }
-        _ => {
-            // Sagittal storage is rare: transpose so each i-slice is contiguous.
-            let plane = ny * nz;
-            let mut t = vec![0u8; mask.len()];
-            for (row, src) in mask.chunks(nx).enumerate() {
-                for (i, &v) in src.iter().enumerate() {
-                    t[i * plane + row] = v;
-                }
-            }
-            t.par_chunks_mut(plane)
-                .for_each_init(Vec::new, |stack, s| fill_holes_slice(s, ny, nz, stack));
-            for (row, dst) in mask.chunks_mut(nx).enumerate() {
-                for (i, v) in dst.iter_mut().enumerate() {
-                    *v = t[i * plane + row];
-                }
-            }
-        }
+    if axis == 2 {
+        // Axial storage: each slice is contiguous and filled in place.
+        mask.par_chunks_mut(nx * ny)
+            .for_each_init(Vec::new, |stack, s| fill_holes_slice(s, nx, ny, stack));
+        return;
     }
+    // A slice across j is (k, i), across i is (k, j): copied out, filled, copied back.
+    let nu = if axis == 1 { nx } else { ny };
+    grid_view_mut(mask, dims)
+        .axis_iter_mut(array_axis(axis))
+        .into_par_iter()
+        .for_each_init(
+            || (Vec::with_capacity(nu * nz), Vec::new()),
+            |(buf, stack), mut slice| {
+                buf.clear();
+                buf.extend(slice.iter());
+                fill_holes_slice(buf, nu, nz, stack);
+                slice.iter_mut().zip(buf.iter()).for_each(|(v, &b)| *v = b);
+            },
+        );
 }
 
 /// Hole filling of one 2-D slice (`nu` fastest): flood the background from the border, then

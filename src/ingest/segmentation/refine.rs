@@ -1,10 +1,11 @@
 //! Closing, axial hole filling and largest-component selection of each lung.
 
+use ndarray::Zip;
 use rayon::prelude::*;
 
 use super::components::label_components;
 use super::crop::Crop;
-use super::morphology::{fill_holes_2d, squared_distance_mm2};
+use super::morphology::{fill_holes_2d, grid_view, squared_distance_mm2};
 use super::settings::SegmentationSettings;
 use crate::volume::VolumeGeometry;
 
@@ -33,9 +34,9 @@ pub(super) fn refine_lung(
     });
     let crop = Crop::around(min, max, margin, dims);
     let cd = crop.dims;
-    let lung = crop.extract(labels, dims, |_, v| (v == label) as u8);
-    let blocked = crop.extract(labels, dims, |i, v| {
-        (v != 0 && v != label || body[i] == 0) as u8
+    let lung = crop.extract(labels, dims, |v| (v == label) as u8);
+    let blocked = crop.extract_pair(labels, body, dims, |v, inside_body| {
+        (v != 0 && v != label || inside_body == 0) as u8
     });
     let mut closed = if r > 0.0 {
         let r2 = (r * r) as f32;
@@ -61,15 +62,15 @@ pub(super) fn refine_lung(
     let removed: usize = lab.components.iter().skip(1).map(|c| c.voxels).sum();
     let removed_count = lab.components.len().saturating_sub(1);
     let kept = lab.paint(|c| (c == 0) as u8);
-    crop.for_each_row_mut(labels, dims, |row, start| {
-        for (i, s) in row.iter_mut().enumerate() {
-            if kept[start + i] != 0 {
+    Zip::from(crop.view_mut(labels, dims))
+        .and(grid_view(&kept, cd))
+        .par_for_each(|s, &keep| {
+            if keep != 0 {
                 *s = label;
             } else if *s == label {
                 *s = 0;
             }
-        }
-    });
+        });
     (removed_count, removed)
 }
 

@@ -2,7 +2,10 @@
 //! border.
 
 use nalgebra::Vector3;
-use rayon::prelude::*;
+use ndarray::parallel::prelude::*;
+use ndarray::ArrayView1;
+
+use super::morphology::{array_axis, grid_view};
 
 /// Voxel index triple of a linear index, as a vector for geometry maths.
 pub(super) fn index_to_ijk(idx: usize, dims: [usize; 3]) -> Vector3<f64> {
@@ -34,11 +37,15 @@ pub(super) fn slice_voxel(dims: [usize; 3], axial: usize, s: usize, u: usize, v:
 
 /// Whether `label` reaches the in-slice border of any axial slice (the field of view cut it).
 pub(super) fn touches_border(labels: &[u8], dims: [usize; 3], label: u8, axial: usize) -> bool {
-    let [a, b] = in_slice_axes(axial);
-    let (na, nb) = (dims[a], dims[b]);
-    (0..dims[axial]).into_par_iter().any(|s| {
-        let edge = |u: usize, v: usize| labels[slice_voxel(dims, axial, s, u, v)] == label;
-        (0..na).any(|u| edge(u, 0) || edge(u, nb - 1))
-            || (0..nb).any(|v| edge(0, v) || edge(na - 1, v))
-    })
+    let on_edge = |line: ArrayView1<u8>| line.iter().any(|&v| v == label);
+    grid_view(labels, dims)
+        .axis_iter(array_axis(axial))
+        .into_par_iter()
+        .any(|slice| {
+            let (last_row, last_column) = (slice.nrows() - 1, slice.ncols() - 1);
+            on_edge(slice.row(0))
+                || on_edge(slice.row(last_row))
+                || on_edge(slice.column(0))
+                || on_edge(slice.column(last_column))
+        })
 }
