@@ -366,3 +366,58 @@ fn series_choices_parse_by_prefix_or_shape() {
     assert!(e.contains("\"three\" is not an integer"), "{e}");
     assert!(parse("uid:").unwrap_err().contains("empty"));
 }
+
+#[test]
+fn the_cli_reads_the_series_named_by_series_and_lists_them_without_it() {
+    let dir = scratch("cli");
+    let phantom = Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-dicom");
+    let to = dir.join("phantom");
+    std::fs::create_dir_all(&to).unwrap();
+    for entry in std::fs::read_dir(phantom).unwrap() {
+        let from = entry.unwrap().path();
+        std::fs::copy(&from, to.join(from.file_name().unwrap())).unwrap();
+    }
+    copy_series("native", &dir);
+    let ingest = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_lungmotion"))
+            .args(["ingest", "--element-size", "16", "--ct"])
+            .arg(&dir)
+            .arg("--out")
+            .arg(dir.join("out"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let refused = ingest(&[]);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert_eq!(refused.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("2 CT series found")
+            && stderr.contains("lungmotion thorax phantom")
+            && stderr.contains("--series"),
+        "{stderr}"
+    );
+    let chosen = ingest(&["--series", "description:LUNGMOTION THORAX PHANTOM"]);
+    let stderr = String::from_utf8_lossy(&chosen.stderr);
+    assert!(chosen.status.success(), "{stderr}");
+    assert!(dir.join("out/ingest.json").is_file());
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn the_run_configuration_names_the_series_with_the_same_syntax() {
+    use lungmotion::run::RunConfig;
+    let config = RunConfig::from_toml("series = \"number:3\"").unwrap();
+    assert_eq!(config.series, Some(SeriesChoice::Number(3)));
+    assert_eq!(
+        config.dicom_read_options().series,
+        Some(SeriesChoice::Number(3))
+    );
+    let e = RunConfig::from_toml("series = \"number:three\"")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("series") && e.contains("is not an integer"),
+        "{e}"
+    );
+}

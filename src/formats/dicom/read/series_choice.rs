@@ -250,12 +250,15 @@ pub(super) fn select_series(
         ));
     }
     let ct: Vec<SeriesFiles> = all.into_iter().filter(|s| s.is_ct_image()).collect();
+    let scouts = match ct.iter().filter(|s| s.is_localizer()).count() {
+        0 => String::new(),
+        n => format!(" ({n} of them scouts)"),
+    };
     Err(Error::scan(
         what,
         format!(
-            "{} CT series found ({} of them scouts), {HOW_TO_CHOOSE}: {}",
+            "{} CT series found{scouts}, {HOW_TO_CHOOSE}: {}",
             ct.len(),
-            ct.iter().filter(|s| s.is_localizer()).count(),
             listing(&ct)
         ),
     ))
