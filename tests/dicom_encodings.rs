@@ -421,3 +421,21 @@ fn the_run_configuration_names_the_series_with_the_same_syntax() {
         "{e}"
     );
 }
+
+#[test]
+fn compressed_enhanced_ct_decodes_frame_by_frame() {
+    let original = read("native");
+    for (name, syntax) in [
+        ("enhanced-ct-jpegls.dcm", "1.2.840.10008.1.2.4.80"),
+        ("enhanced-ct-j2k.dcm", "1.2.840.10008.1.2.4.90"),
+    ] {
+        let enhanced = read(name);
+        assert_eq!(enhanced.info.transfer_syntax_uid, syntax);
+        assert_same_geometry(&original, &enhanced);
+        assert_eq!(
+            enhanced.volume.as_slice(),
+            original.volume.as_slice(),
+            "{name}"
+        );
+    }
+}

@@ -26,6 +26,9 @@ that several can be copied into one folder (the "several series" tests).
 |                         | frame Plane Position and Orientation,    |                              |
 |                         | shared Pixel Measures and Pixel Value    |                              |
 |                         | Transformation                           |                              |
+| enhanced-ct-jpegls.dcm  | DCMTK dcmcjpls +el of enhanced-ct.dcm    | 1.2.840.10008.1.2.4.80       |
+|                         | (one fragment a frame)                   |                              |
+| enhanced-ct-j2k.dcm     | GDCM gdcmconv --j2k of enhanced-ct.dcm   | 1.2.840.10008.1.2.4.90       |
 | *.reference-hu.i16le    | the lossy files decoded by their own     | HU, int16 little endian,     |
 |                         | tool (dcmdjpeg, gdcmconv --raw), read    | slices in z order, i fastest |
 |                         | with pydicom                             |                              |
@@ -169,6 +172,8 @@ def main():
     reference_hu(HERE / "jpeg12", ["dcmdjpeg"], HERE / "jpeg12.reference-hu.i16le")
     reference_hu(HERE / "j2k-lossy", ["gdcmconv", "--raw"], HERE / "j2k-lossy.reference-hu.i16le")
     enhanced_ct(sources, HERE / "enhanced-ct.dcm")
+    run("dcmcjpls", "+el", HERE / "enhanced-ct.dcm", HERE / "enhanced-ct-jpegls.dcm")
+    run("gdcmconv", "--j2k", HERE / "enhanced-ct.dcm", HERE / "enhanced-ct-j2k.dcm")
 
 
 if __name__ == "__main__":
