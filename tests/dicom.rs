@@ -676,13 +676,15 @@ fn two_ct_series_are_listed_unless_one_is_chosen() {
     );
     assert!(e.contains("3 files") && e.contains("6 files"), "{e}");
     let options = DicomReadOptions {
-        series_uid: Some(uid_b.clone()),
+        series: Some(lungmotion::formats::dicom::SeriesChoice::Uid(uid_b.clone())),
         ..DicomReadOptions::default()
     };
     let chosen = read_dicom_series_with(&dir, &options).unwrap();
     assert_eq!(chosen.volume.as_slice(), rounded(&second));
     let options = DicomReadOptions {
-        series_uid: Some("1.2.3".into()),
+        series: Some(lungmotion::formats::dicom::SeriesChoice::Uid(
+            "1.2.3".into(),
+        )),
         ..DicomReadOptions::default()
     };
     let e = read_dicom_series_with(&dir, &options)

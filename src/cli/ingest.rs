@@ -3,7 +3,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use lungmotion::ingest::{load_ct, IngestSettings};
+use lungmotion::formats::dicom::DicomReadOptions;
+use lungmotion::ingest::{load_ct_with, IngestSettings};
 use lungmotion::outputs::ingest_files::write_ingest_outputs;
 
 use super::prepare_out;
@@ -21,6 +22,11 @@ pub struct IngestArgs {
     /// Edge of the cubic elements in millimetres (2–16).
     #[arg(long)]
     element_size: Option<f64>,
+    /// The DICOM series to read when the CT folder or zip holds several: uid:<UID>,
+    /// number:<N>, description:<text>, or the bare value (default: the only CT series that
+    /// is not a scout).
+    #[arg(long)]
+    series: Option<lungmotion::formats::dicom::SeriesChoice>,
     /// Your own constraint groups: a label map on the CT's grid with the codes listed in
     /// ingest.json (1 hilum, 2 mediastinal, 3 costal, 4 diaphragmatic, 5 apex).
     #[arg(long)]
@@ -33,7 +39,11 @@ impl IngestArgs {
         prepare_out(&self.out)?;
         let settings = self.settings()?;
         eprintln!("lungmotion: reading {}", self.ct.display());
-        let scan = load_ct(&self.ct)?;
+        let dicom_options = DicomReadOptions {
+            series: self.series.clone(),
+            ..DicomReadOptions::default()
+        };
+        let scan = load_ct_with(&self.ct, &dicom_options)?;
         for w in &scan.warnings {
             eprintln!("lungmotion: warning: {w}");
         }

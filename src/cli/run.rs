@@ -25,6 +25,11 @@ pub struct RunArgs {
     /// Edge of the cubic elements in millimetres (2–16; default 6, or the config's).
     #[arg(long)]
     element_size: Option<f64>,
+    /// The DICOM series to read when the CT folder or zip holds several: uid:<UID>,
+    /// number:<N>, description:<text>, or the bare value (default: the only CT series that
+    /// is not a scout; or the config's `series`).
+    #[arg(long)]
+    series: Option<lungmotion::formats::dicom::SeriesChoice>,
     /// TOML settings: material, driver, output instants, trace units, optional outputs.
     /// The format is documented in the README; command-line options win.
     #[arg(long)]
@@ -81,6 +86,9 @@ impl RunArgs {
         };
         if let Some(mm) = self.element_size {
             config.element_size_mm = mm;
+        }
+        if let Some(series) = &self.series {
+            config.series = Some(series.clone());
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;

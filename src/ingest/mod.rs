@@ -7,4 +7,4 @@ pub mod scan;
 pub mod segmentation;
 
 pub use pipeline::{ingest_scan, IngestOutcome, IngestSettings, IngestSummary};
-pub use scan::{load_ct, LoadedScan, ScanFormat};
+pub use scan::{load_ct, load_ct_with, LoadedScan, ScanFormat};

@@ -102,10 +102,15 @@ pub fn classify_header(head: &[u8]) -> Option<ScanFormat> {
 /// # Ok::<(), lungmotion::Error>(())
 /// ```
 pub fn load_ct(path: &Path) -> Result<LoadedScan> {
+    load_ct_with(path, &dicom::DicomReadOptions::default())
+}
+
+/// [`load_ct`] with DICOM options (which series of several to read).
+pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Result<LoadedScan> {
     let format = detect_scan_format(path)?;
     let (ct, series, warnings) = match format {
         ScanFormat::DicomDirectory | ScanFormat::DicomZip | ScanFormat::DicomFile => {
-            let s = dicom::read_dicom_series(path)?;
+            let s = dicom::read_dicom_series_with(path, dicom_options)?;
             (s.volume, Some(s.info), s.warnings)
         }
         ScanFormat::Nifti => (nifti::read_nifti(path)?, None, Vec::new()),

@@ -4,6 +4,8 @@
 //!
 //! ```toml
 //! element_size_mm = 6.0
+//! series = "number:3"                 # a folder with several DICOM series: which to read
+//!                                      # (uid:<UID>, number:<N>, description:<text>)
 //! diaphragm = "cranio_caudal"          # or "free"
 //! [material]
 //! youngs_modulus_pa = 390.0
@@ -32,6 +34,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::breathing::{OutputInstants, TraceOptions};
+use crate::formats::dicom::{DicomReadOptions, SeriesChoice};
 use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
@@ -48,6 +51,10 @@ const SETTINGS: &str = "configuration";
 pub struct RunConfig {
     /// Edge of the cubic elements, mm (2–16).
     pub element_size_mm: f64,
+    /// The DICOM series to read when the CT input holds several; `None`: the only CT
+    /// series that is not a scout.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub series: Option<SeriesChoice>,
     /// How the diaphragmatic face moves.
     pub diaphragm: DiaphragmMotion,
     /// Lung tissue.
@@ -135,6 +142,7 @@ impl Default for RunConfig {
     fn default() -> Self {
         RunConfig {
             element_size_mm: DEFAULT_ELEMENT_SIZE_MM,
+            series: None,
             diaphragm: DiaphragmMotion::default(),
             material: Material::LUNG,
             trace: TraceOptions::default(),
@@ -170,6 +178,14 @@ impl Default for OutputConfig {
 }
 
 impl RunConfig {
+    /// How the CT is read when it is DICOM: the configured series choice.
+    pub fn dicom_read_options(&self) -> DicomReadOptions {
+        DicomReadOptions {
+            series: self.series.clone(),
+            ..DicomReadOptions::default()
+        }
+    }
+
     /// Reads a TOML configuration; the error names the file and the offending key.
     pub fn from_toml_file(path: &Path) -> Result<Self> {
         let meta = std::fs::metadata(path).at(IoOp::Read, path)?;

@@ -41,7 +41,7 @@ use crate::breathing::BreathingTrace;
 use crate::durable::write_atomic;
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
-use crate::ingest::scan::load_ct;
+use crate::ingest::scan::load_ct_with;
 use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
@@ -159,7 +159,7 @@ pub fn run_breathing(
 
     observer.stage(RunStage::LoadingScan);
     let t = Instant::now();
-    let scan = load_ct(&inputs.ct_path)?;
+    let scan = load_ct_with(&inputs.ct_path, &config.dicom_read_options())?;
     timings.insert("load_ct".to_string(), t.elapsed().as_secs_f64());
     check_cancel(observer, "ingest")?;
 

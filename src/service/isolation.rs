@@ -29,7 +29,7 @@ use serde_json::Value;
 use super::config::IngestIsolation;
 use super::problem::{ApiError, ApiResult};
 use crate::ingest::pipeline::ingest_scan;
-use crate::ingest::scan::load_ct;
+use crate::ingest::scan::load_ct_with;
 use crate::run::RunConfig;
 
 /// Largest request a child reads on stdin and answer the server reads on stdout.
@@ -73,7 +73,7 @@ pub fn ingest_upload(upload: &Path, run: &RunConfig) -> ApiResult<Value> {
         })
         .redact_path(upload, "the upload")
     };
-    let scan = load_ct(upload).map_err(refused)?;
+    let scan = load_ct_with(upload, &run.dicom_read_options()).map_err(refused)?;
     let outcome = ingest_scan(&scan, &run.ingest_settings()).map_err(refused)?;
     serde_json::to_value(&outcome.summary)
         .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))

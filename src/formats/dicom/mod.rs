@@ -21,14 +21,15 @@ use serde::Serialize;
 use crate::formats::archive::ArchiveLimits;
 use crate::volume::Volume;
 
-pub use read::{read_dicom_series, read_dicom_series_with};
+pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
 pub use write::write_ct_series;
 
 /// Choices for [`read_dicom_series_with`].
 #[derive(Debug, Clone, Default)]
 pub struct DicomReadOptions {
-    /// SeriesInstanceUID to read when the input holds several CT series.
-    pub series_uid: Option<String>,
+    /// The series to read when the input holds several (by UID, number or description);
+    /// `None` reads the only CT series that is not a scout.
+    pub series: Option<SeriesChoice>,
     /// Bounds for zip input.
     pub archive_limits: ArchiveLimits,
 }

@@ -3,14 +3,15 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use axum::extract::{Path, Request, State};
+use axum::extract::{Path, Query, Request, State};
 use axum::http::StatusCode;
 use axum::response::Response;
 use axum::Json;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
+use crate::formats::dicom::SeriesChoice;
 use crate::service::ids::ScanId;
 use crate::service::isolation::ingest_isolated;
 use crate::service::problem::{ApiError, ApiResult, Problem};
@@ -50,9 +51,21 @@ impl From<ScanRecord> for ScanView {
     }
 }
 
+/// Options of an upload, in its query string.
+#[derive(Debug, Default, Deserialize)]
+pub struct UploadOptions {
+    /// The DICOM series to read when the zip holds several (`uid:<UID>`, `number:<N>`,
+    /// `description:<text>` or the bare value); else the service's `[run] series`.
+    pub series: Option<String>,
+}
+
 /// Upload a scan and ingest it.
 #[utoipa::path(
     post, path = "/v1/scans", tag = "scans",
+    params(("series" = Option<String>, Query, description = "The DICOM series to read when \
+        the zip holds several: `uid:<UID>`, `number:<N>`, `description:<text>`, or the bare \
+        value (default: the service's `[run] series`, else the only CT series that is not a \
+        scout)")),
     request_body(description = "A NIfTI file (.nii, .nii.gz) or a zip of one DICOM series, raw \
         or as the part `file` of a multipart form; told apart by content",
         content(("application/octet-stream"), ("application/zip"), ("application/gzip"),
@@ -70,11 +83,18 @@ impl From<ScanRecord> for ScanView {
 )]
 pub async fn upload_scan(
     State(state): State<SharedState>,
+    Query(options): Query<UploadOptions>,
     request: Request,
 ) -> ApiResult<Response> {
     if state.jobs.shutting_down() {
         return Err(shutting_down());
     }
+    let series = match &options.series {
+        Some(text) => Some(text.parse::<SeriesChoice>().map_err(|e| {
+            ApiError::bad_request("invalid-series", format!("query parameter series: {e}"))
+        })?),
+        None => state.config.run.series.clone(),
+    };
     let dest = state.store.tmp_path("upload");
     let mut guard = TempFileGuard(Some(dest.clone()));
     let received = receive_scan(request, &dest, state.config.max_upload_bytes).await?;
@@ -93,11 +113,16 @@ pub async fn upload_scan(
     let worker_state = state.clone();
     let record = blocking(move || {
         let config = &worker_state.config;
+        // The upload's series choice overrides the server's default for this scan only.
+        let run = crate::run::RunConfig {
+            series,
+            ..config.run.clone()
+        };
         // Isolated: a reader crashing on a hostile file must not take the server down.
         let ingest = ingest_isolated(
             &config.ingest_isolation,
             &named,
-            &config.run,
+            &run,
             Duration::from_secs_f64(config.ingest_timeout_s),
         )?;
         let record = ScanRecord {

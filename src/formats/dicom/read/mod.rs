@@ -1,8 +1,10 @@
 //! Reading a CT series: gather files, group by series, check geometry, decode in parallel.
 
+mod attributes;
+mod enhanced;
 mod pixels;
+mod series_choice;
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use dicom_core::Tag;
@@ -17,7 +19,11 @@ use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
 use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
 use crate::{Error, IoContext, IoOp, Result};
 
+use attributes::check_same_layout;
+use enhanced::{expand_frames, FrameRef};
 use pixels::decode_slice;
+pub use series_choice::SeriesChoice;
+use series_choice::{select_series, SeriesFiles};
 
 /// Two slices closer than this along the normal are at the same position.
 const DUPLICATE_TOLERANCE_MM: f64 = 0.01;
@@ -29,8 +35,6 @@ const GAP_TOLERANCE_FRACTION: f64 = 0.01;
 const TILT_TOLERANCE_MM: f64 = 0.01;
 /// Slice positions may leave the normal by this fraction of their distance along it (0.06°).
 const TILT_TOLERANCE_SLOPE: f64 = 1e-3;
-/// Tolerance on direction cosines and pixel spacing between slices of one series.
-const CONSISTENCY_TOLERANCE: f64 = 1e-4;
 
 /// Reads the single CT series in `input`: a directory (searched recursively), a zip file or
 /// one DICOM file.
@@ -68,7 +72,7 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
             ),
         ));
     }
-    let series = select_series(&what, files, options)?;
+    let series = select_series(&what, files, options, &mut warnings)?;
     build_volume(&what, series, warnings)
 }
 
@@ -214,107 +218,15 @@ fn text(object: &DefaultDicomObject, tag: Tag) -> Option<String> {
     (!trimmed.is_empty()).then(|| trimmed.to_string())
 }
 
-/// Files of one series, in no particular order.
-struct SeriesFiles {
-    uid: String,
-    files: Vec<ParsedFile>,
-}
-
-impl SeriesFiles {
-    fn modality(&self) -> &str {
-        &self.files[0].modality
-    }
-
-    fn describe(&self) -> String {
-        format!(
-            "{} ({}, \"{}\", {} file{})",
-            self.uid,
-            self.modality(),
-            self.files[0].description.as_deref().unwrap_or(""),
-            self.files.len(),
-            if self.files.len() == 1 { "" } else { "s" }
-        )
-    }
-
-    fn is_ct_image(&self) -> bool {
-        self.modality() == "CT"
-            && self
-                .files
-                .iter()
-                .any(|f| f.object.get(tags::ROWS).is_some())
-    }
-}
-
-fn select_series(
-    what: &str,
-    files: Vec<ParsedFile>,
-    options: &DicomReadOptions,
-) -> Result<SeriesFiles> {
-    let mut groups: BTreeMap<String, Vec<ParsedFile>> = BTreeMap::new();
-    for f in files {
-        groups.entry(f.series_uid.clone()).or_default().push(f);
-    }
-    let mut all: Vec<SeriesFiles> = groups
-        .into_iter()
-        .map(|(uid, files)| SeriesFiles { uid, files })
-        .collect();
-    let listing = |list: &[SeriesFiles]| {
-        list.iter()
-            .map(SeriesFiles::describe)
-            .collect::<Vec<_>>()
-            .join("; ")
-    };
-    if let Some(wanted) = &options.series_uid {
-        let found = all.iter().position(|s| &s.uid == wanted);
-        return match found {
-            Some(i) if all[i].is_ct_image() => Ok(all.swap_remove(i)),
-            Some(i) => Err(Error::scan(
-                what,
-                format!(
-                    "series {wanted} is not a CT image series: {}",
-                    all[i].describe()
-                ),
-            )),
-            None => Err(Error::scan(
-                what,
-                format!("no series {wanted}; found {}", listing(&all)),
-            )),
-        };
-    }
-    let ct_count = all.iter().filter(|s| s.is_ct_image()).count();
-    match ct_count {
-        0 => Err(Error::scan(
-            what,
-            format!(
-                "no CT image series; found modality {}: {}",
-                all.iter()
-                    .map(|s| s.modality().to_string())
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                listing(&all)
-            ),
-        )),
-        1 => Ok(all
-            .into_iter()
-            .find(SeriesFiles::is_ct_image)
-            .unwrap_or_else(|| unreachable!("one CT series was counted"))),
-        _ => {
-            let ct: Vec<SeriesFiles> = all.into_iter().filter(|s| s.is_ct_image()).collect();
-            Err(Error::scan(
-                what,
-                format!(
-                    "{} CT series found, choose one by SeriesInstanceUID: {}",
-                    ct.len(),
-                    listing(&ct)
-                ),
-            ))
-        }
-    }
-}
-
-/// Per-slice attributes after checking.
-struct Slice {
-    file: ParsedFile,
+/// One slice after checking: a single-frame file or one frame of a multi-frame file.
+struct Slice<'a> {
+    file: &'a ParsedFile,
+    /// Frame index in a multi-frame file.
+    frame: Option<usize>,
+    /// Frames in the file.
+    frame_count: usize,
+    /// The file's name (and frame) in messages.
+    name: String,
     position_lps_mm: Vector3<f64>,
     rescale_slope: f64,
     rescale_intercept: f64,
@@ -330,135 +242,6 @@ struct FrameLayout {
     pixel_spacing_mm: [f64; 2],
 }
 
-fn floats(file: &ParsedFile, tag: Tag, tag_name: &str, count: usize) -> Result<Vec<f64>> {
-    let bad = |m: String| {
-        Error::scan(
-            &file.name,
-            format!("{tag_name} ({:04X},{:04X}) {m}", tag.0, tag.1),
-        )
-    };
-    let element = file
-        .object
-        .get(tag)
-        .ok_or_else(|| bad("is missing".into()))?;
-    let values = element
-        .to_multi_float64()
-        .map_err(|e| bad(format!("is not numeric ({e})")))?;
-    if values.len() != count {
-        return Err(bad(format!(
-            "has {} values, {count} expected",
-            values.len()
-        )));
-    }
-    if values.iter().any(|v| !v.is_finite()) {
-        return Err(bad(format!("is not finite: {values:?}")));
-    }
-    Ok(values)
-}
-
-fn unsigned(file: &ParsedFile, tag: Tag, tag_name: &str) -> Result<usize> {
-    let bad = |m: &str| {
-        Error::scan(
-            &file.name,
-            format!("{tag_name} ({:04X},{:04X}) {m}", tag.0, tag.1),
-        )
-    };
-    let element = file.object.get(tag).ok_or_else(|| bad("is missing"))?;
-    element
-        .to_int::<u32>()
-        .map(|v| v as usize)
-        .map_err(|_| bad("is not an unsigned integer"))
-}
-
-fn frame_layout(file: &ParsedFile) -> Result<FrameLayout> {
-    let bad = |m: String| Error::scan(&file.name, m);
-    let rows = unsigned(file, tags::ROWS, "Rows")?;
-    let columns = unsigned(file, tags::COLUMNS, "Columns")?;
-    if rows == 0 || columns == 0 {
-        return Err(bad(format!(
-            "empty image ({rows} rows × {columns} columns)"
-        )));
-    }
-    let iop = floats(
-        file,
-        tags::IMAGE_ORIENTATION_PATIENT,
-        "ImageOrientationPatient",
-        6,
-    )?;
-    let row_direction = Vector3::new(iop[0], iop[1], iop[2]);
-    let column_direction = Vector3::new(iop[3], iop[4], iop[5]);
-    let orthonormal = (row_direction.norm() - 1.0).abs() < 1e-3
-        && (column_direction.norm() - 1.0).abs() < 1e-3
-        && row_direction.dot(&column_direction).abs() < 1e-3;
-    if !orthonormal {
-        return Err(bad(format!(
-            "ImageOrientationPatient {iop:?} is not two orthogonal unit vectors"
-        )));
-    }
-    let spacing = floats(file, tags::PIXEL_SPACING, "PixelSpacing", 2)?;
-    if spacing.iter().any(|&s| s <= 0.0) {
-        return Err(bad(format!(
-            "PixelSpacing {spacing:?} mm: spacings must be positive"
-        )));
-    }
-    Ok(FrameLayout {
-        rows,
-        columns,
-        row_direction: row_direction.normalize(),
-        column_direction: column_direction.normalize(),
-        pixel_spacing_mm: [spacing[0], spacing[1]],
-    })
-}
-
-fn check_same_layout(
-    reference: &FrameLayout,
-    name_ref: &str,
-    other: &FrameLayout,
-    name: &str,
-) -> Result<()> {
-    let bad = |m: String| {
-        Err(Error::scan(
-            name,
-            format!("{m} differs from {name_ref} in the same series"),
-        ))
-    };
-    if (other.rows, other.columns) != (reference.rows, reference.columns) {
-        return bad(format!(
-            "image size {}×{} (rows×columns) vs {}×{}",
-            other.rows, other.columns, reference.rows, reference.columns
-        ));
-    }
-    let direction_change = (other.row_direction - reference.row_direction)
-        .abs()
-        .max()
-        .max(
-            (other.column_direction - reference.column_direction)
-                .abs()
-                .max(),
-        );
-    if direction_change > CONSISTENCY_TOLERANCE {
-        return bad("ImageOrientationPatient".into());
-    }
-    let close = |a: f64, b: f64| (a - b).abs() <= CONSISTENCY_TOLERANCE * a.abs().max(1.0);
-    if !close(other.pixel_spacing_mm[0], reference.pixel_spacing_mm[0])
-        || !close(other.pixel_spacing_mm[1], reference.pixel_spacing_mm[1])
-    {
-        return bad(format!(
-            "PixelSpacing {:?} vs {:?}",
-            other.pixel_spacing_mm, reference.pixel_spacing_mm
-        ));
-    }
-    Ok(())
-}
-
-fn rescale(file: &ParsedFile, tag: Tag, tag_name: &str, default: f64) -> Result<Option<f64>> {
-    if file.object.get(tag).is_none() {
-        return Ok(None);
-    }
-    let v = floats(file, tag, tag_name, 1)?[0];
-    Ok(Some(if v.is_finite() { v } else { default }))
-}
-
 /// Names the series in its errors: "{what}: series {uid}: …".
 struct SeriesLabel<'a> {
     what: &'a str,
@@ -472,19 +255,20 @@ impl SeriesLabel<'_> {
     }
 }
 
-impl Slice {
+impl Slice<'_> {
     /// Position along the slice normal, mm: the slices' order and spacing.
     fn along_mm(&self, normal: &Vector3<f64>) -> f64 {
         self.position_lps_mm.dot(normal)
     }
 }
 
-/// Turns the chosen series into a volume: checks, orders and decodes its slices.
+/// Turns the chosen series into a volume: checks, orders and decodes its slices (the
+/// single-frame files, or the frames of Enhanced CT files).
 fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> Result<DicomSeries> {
     let SeriesFiles { uid, files } = series;
     let label = SeriesLabel { what, uid: &uid };
-    refuse_multi_frame(&files, &label)?;
-    let (layout, slices) = read_slice_attributes(files, &label, &mut warnings)?;
+    let frames = expand_frames(&files, &label)?;
+    let (layout, slices) = read_slice_attributes(frames, &label, &mut warnings)?;
     let normal = layout
         .row_direction
         .cross(&layout.column_direction)
@@ -519,68 +303,48 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
     })
 }
 
-/// Refuses multi-frame (Enhanced CT) files, whose frames carry their own geometry, and a
-/// series of a single slice.
-fn refuse_multi_frame(files: &[ParsedFile], label: &SeriesLabel) -> Result<()> {
-    for f in files {
-        let frames = match f.object.get(tags::NUMBER_OF_FRAMES) {
-            Some(e) => e.to_int::<u32>().unwrap_or(1),
-            None => 1,
-        };
-        let sop_class = text(&f.object, tags::SOP_CLASS_UID).unwrap_or_default();
-        let enhanced = sop_class == uids::ENHANCED_CT_IMAGE_STORAGE
-            || sop_class == uids::LEGACY_CONVERTED_ENHANCED_CT_IMAGE_STORAGE;
-        if frames > 1 || enhanced {
-            return Err(label.error(format!(
-                "{} holds {frames} frames: multi-frame (Enhanced CT) images are not supported; \
-                 export the series as single-frame CT images",
-                f.name
-            )));
-        }
-    }
-    if files.len() < 2 {
-        return Err(label.error(format!(
-            "only {} slice ({}): a volume needs at least 2",
-            files.len(),
-            files[0].name
-        )));
-    }
-    Ok(())
-}
-
-/// Reads each file's frame layout (checked against the first file's), position and rescale;
-/// a missing rescale is taken as HU with one warning for the series.
-fn read_slice_attributes(
-    files: Vec<ParsedFile>,
+/// Reads each slice's frame layout (checked against the first slice's), position and
+/// rescale; a missing rescale is taken as HU with one warning for the series.
+fn read_slice_attributes<'a>(
+    frames: Vec<FrameRef<'a>>,
     label: &SeriesLabel,
     warnings: &mut Vec<String>,
-) -> Result<(FrameLayout, Vec<Slice>)> {
-    let layout = frame_layout(&files[0])?;
-    let mut slices = Vec::with_capacity(files.len());
+) -> Result<(FrameLayout, Vec<Slice<'a>>)> {
+    let layout = frames[0].scope.frame_layout(&frames[0].name)?;
+    let mut slices: Vec<Slice<'a>> = Vec::with_capacity(frames.len());
     let mut missing_rescale = 0usize;
-    for file in files {
-        let this = frame_layout(&file)?;
-        if !slices.is_empty() {
-            let first: &Slice = &slices[0];
-            check_same_layout(&layout, &first.file.name, &this, &file.name)?;
+    for frame in frames {
+        let FrameRef {
+            file,
+            frame,
+            frame_count,
+            name,
+            scope,
+        } = frame;
+        let this = scope.frame_layout(&name)?;
+        if let Some(first) = slices.first() {
+            check_same_layout(&layout, &first.name, &this, &name)?;
         }
-        let ipp = floats(
-            &file,
+        let ipp = scope.floats(
+            &name,
             tags::IMAGE_POSITION_PATIENT,
             "ImagePositionPatient",
             3,
         )?;
-        let slope = rescale(&file, tags::RESCALE_SLOPE, "RescaleSlope", 1.0)?;
-        let intercept = rescale(&file, tags::RESCALE_INTERCEPT, "RescaleIntercept", 0.0)?;
+        let slope = scope.rescale(&name, tags::RESCALE_SLOPE, "RescaleSlope", 1.0)?;
+        let intercept = scope.rescale(&name, tags::RESCALE_INTERCEPT, "RescaleIntercept", 0.0)?;
         if slope.is_none() || intercept.is_none() {
             missing_rescale += 1;
         }
         let slope = slope.unwrap_or(1.0);
         if slope == 0.0 {
-            return Err(label.error(format!("{}: RescaleSlope is 0", file.name)));
+            return Err(label.error(format!("{name}: RescaleSlope is 0")));
         }
         slices.push(Slice {
             file,
+            frame,
+            frame_count,
+            name,
             position_lps_mm: Vector3::new(ipp[0], ipp[1], ipp[2]),
             rescale_slope: slope,
             rescale_intercept: intercept.unwrap_or(0.0),
@@ -599,38 +363,41 @@ fn read_slice_attributes(
 
 /// Sorts the slices by their position along the normal, never by file name or
 /// InstanceNumber, which exports do not keep in anatomical order.
-fn order_along_normal(mut slices: Vec<Slice>, normal: &Vector3<f64>) -> Vec<Slice> {
+fn order_along_normal<'a>(mut slices: Vec<Slice<'a>>, normal: &Vector3<f64>) -> Vec<Slice<'a>> {
     slices.sort_by(|a, b| a.along_mm(normal).total_cmp(&b.along_mm(normal)));
     slices
 }
 
 /// Duplicates: identical pixels and rescale are dropped (exports repeat files), anything else
 /// at the same position is refused; at least 2 distinct positions must remain.
-fn drop_duplicate_slices(
-    slices: Vec<Slice>,
+fn drop_duplicate_slices<'a>(
+    slices: Vec<Slice<'a>>,
     normal: &Vector3<f64>,
     label: &SeriesLabel,
     warnings: &mut Vec<String>,
-) -> Result<Vec<Slice>> {
+) -> Result<Vec<Slice<'a>>> {
     let along = |s: &Slice| s.along_mm(normal);
-    let mut kept: Vec<Slice> = Vec::with_capacity(slices.len());
+    let mut kept: Vec<Slice<'a>> = Vec::with_capacity(slices.len());
     for slice in slices {
         if let Some(previous) = kept.last() {
             if (along(&slice) - along(previous)).abs() < DUPLICATE_TOLERANCE_MM {
-                let same_pixels = previous
-                    .file
-                    .object
-                    .get(tags::PIXEL_DATA)
-                    .map(|e| e.value())
-                    == slice.file.object.get(tags::PIXEL_DATA).map(|e| e.value());
+                // Frames of a multi-frame file share one pixel data element: never "the same".
+                let single_frames = previous.frame.is_none() && slice.frame.is_none();
+                let same_pixels = single_frames
+                    && previous
+                        .file
+                        .object
+                        .get(tags::PIXEL_DATA)
+                        .map(|e| e.value())
+                        == slice.file.object.get(tags::PIXEL_DATA).map(|e| e.value());
                 let same_rescale = previous.rescale_slope == slice.rescale_slope
                     && previous.rescale_intercept == slice.rescale_intercept;
                 if same_pixels && same_rescale {
                     let w = format!(
                         "{}: dropped, an exact duplicate of {} (same position {:.3} mm along the \
                          slice normal, same pixels)",
-                        slice.file.name,
-                        previous.file.name,
+                        slice.name,
+                        previous.name,
                         along(&slice)
                     );
                     warnings.push(w);
@@ -639,8 +406,8 @@ fn drop_duplicate_slices(
                 return Err(label.error(format!(
                     "{} and {} are both at {:.3} mm along the slice normal but hold different \
                      images (duplicate slice position)",
-                    previous.file.name,
-                    slice.file.name,
+                    previous.name,
+                    slice.name,
                     along(&slice)
                 )));
             }
@@ -681,7 +448,7 @@ fn check_no_gantry_tilt(
             "slice positions leave the slice normal by {lateral_mm:.2} mm over {along_mm:.2} mm \
              ({} vs {}): gantry tilt of about {tilt_deg:.2}°{declared}; sheared volumes are not \
              supported, resample the series first",
-            slices[k].file.name, slices[0].file.name
+            slices[k].name, slices[0].name
         )));
     }
     Ok(())
@@ -710,8 +477,8 @@ fn uniform_slice_spacing_mm(
         .map(|(k, g)| {
             format!(
                 "{g:.3} mm between {} and {}",
-                slices[k].file.name,
-                slices[k + 1].file.name
+                slices[k].name,
+                slices[k + 1].name
             )
         })
         .collect();
@@ -767,7 +534,7 @@ fn describe_series(
             transfer_syntax_uid,
             first.name,
             syntax_of(other),
-            other.file.name
+            other.name
         );
         warnings.push(w);
     }
