@@ -380,8 +380,8 @@ fn the_memory_budget_bounds_one_file_and_the_whole_read() {
             && e.contains("this read may use"),
         "{e}"
     );
-    // Parsed, a file takes about 8 times its size (160 bytes per element): room for one or
-    // two files but not four, so the read as a whole is refused.
+    // Parsed, a file of 6 × 5 pixels takes about 10 times its size (224 bytes per element):
+    // room for one file but not four, so the read as a whole is refused.
     let e = read(file_bytes * 16).unwrap_err().to_string();
     assert!(
         e.contains("need more memory than this read may use") && e.contains("already hold"),

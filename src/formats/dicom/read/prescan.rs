@@ -19,8 +19,9 @@ const IMPLICIT_VR_LITTLE_ENDIAN: &str = "1.2.840.10008.1.2";
 /// entry may (`ArchiveLimits`).
 const MAX_INFLATE_RATIO: u64 = 250;
 /// Memory dicom-rs takes per element, item or sequence beyond its value (tree node,
-/// header, small-vector), measured on files of many empty elements.
-const PARSED_NODE_BYTES: u64 = 160;
+/// header, small-vector): 226 bytes measured as the peak RSS difference of `lungmotion
+/// ingest` (release) on a slice carrying 1 000 000 vs 200 000 extra empty elements.
+const PARSED_NODE_BYTES: u64 = 224;
 /// Memory per value of a multi-valued text element (one `String` each).
 const PARSED_STRING_BYTES: u64 = 32;
 
