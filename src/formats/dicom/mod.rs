@@ -32,6 +32,8 @@ pub struct DicomReadOptions {
     pub series: Option<SeriesChoice>,
     /// Bounds for zip input.
     pub archive_limits: ArchiveLimits,
+    /// Memory the parsed files may hold at once, bytes; `None`: half the memory available.
+    pub memory_budget_bytes: Option<u64>,
 }
 
 /// Non-identifying description of the series that was read.

@@ -1,15 +1,22 @@
 //! Reading a CT series: gather files, group by series, check geometry, decode in parallel.
 
+mod admit;
 mod attributes;
+mod budget;
 mod enhanced;
 mod pixels;
+mod prescan;
 mod series_choice;
+mod vr_repair;
+mod walk;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use dicom_core::value::{PrimitiveValue, Value};
 use dicom_core::Tag;
 use dicom_dictionary_std::{tags, uids};
-use dicom_object::{DefaultDicomObject, OpenFileOptions};
+use dicom_object::DefaultDicomObject;
 use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -19,7 +26,9 @@ use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
 use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
 use crate::{Error, IoContext, IoOp, Result};
 
+use admit::{admit, Skipped};
 use attributes::check_same_layout;
+use budget::{default_budget_bytes, mb, MemoryBudget};
 use enhanced::{expand_frames, FrameRef};
 use pixels::decode_slice;
 pub use series_choice::SeriesChoice;
@@ -49,26 +58,57 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
     if sources.is_empty() {
         return Err(Error::scan(what, "no files found"));
     }
-    let parsed: Vec<std::result::Result<Option<ParsedFile>, String>> =
-        sources.into_par_iter().map(parse_source).collect();
-    let mut warnings = Vec::new();
+    let budget_bytes = options
+        .memory_budget_bytes
+        .unwrap_or_else(default_budget_bytes);
+    let budget = MemoryBudget::new(budget_bytes);
+    let parsed: Vec<std::result::Result<Parsed, Skipped>> = sources
+        .into_par_iter()
+        .map(|source| parse_source(source, &budget))
+        .collect();
+    let mut skipped = Vec::new();
     let mut files = Vec::new();
+    let mut repairs: BTreeMap<String, Vec<String>> = BTreeMap::new();
     for p in parsed {
         match p {
-            Ok(Some(f)) => files.push(f),
-            Ok(None) => {}
-            Err(w) => {
-                warnings.push(w);
+            Ok(Parsed { file, repairs: r }) => {
+                if let Some(f) = &file {
+                    for repair in r {
+                        repairs.entry(repair).or_default().push(f.name.clone());
+                    }
+                }
+                files.extend(file);
             }
+            Err(s) => skipped.push(s),
         }
+    }
+    if let Some(over) = skipped.iter().find(|s| s.over_read_budget) {
+        return Err(Error::scan(
+            what,
+            format!(
+                "the DICOM files need more memory than this read may use ({}, half the memory \
+                 available): {}: {}",
+                mb(budget_bytes),
+                over.name,
+                over.reason
+            ),
+        ));
+    }
+    let mut warnings: Vec<String> = skipped.iter().map(Skipped::to_string).collect();
+    for (repair, names) in repairs {
+        warnings.push(format!(
+            "{} file(s) repaired on reading: {repair} ({})",
+            names.len(),
+            summarize(&names, 3)
+        ));
     }
     if files.is_empty() {
         return Err(Error::scan(
             what,
             format!(
-                "no readable DICOM file ({} skipped: {})",
-                warnings.len(),
-                summarize(&warnings, 3)
+                "no readable DICOM image ({} skipped: {})",
+                skipped.len(),
+                summarize_skips(&skipped)
             ),
         ));
     }
@@ -138,53 +178,73 @@ struct ParsedFile {
     description: Option<String>,
 }
 
-/// Parses one source; `Ok(None)` for files deliberately ignored (DICOMDIR), `Err` for a
-/// warning about a skipped file.
-fn parse_source(source: Source) -> std::result::Result<Option<ParsedFile>, String> {
-    let (name, bytes) = match source {
-        Source::File(path) => {
-            let name = path.display().to_string();
-            match std::fs::read(&path) {
-                Ok(b) => (name, b),
-                Err(e) => return Err(format!("{name}: skipped, cannot read: {e}")),
-            }
+/// A parsed source: the file (`None` for one deliberately ignored, a DICOMDIR) and the
+/// repairs its bytes needed.
+struct Parsed {
+    file: Option<ParsedFile>,
+    repairs: Vec<String>,
+}
+
+/// Parses one source within the read's memory budget; `Err` names a skipped file and why.
+fn parse_source(source: Source, budget: &MemoryBudget) -> std::result::Result<Parsed, Skipped> {
+    let admitted = admit(source, budget)?;
+    let (name, object) = (admitted.name, admitted.object);
+    let dropped = |reason: Option<String>| {
+        // Its memory is no longer held by this read.
+        budget.release(0, admitted.parsed_bytes);
+        match reason {
+            Some(reason) => Err(Skipped::new(&name, reason)),
+            None => Ok(Parsed {
+                file: None,
+                repairs: Vec::new(),
+            }),
         }
-        Source::Entry { zip, entry } => (format!("{zip}:{}", entry.name), entry.data),
     };
-    let object = OpenFileOptions::new()
-        .from_reader(&bytes[..])
-        .map_err(|e| format!("{name}: skipped, not a readable DICOM file ({e})"))?;
-    drop(bytes);
     if object.meta().media_storage_sop_class_uid() == uids::MEDIA_STORAGE_DIRECTORY_STORAGE {
-        return Ok(None);
+        return dropped(None);
     }
-    check_image_complete(&object).map_err(|why| format!("{name}: skipped, {why}"))?;
+    if let Err(why) = check_image_complete(&object) {
+        return dropped(Some(why));
+    }
     let series_uid = text(&object, tags::SERIES_INSTANCE_UID)
         .unwrap_or_else(|| "(no SeriesInstanceUID)".to_string());
     let modality = text(&object, tags::MODALITY).unwrap_or_else(|| "(no Modality)".to_string());
     let description = text(&object, tags::SERIES_DESCRIPTION);
-    Ok(Some(ParsedFile {
-        name,
-        object,
-        series_uid,
-        modality,
-        description,
-    }))
+    Ok(Parsed {
+        file: Some(ParsedFile {
+            name,
+            object,
+            series_uid,
+            modality,
+            description,
+        }),
+        repairs: admitted.repairs,
+    })
 }
 
-/// Refuses objects without an image and native pixel data shorter than its header
-/// announces: the parser accepts a file that ends early at an element boundary.
+/// Refuses objects without an image, naming what is missing, and native pixel data shorter
+/// than its header announces: the parser accepts a file that ends early at an element
+/// boundary.
 fn check_image_complete(object: &DefaultDicomObject) -> std::result::Result<(), String> {
     let Some(pixel_data) = object.get(tags::PIXEL_DATA) else {
-        return Err("no pixel data (truncated file or not an image)".into());
-    };
-    let Some(bytes) = pixel_data
-        .value()
-        .primitive()
-        .map(|v| v.calculate_byte_len())
-    else {
-        // Encapsulated fragments: their decoder reports truncation.
-        return Ok(());
+        let float = [
+            (tags::FLOAT_PIXEL_DATA, "Float Pixel Data (7FE0,0008)"),
+            (
+                tags::DOUBLE_FLOAT_PIXEL_DATA,
+                "Double Float Pixel Data (7FE0,0009)",
+            ),
+        ];
+        if let Some((_, name)) = float.iter().find(|(tag, _)| object.get(*tag).is_some()) {
+            return Err(format!(
+                "its pixels are floating point ({name}), as in parametric maps: not supported; \
+                 a CT image stores integers in Pixel Data (7FE0,0010)"
+            ));
+        }
+        return Err(
+            "no Pixel Data (7FE0,0010): not an image (a report, a presentation state …) or a \
+             file cut before its pixels"
+                .into(),
+        );
     };
     let number = |tag: Tag| {
         object
@@ -192,7 +252,31 @@ fn check_image_complete(object: &DefaultDicomObject) -> std::result::Result<(), 
             .and_then(|e| e.to_int::<u32>().ok())
             .map(|v| v as usize)
     };
-    let (Some(rows), Some(columns)) = (number(tags::ROWS), number(tags::COLUMNS)) else {
+    let (rows, columns) = match (number(tags::ROWS), number(tags::COLUMNS)) {
+        (Some(rows), Some(columns)) => (rows, columns),
+        (rows, _) => {
+            let (tag, tag_name) = if rows.is_none() {
+                (tags::ROWS, "Rows")
+            } else {
+                (tags::COLUMNS, "Columns")
+            };
+            let state = if object.get(tag).is_some() {
+                "is not a number"
+            } else {
+                "is missing"
+            };
+            return Err(format!(
+                "{tag_name} ({:04X},{:04X}) {state}: the image size is unknown",
+                tag.0, tag.1
+            ));
+        }
+    };
+    let Some(bytes) = pixel_data
+        .value()
+        .primitive()
+        .map(|v| v.calculate_byte_len())
+    else {
+        // Encapsulated fragments: their decoder reports truncation.
         return Ok(());
     };
     if rows > MAX_DIM || columns > MAX_DIM {
@@ -212,8 +296,14 @@ fn check_image_complete(object: &DefaultDicomObject) -> std::result::Result<(), 
     Ok(())
 }
 
+/// A text attribute, trimmed; a value left as bytes (VR UN or OB) is read as text, never
+/// shown as numbers.
 fn text(object: &DefaultDicomObject, tag: Tag) -> Option<String> {
-    let value = object.get(tag)?.to_str().ok()?;
+    let element = object.get(tag)?;
+    let value = match element.value() {
+        Value::Primitive(PrimitiveValue::U8(bytes)) => String::from_utf8_lossy(bytes).into_owned(),
+        _ => element.to_str().ok()?.into_owned(),
+    };
     let trimmed = value.trim_matches(|c: char| c.is_whitespace() || c == '\0');
     (!trimmed.is_empty()).then(|| trimmed.to_string())
 }
@@ -567,4 +657,22 @@ fn summarize(items: &[String], max: usize) -> String {
         s.push_str(&format!("; … {} more", items.len() - max));
     }
     s
+}
+
+/// The reasons files were skipped, most common first, each with a few of its files.
+fn summarize_skips(skipped: &[Skipped]) -> String {
+    let mut by_reason: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    for s in skipped {
+        by_reason.entry(&s.reason).or_default().push(s.name.clone());
+    }
+    let mut groups: Vec<(&str, Vec<String>)> = by_reason.into_iter().collect();
+    groups.sort_by_key(|(_, names)| std::cmp::Reverse(names.len()));
+    let described: Vec<String> = groups
+        .iter()
+        .map(|(reason, names)| match names.as_slice() {
+            [one] => format!("{one}: {reason}"),
+            _ => format!("{} files: {reason} ({})", names.len(), summarize(names, 3)),
+        })
+        .collect();
+    summarize(&described, 3)
 }
