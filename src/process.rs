@@ -46,6 +46,44 @@ pub fn load_average() -> Option<[f64; 3]> {
     Some([it.next()??, it.next()??, it.next()??])
 }
 
+/// Memory this process may still take, bytes, and what said so: the smaller of the kernel's
+/// MemAvailable and the room left under the process's cgroup limit (v2 `memory.max`, v1
+/// `memory.limit_in_bytes`), since a container's limit is what kills it first.
+pub fn available_memory() -> Option<(u64, &'static str)> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
+    let machine = meminfo.as_deref().and_then(|m| {
+        let line = m.lines().find(|l| l.starts_with("MemAvailable:"))?;
+        let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+        Some((kb * 1024, "MemAvailable in /proc/meminfo"))
+    });
+    let cgroup =
+        cgroup_room("memory.max", "memory.current", "the cgroup's memory.max").or_else(|| {
+            cgroup_room(
+                "memory/memory.limit_in_bytes",
+                "memory/memory.usage_in_bytes",
+                "the cgroup's memory.limit_in_bytes",
+            )
+        });
+    match (machine, cgroup) {
+        (Some(m), Some(c)) => Some(if c.0 < m.0 { c } else { m }),
+        (m, c) => m.or(c),
+    }
+}
+
+/// Limit minus usage of the cgroup files under /sys/fs/cgroup; `None` when unlimited
+/// ("max", or v1's near-2⁶³ "no limit") or absent.
+fn cgroup_room(limit: &str, usage: &str, source: &'static str) -> Option<(u64, &'static str)> {
+    let read = |name: &str| -> Option<u64> {
+        std::fs::read_to_string(format!("/sys/fs/cgroup/{name}"))
+            .ok()?
+            .trim()
+            .parse()
+            .ok()
+    };
+    let limit = read(limit).filter(|&l| l < 1 << 60)?;
+    Some((limit.saturating_sub(read(usage).unwrap_or(0)), source))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -63,5 +101,10 @@ mod tests {
         );
         assert!(process_cpu_s().expect("stat") >= 0.0);
         assert!(load_average().expect("loadavg").iter().all(|l| *l >= 0.0));
+        let (available, source) = available_memory().expect("meminfo");
+        assert!(
+            available > 0 && !source.is_empty(),
+            "{available} from {source}"
+        );
     }
 }

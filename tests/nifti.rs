@@ -741,9 +741,14 @@ fn absurd_dims_are_refused_before_allocating() {
     // Under the per-axis limit but 4·10¹² voxels in all.
     let big = nifti2_file([16_000; 3], srow, [1.0; 3], &[], &[0; 16]);
     assert_mentions(&error_of(&gzip(&big)), &["absurd"]);
-    // Plausible dims whose voxels are missing: truncated, not allocated.
+    // Within the format's limits but over the memory budget: refused before inflating.
     let big = nifti2_file([2048, 2048, 512], srow, [1.0; 3], &[], &[0; 16]);
-    assert_mentions(&error_of(&gzip(&big)), &["truncated"]);
+    assert_mentions(&error_of(&gzip(&big)), &["over the budget", "8.0 GiB"]);
+    // Within the budget, its voxels missing: truncated (raw) or over the ratio cap (gzip,
+    // decided from the header before inflating), never allocated.
+    let big = nifti2_file([512, 512, 512], srow, [1.0; 3], &[], &[0; 16]);
+    assert_mentions(&error_of(&big), &["truncated"]);
+    assert_mentions(&error_of(&gzip(&big)), &["cap of 250×"]);
     let elapsed = start.elapsed();
     assert!(elapsed.as_millis() < 500, "took {elapsed:?}");
 }
@@ -809,6 +814,67 @@ fn sheared_sform_is_refused() {
     ];
     let e = error_of(&h.with_i16_voxels(&ramp_i16(8)));
     assert_mentions(&e, &["upload.nii", "sheared", "not orthogonal"]);
+}
+
+#[test]
+fn degenerate_qform_quaternion_is_refused_naming_it() {
+    // The file: qform_code 1, b = c = d = 5 (nifti1_io would renormalise it into
+    // some half-turn; nibabel refuses it).
+    let mut h = Nifti1::new([2, 2, 2], 4, 16);
+    h.qform_code = 1;
+    h.quatern = [5.0, 5.0, 5.0];
+    let e = error_of(&h.with_i16_voxels(&ramp_i16(8)));
+    assert_mentions(
+        &e,
+        &[
+            "upload.nii",
+            "degenerate qform",
+            "(5, 5, 5)",
+            "b²+c²+d² = 75",
+            "more than 1: not a rotation",
+        ],
+    );
+    h.quatern = [f32::NAN, 0.0, 0.0];
+    assert_mentions(
+        &error_of(&h.with_i16_voxels(&ramp_i16(8))),
+        &["degenerate qform", "NaN"],
+    );
+    h.quatern = [0.0; 3];
+    h.qoffset = [f32::INFINITY, 0.0, 0.0];
+    assert_mentions(
+        &error_of(&h.with_i16_voxels(&ramp_i16(8))),
+        &["qoffset", "not finite"],
+    );
+    // A float32-rounded half-turn (b² + c² + d² a hair above 1) still reads.
+    let third = (1.0f32 / 3.0).sqrt() * (1.0 + 1e-7);
+    h.qoffset = [0.0; 3];
+    h.quatern = [third; 3];
+    read_nifti_bytes(&h.with_i16_voxels(&ramp_i16(8)), "half-turn").unwrap();
+}
+
+#[test]
+fn non_finite_or_singular_sform_is_refused_naming_the_rows() {
+    let mut h = Nifti1::new([2, 2, 2], 4, 16);
+    h.sform_code = 1;
+    h.srow = [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, f32::NAN, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    let e = error_of(&h.with_i16_voxels(&ramp_i16(8)));
+    assert_mentions(&e, &["upload.nii", "non-finite", "srow_y"]);
+    // Two parallel axes: no grid.
+    h.srow = [
+        [1.0, 2.0, 0.0, 0.0],
+        [1.0, 2.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    let e = error_of(&h.with_i16_voxels(&ramp_i16(8)));
+    assert_mentions(&e, &["singular sform", "srow_x = [1.0, 2.0, 0.0, 0.0]"]);
+    // An all-zero sform (a writer that set the code but not the rows).
+    h.srow = [[0.0; 4]; 3];
+    let e = error_of(&h.with_i16_voxels(&ramp_i16(8)));
+    assert_mentions(&e, &["singular sform"]);
 }
 
 /// Throughput on a clinical-size grid; run with `--ignored --nocapture`.

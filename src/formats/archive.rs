@@ -12,9 +12,10 @@
 //! megabytes, each entry is parsed straight from its buffer, and there is no temporary
 //! directory to clean up after a refusal.
 
-use std::io::{Read, Seek};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
 
+use crate::formats::budget::{ScanBudget, MAX_INFLATION_RATIO, RATIO_EXEMPT_BYTES};
 use crate::{Error, IoContext, IoOp, Result};
 
 /// Bounds applied while reading an archive, each a guard against a hostile or broken file.
@@ -39,8 +40,8 @@ impl Default for ArchiveLimits {
             max_entries: 100_000,
             max_total_uncompressed_bytes: 4 << 30,
             max_entry_uncompressed_bytes: 2 << 30,
-            max_entry_ratio: 250,
-            ratio_exempt_bytes: 1 << 20,
+            max_entry_ratio: MAX_INFLATION_RATIO,
+            ratio_exempt_bytes: RATIO_EXEMPT_BYTES,
         }
     }
 }
@@ -76,11 +77,22 @@ pub fn read_zip_file(path: &Path, limits: &ArchiveLimits) -> Result<Vec<ArchiveE
 /// Reads every regular file of a zip archive into memory, within `limits`; `zip_name` names
 /// the archive in errors.
 pub fn read_zip_entries<R: Read + Seek>(
-    reader: R,
+    mut reader: R,
     zip_name: &str,
     limits: &ArchiveLimits,
 ) -> Result<Vec<ArchiveEntry>> {
     let bad = |m: String| Error::scan(zip_name, m);
+    // An entry's declared compressed size cannot exceed the archive: bounding it so keeps a
+    // lying header from widening its own ratio cap.
+    let archive_bytes = reader
+        .seek(SeekFrom::End(0))
+        .and_then(|len| reader.seek(SeekFrom::Start(0)).map(|_| len))
+        .map_err(|e| bad(format!("cannot measure the archive ({e})")))?;
+    let inflation = ScanBudget {
+        max_inflation_ratio: limits.max_entry_ratio,
+        ratio_exempt_bytes: limits.ratio_exempt_bytes,
+        ..ScanBudget::default()
+    };
     let mut archive = zip::ZipArchive::new(reader)
         .map_err(|e| bad(format!("not a readable zip archive ({e})")))?;
     if archive.len() > limits.max_entries {
@@ -101,10 +113,8 @@ pub fn read_zip_entries<R: Read + Seek>(
         if file.is_dir() || name.ends_with('/') || file.is_symlink() {
             continue;
         }
-        let ratio_bound = file
-            .compressed_size()
-            .saturating_mul(limits.max_entry_ratio)
-            .max(limits.ratio_exempt_bytes);
+        let compressed_bytes = file.compressed_size().min(archive_bytes);
+        let ratio_bound = inflation.inflation_bound(compressed_bytes);
         let remaining_total = limits
             .max_total_uncompressed_bytes
             .saturating_sub(total_bytes);
@@ -123,8 +133,7 @@ pub fn read_zip_entries<R: Read + Seek>(
             let reason = if bound == ratio_bound {
                 format!(
                     "decompresses to more than {}× its {} compressed bytes (decompression bomb?)",
-                    limits.max_entry_ratio,
-                    file.compressed_size()
+                    limits.max_entry_ratio, compressed_bytes
                 )
             } else if bound == remaining_total {
                 format!(

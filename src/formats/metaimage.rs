@@ -13,6 +13,11 @@ use crate::durable::write_atomic;
 use crate::volume::VolumeGeometry;
 use crate::{Error, IoContext, IoOp, Result};
 
+/// Most channels per voxel read (a displacement field has 3, a tensor image 9).
+const MAX_CHANNELS: usize = 16;
+/// Longest header searched for ElementDataFile; ITK's headers are under a kilobyte.
+const MAX_HEADER_BYTES: usize = 1 << 20;
+
 /// Writes float32 voxels with `channels` components each (1 for a scalar image, 3 for a field).
 pub fn write_mha(
     path: &Path,
@@ -74,11 +79,17 @@ pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
     let bytes = std::fs::read(path).at(IoOp::Read, path)?;
     let mut pos = 0;
     let mut fields = std::collections::HashMap::new();
+    let searched = &bytes[..bytes.len().min(MAX_HEADER_BYTES)];
     loop {
-        let end = bytes[pos..]
+        let end = searched[pos..]
             .iter()
             .position(|&b| b == b'\n')
-            .ok_or_else(|| bad("header ends before ElementDataFile".into()))?
+            .ok_or_else(|| {
+                bad(format!(
+                    "header ends before ElementDataFile (searched {} bytes)",
+                    searched.len()
+                ))
+            })?
             + pos;
         let line = String::from_utf8_lossy(&bytes[pos..end]).trim().to_string();
         pos = end + 1;
@@ -121,10 +132,10 @@ pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
     {
         return Err(bad("compressed or big-endian data are not read".into()));
     }
-    let dims = numbers("DimSize", 3)?;
+    let dims = whole_numbers(get("DimSize")?).map_err(|m| bad(format!("DimSize: {m}")))?;
     let t = numbers("TransformMatrix", 9)?;
     let geometry = VolumeGeometry {
-        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        dims,
         spacing_mm: numbers("ElementSpacing", 3)?.try_into().unwrap(),
         origin_lps_mm: numbers("Offset", 3)?.try_into().unwrap(),
         direction_lps: [[t[0], t[1], t[2]], [t[3], t[4], t[5]], [t[6], t[7], t[8]]],
@@ -133,9 +144,16 @@ pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
     let channels = match fields.get("ElementNumberOfChannels") {
         Some(c) => c
             .parse::<usize>()
-            .map_err(|_| bad(format!("bad channel count '{c}'")))?,
+            .ok()
+            .filter(|n| (1..=MAX_CHANNELS).contains(n))
+            .ok_or_else(|| {
+                bad(format!(
+                    "ElementNumberOfChannels '{c}' is not a whole number from 1 to {MAX_CHANNELS}"
+                ))
+            })?,
         None => 1,
     };
+    // validate() bounds the voxel count, MAX_CHANNELS the rest: no overflow.
     let expected = geometry.voxel_count() * channels * 4;
     let data = &bytes[pos..];
     if data.len() != expected {
@@ -149,6 +167,21 @@ pub fn read_mha(path: &Path) -> Result<(VolumeGeometry, usize, Vec<f32>)> {
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
     Ok((geometry, channels, values))
+}
+
+/// Three whole, non-negative numbers (`DimSize`); a fraction or a sign is an error, not
+/// silently truncated.
+fn whole_numbers(text: &str) -> std::result::Result<[usize; 3], String> {
+    let parsed: Vec<usize> = text
+        .split_whitespace()
+        .map(|x| {
+            x.parse::<usize>()
+                .map_err(|_| format!("'{x}' is not a whole number of voxels"))
+        })
+        .collect::<std::result::Result<_, _>>()?;
+    parsed
+        .try_into()
+        .map_err(|v: Vec<usize>| format!("needs 3 numbers, has {}", v.len()))
 }
 
 #[cfg(test)]

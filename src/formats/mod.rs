@@ -2,6 +2,7 @@
 //! convention: medical images convert to and from [`crate::volume::Volume`] (LPS millimetres).
 
 pub mod archive;
+pub mod budget;
 pub mod dicom;
 pub mod metaimage;
 pub mod nifti;

@@ -3,32 +3,55 @@
 //! Convention: `space directions` columns are the voxel axes scaled by the spacing, in the
 //! file's `space`; `space origin` is the centre of the first voxel. LPS files are read as
 //! they are; RAS files have x and y negated. Supported: 3-D, attached data, `raw` or `gzip`
-//! encoding, integer and float sample types, either endianness.
+//! encoding, integer and float sample types, either endianness. Every size the header
+//! declares is checked against a [`ScanBudget`] and the bytes present before the data are
+//! inflated or copied.
 
+use std::borrow::Cow;
 use std::io::Read;
 use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};
 
+use crate::formats::budget::ScanBudget;
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
-/// Reads a 3-D NRRD file into a volume of f32 values (HU for CT, codes for label maps).
+/// Longest header accepted: teem's own headers are under a kilobyte; a file with no empty
+/// line in its first megabyte is not a NRRD header.
+const MAX_HEADER_BYTES: usize = 1 << 20;
+/// Initial buffer for inflated data: a lying `sizes` cannot reserve more than this before
+/// the stream delivers it.
+const MAX_PREALLOCATED_BYTES: usize = 64 << 20;
+
+/// Reads a 3-D NRRD file into a volume of f32 values (HU for CT, codes for label maps),
+/// within [`ScanBudget::for_this_machine`].
 pub fn read_nrrd(path: &Path) -> Result<Volume<f32>> {
     let bytes = std::fs::read(path).map_err(|e| Error::scan(path, format!("cannot read: {e}")))?;
     parse_nrrd(&bytes, &path.display().to_string())
 }
 
-/// Parses NRRD bytes; `what` names the source in errors.
+/// Parses NRRD bytes within [`ScanBudget::for_this_machine`]; `what` names the source in
+/// errors.
 pub fn parse_nrrd(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
+    parse_nrrd_within(bytes, what, &ScanBudget::for_this_machine())
+}
+
+/// Parses NRRD bytes within `budget` (its ratio cap applies to gzip data).
+pub fn parse_nrrd_within(bytes: &[u8], what: &str, budget: &ScanBudget) -> Result<Volume<f32>> {
     let header = read_header(bytes, what)?;
     let dims = read_sizes(&header)?;
     let geometry = read_geometry(&header, dims)?;
     geometry.validate(what)?;
+    budget.check_volume(what, dims, 1)?;
     let (size, decode) = sample_decoder(header.require("type")?).map_err(|m| header.error(m))?;
-    let little = header.field("endian").unwrap_or("little") == "little";
+    let little = match header.field("endian").unwrap_or("little") {
+        "little" => true,
+        "big" => false,
+        other => return Err(header.error(format!("endian '{other}' is not 'little' or 'big'"))),
+    };
     let expected = geometry.voxel_count() * size;
-    let raw = read_payload(&header, &bytes[header.data_start..], expected)?;
+    let raw = read_payload(&header, &bytes[header.data_start..], expected, budget)?;
     let data = raw[..expected]
         .chunks_exact(size)
         .map(|c| {
@@ -80,12 +103,22 @@ fn read_header<'a>(bytes: &[u8], what: &'a str) -> Result<Header<'a>> {
     // The header ends at the first empty line.
     let mut pos = 0;
     let mut fields = Vec::new();
+    let searched = &bytes[..bytes.len().min(MAX_HEADER_BYTES)];
     loop {
-        let end = bytes[pos..]
+        let end = searched[pos..]
             .iter()
             .position(|&b| b == b'\n')
             .map(|e| pos + e)
-            .ok_or_else(|| bad("header has no end (truncated file?)".into()))?;
+            .ok_or_else(|| {
+                if searched.len() < bytes.len() {
+                    bad(format!(
+                        "no empty line ends the header within its first {MAX_HEADER_BYTES} \
+                         bytes: not a NRRD header"
+                    ))
+                } else {
+                    bad("header has no end (truncated file?)".into())
+                }
+            })?;
         let line = std::str::from_utf8(&bytes[pos..end])
             .map_err(|_| bad("header is not text".into()))?
             .trim_end_matches('\r');
@@ -123,6 +156,14 @@ fn read_sizes(header: &Header) -> Result<[usize; 3]> {
         .is_some()
     {
         return Err(bad("detached data files are not supported".into()));
+    }
+    for skip in ["byte skip", "line skip"] {
+        if header.field(skip).is_some_and(|v| v.trim() != "0") {
+            return Err(bad(format!(
+                "'{skip}: {}' is not supported (the data must follow the header)",
+                header.field(skip).unwrap_or_default()
+            )));
+        }
     }
     let sizes: Vec<usize> = header
         .require("sizes")?
@@ -219,19 +260,31 @@ fn sample_decoder(name: &str) -> std::result::Result<(usize, SampleDecoder), Str
     })
 }
 
-/// The data bytes, gunzipped if so encoded; gzip output is capped one byte past `expected`
-/// so a bomb cannot fill memory, and fewer than `expected` bytes is truncation.
-fn read_payload(header: &Header, payload: &[u8], expected: usize) -> Result<Vec<u8>> {
+/// The data bytes, gunzipped if so encoded; gzip data declaring more than the ratio cap are
+/// refused before inflating, output is capped one byte past `expected` so a bomb cannot fill
+/// memory, and fewer than `expected` bytes is truncation.
+fn read_payload<'a>(
+    header: &Header,
+    payload: &'a [u8],
+    expected: usize,
+    budget: &ScanBudget,
+) -> Result<Cow<'a, [u8]>> {
     let bad = |m: String| header.error(m);
-    let raw: Vec<u8> = match header.require("encoding")? {
-        "raw" => payload.to_vec(),
+    let raw: Cow<[u8]> = match header.require("encoding")? {
+        "raw" => Cow::Borrowed(payload),
         "gzip" | "gz" => {
-            let mut out = Vec::with_capacity(expected);
+            budget.check_inflation(
+                header.what,
+                "gzip data",
+                payload.len() as u64,
+                expected as u64,
+            )?;
+            let mut out = Vec::with_capacity(expected.min(MAX_PREALLOCATED_BYTES));
             flate2::read::MultiGzDecoder::new(payload)
                 .take(expected as u64 + 1)
                 .read_to_end(&mut out)
                 .map_err(|e| bad(format!("gzip data is corrupt: {e}")))?;
-            out
+            Cow::Owned(out)
         }
         other => return Err(bad(format!("unsupported encoding '{other}'"))),
     };

@@ -14,7 +14,12 @@ use super::segmentation::{
     segment_lungs, LungSegmentation, SegmentationReport, SegmentationSettings,
 };
 use crate::volume::VolumeGeometry;
-use crate::Result;
+use crate::{Error, Result};
+
+/// Plausible volume of both lungs in the segmentation, mL: adult total lung capacity is
+/// about 6 L (4–8 L), residual volume above 1 L, and hyperinflated emphysema stays under
+/// 10 L; outside, the scan's geometry or the segmentation is wrong.
+pub const PLAUSIBLE_LUNG_ML: std::ops::RangeInclusive<f64> = 1000.0..=10_000.0;
 
 /// Everything ingest can be told.
 #[derive(Debug, Clone, Default)]
@@ -108,6 +113,12 @@ pub struct ScanSummary {
 pub fn ingest_scan(scan: &LoadedScan, settings: &IngestSettings) -> Result<IngestOutcome> {
     let t0 = Instant::now();
     let segmentation = segment_lungs(&scan.ct, &settings.segmentation)?;
+    let report = &segmentation.report;
+    check_lung_volume(
+        report.right_volume_ml,
+        report.left_volume_ml,
+        &scan.ct.geometry,
+    )?;
     let t_seg = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let model = build_lung_model(&segmentation.lungs, &segmentation.airways, &settings.model)?;
@@ -155,4 +166,46 @@ pub fn ingest_scan(scan: &LoadedScan, settings: &IngestSettings) -> Result<Inges
         model,
         summary,
     })
+}
+
+/// Refuses a segmentation whose lungs are outside [`PLAUSIBLE_LUNG_ML`], naming the volumes
+/// and the spacing they were computed with.
+fn check_lung_volume(right_ml: f64, left_ml: f64, geometry: &VolumeGeometry) -> Result<()> {
+    let total_ml = right_ml + left_ml;
+    if PLAUSIBLE_LUNG_ML.contains(&total_ml) {
+        return Ok(());
+    }
+    let [sx, sy, sz] = geometry.spacing_mm;
+    Err(Error::scan(
+        "CT for segmentation",
+        format!(
+            "the segmented lungs hold {:.1} L (right {:.1} L, left {:.1} L), outside the \
+             {:.0}–{:.0} L of adult lungs: the voxel spacing ({sx:.2} × {sy:.2} × {sz:.2} mm) \
+             is wrong, the scan does not cover the lungs, or it is not a chest CT",
+            total_ml / 1000.0,
+            right_ml / 1000.0,
+            left_ml / 1000.0,
+            PLAUSIBLE_LUNG_ML.start() / 1000.0,
+            PLAUSIBLE_LUNG_ML.end() / 1000.0,
+        ),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lung_volumes_outside_adult_lungs_are_refused_naming_the_litres() {
+        let g = VolumeGeometry::axis_aligned([10, 10, 10], [4.17, 4.17, 39.87], [0.0; 3]);
+        let e = check_lung_volume(24_000.0, 21_900.0, &g)
+            .unwrap_err()
+            .to_string();
+        for part in ["45.9 L", "right 24.0 L", "1–10 L", "39.87 mm"] {
+            assert!(e.contains(part), "{part}: {e}");
+        }
+        let e = check_lung_volume(450.0, 0.0, &g).unwrap_err().to_string();
+        assert!(e.contains("hold 0.5 L"), "{e}");
+        check_lung_volume(2_400.0, 2_190.0, &g).unwrap();
+    }
 }

@@ -116,6 +116,7 @@ pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Res
         ScanFormat::Nifti => (nifti::read_nifti(path)?, None, Vec::new()),
         ScanFormat::Nrrd => (nrrd::read_nrrd(path)?, None, Vec::new()),
     };
+    check_spacing_for_lung_model(&ct.geometry.spacing_mm, path)?;
     let mut warnings = warnings;
     warnings.extend(check_hounsfield(&ct, path)?);
     Ok(LoadedScan {
@@ -176,6 +177,59 @@ pub fn check_hounsfield(ct: &Volume<f32>, path: &Path) -> Result<Vec<String>> {
     Ok(warnings)
 }
 
+/// Refuses voxel spacings too coarse for a lung model, whatever the format: the coarsest axis
+/// (the slices, in a CT) above [`MAX_SLICE_SPACING_MM`] or another axis above
+/// [`MAX_IN_PLANE_SPACING_MM`].
+pub fn check_spacing_for_lung_model(spacing_mm: &[f64; 3], path: &Path) -> Result<()> {
+    let mut axes = [0usize, 1, 2];
+    axes.sort_by(|&a, &b| spacing_mm[a].total_cmp(&spacing_mm[b]));
+    let [_, in_plane, slices] = axes;
+    let shown = format!(
+        "{} × {} × {} mm",
+        round_mm(spacing_mm[0]),
+        round_mm(spacing_mm[1]),
+        round_mm(spacing_mm[2])
+    );
+    let fault = if spacing_mm[slices] > MAX_SLICE_SPACING_MM {
+        Some(format!(
+            "its slices are {} mm apart (axis {}), above the {MAX_SLICE_SPACING_MM} mm a lung \
+             model needs: the lung is about 20 cm tall and its base moves 10–30 mm in a breath, \
+             so coarser slices cannot place the diaphragm to within the motion being predicted",
+            round_mm(spacing_mm[slices]),
+            slices
+        ))
+    } else if spacing_mm[in_plane] > MAX_IN_PLANE_SPACING_MM {
+        Some(format!(
+            "its in-plane pixels are {} mm (axis {}), above the {MAX_IN_PLANE_SPACING_MM} mm \
+             a lung model needs: each lung is about 10 cm wide and the trachea 15–20 mm, so \
+             coarser pixels cannot separate the lungs or find the airways",
+            round_mm(spacing_mm[in_plane]),
+            in_plane
+        ))
+    } else {
+        None
+    };
+    match fault {
+        Some(why) => Err(Error::scan(
+            path,
+            format!("voxel spacing {shown} is too coarse for a lung model: {why}"),
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Millimetres to 2 decimals, for messages.
+fn round_mm(mm: f64) -> f64 {
+    (mm * 100.0).round() / 100.0
+}
+
+/// Largest spacing along the coarsest axis (slice spacing): clinical chest CTs are
+/// reconstructed at 0.5–5 mm, legacy thick-slice series at up to 10 mm.
+pub const MAX_SLICE_SPACING_MM: f64 = 10.0;
+/// Largest spacing along the two other axes: clinical in-plane pixels are 0.5–1 mm; the
+/// bundled phantom uses 5 mm and the CIP test CT 4.17 mm, both still segment correctly.
+pub const MAX_IN_PLANE_SPACING_MM: f64 = 5.0;
+
 /// Below this, a voxel holds air or lung (lung parenchyma is ≈ −850 HU).
 const AIR_LIKE_HU: f32 = -500.0;
 /// A chest CT is at least this fraction air or lung; a few percent would already be a small lung.
@@ -209,6 +263,31 @@ mod tests {
         );
         assert_eq!(classify_header(b"hello world"), None);
         assert_eq!(classify_header(b""), None);
+    }
+
+    #[test]
+    fn spacings_too_coarse_for_a_lung_model_are_refused_naming_the_axis() {
+        let ok = |s: [f64; 3]| check_spacing_for_lung_model(&s, Path::new("ct.nrrd"));
+        ok([0.7, 0.7, 2.5]).unwrap();
+        ok([5.0, 5.0, 5.0]).unwrap();
+        ok([4.17, 4.17, 10.0]).unwrap();
+        let e = ok([4.171872, 4.171872, 39.873]).unwrap_err().to_string();
+        for part in [
+            "ct.nrrd",
+            "4.17 × 4.17 × 39.87 mm",
+            "39.87 mm apart (axis 2)",
+            "10 mm",
+        ] {
+            assert!(e.contains(part), "{part}: {e}");
+        }
+        // The slice axis is the coarsest, whichever it is.
+        let e = ok([12.0, 1.0, 1.0]).unwrap_err().to_string();
+        assert!(e.contains("12 mm apart (axis 0)"), "{e}");
+        let e = ok([0.8, 6.0, 8.0]).unwrap_err().to_string();
+        assert!(
+            e.contains("in-plane pixels are 6 mm (axis 1)") && e.contains("5 mm"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -57,7 +57,8 @@ pub(super) fn refine_geometry(
                     return exact;
                 }
                 tracing::warn!(
-                    "{what}: the lungmotion geometry extension disagrees with the header's                      transform (the file was edited?); using the header"
+                    "{what}: the lungmotion geometry extension disagrees with the header's \
+                     transform (the file was edited?); using the header"
                 );
             }
         }

@@ -8,6 +8,13 @@ use crate::{Error, Result};
 
 /// Largest non-orthogonality of sform axes accepted (as [`VolumeGeometry::validate`]).
 const MAX_SHEAR: f64 = 1e-3;
+/// How far b² + c² + d² of a qform quaternion may exceed 1: float32 rounding of a unit
+/// quaternion stays below 10⁻⁶; nibabel refuses beyond 3 float32 epsilons, nifti1_io
+/// silently renormalises any length, which turns garbage into some rotation.
+const QUATERNION_ROUNDING: f64 = 1e-5;
+/// Smallest |det| of the sform's axes divided by the product of their lengths: below, the
+/// axes are (nearly) coplanar and no grid can be placed.
+const MIN_SFORM_VOLUME_RATIO: f64 = 1e-6;
 
 /// The grid in LPS millimetres from the sform, the qform or the ANALYZE fallback.
 pub(super) fn geometry(header: &Header, dims: [usize; 3], what: &str) -> Result<VolumeGeometry> {
@@ -38,11 +45,13 @@ pub(super) fn geometry(header: &Header, dims: [usize; 3], what: &str) -> Result<
         *spacing = p * mm_per_unit;
     }
     let (axes_ras_mm, origin_ras_mm) = if header.sform_code > 0 {
+        check_sform(header, what)?;
         let s = &header.srow;
         let axes = Matrix3::from_fn(|r, c| s[r][c] * mm_per_unit);
         let origin = Vector3::new(s[0][3], s[1][3], s[2][3]) * mm_per_unit;
         (axes, origin)
     } else if header.qform_code > 0 {
+        check_quaternion(header, what)?;
         let qfac = if header.pixdim[0] < 0.0 { -1.0 } else { 1.0 };
         let rotation = quaternion_to_rotation(header.quatern_bcd);
         let scale = Vector3::new(pixdim_mm[0], pixdim_mm[1], qfac * pixdim_mm[2]);
@@ -91,6 +100,63 @@ pub(super) fn geometry(header: &Header, dims: [usize; 3], what: &str) -> Result<
         origin_lps_mm: origin_lps.into(),
         direction_lps: std::array::from_fn(|c| direction_lps.column(c).into_owned().into()),
     })
+}
+
+/// Refuses an sform with a non-finite entry or coplanar axes, naming the rows.
+fn check_sform(header: &Header, what: &str) -> Result<()> {
+    let names = ["srow_x", "srow_y", "srow_z"];
+    for (row, name) in header.srow.iter().zip(names) {
+        if row.iter().any(|v| !v.is_finite()) {
+            return Err(Error::scan(
+                what,
+                format!(
+                    "sform (sform_code {}) has a non-finite entry: {name} = {row:?}",
+                    header.sform_code
+                ),
+            ));
+        }
+    }
+    let axes = Matrix3::from_fn(|r, c| header.srow[r][c]);
+    let lengths: f64 = (0..3).map(|c| axes.column(c).norm()).product();
+    let det = axes.determinant();
+    if lengths == 0.0 || (det / lengths).abs() < MIN_SFORM_VOLUME_RATIO {
+        return Err(Error::scan(
+            what,
+            format!(
+                "singular sform (sform_code {}): determinant {det:.3e} of srow_x = {:?}, \
+                 srow_y = {:?}, srow_z = {:?}; its voxel axes do not span space",
+                header.sform_code, header.srow[0], header.srow[1], header.srow[2]
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Refuses a qform quaternion that is not finite or longer than a unit quaternion.
+fn check_quaternion(header: &Header, what: &str) -> Result<()> {
+    let [b, c, d] = header.quatern_bcd;
+    let squares = b * b + c * c + d * d;
+    let offset_finite = header.qoffset.iter().all(|v| v.is_finite());
+    if squares.is_finite() && squares <= 1.0 + QUATERNION_ROUNDING && offset_finite {
+        return Ok(());
+    }
+    let reason = if !offset_finite {
+        format!("qoffset {:?} is not finite", header.qoffset)
+    } else if !squares.is_finite() {
+        format!("quatern_b, c, d = ({b}, {c}, {d}) are not finite")
+    } else {
+        format!(
+            "quatern_b, c, d = ({b}, {c}, {d}) give b²+c²+d² = {squares}, more than 1: \
+             not a rotation quaternion"
+        )
+    };
+    Err(Error::scan(
+        what,
+        format!(
+            "degenerate qform (qform_code {}, sform_code 0): {reason}",
+            header.qform_code
+        ),
+    ))
 }
 
 /// Rotation of the NIfTI quaternion (b, c, d), a ≥ 0 implied (nifti1.h, method 2).

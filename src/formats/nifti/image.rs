@@ -9,6 +9,7 @@ use super::extension::refine_geometry;
 use super::header::{header_length, layout, parse_header, scaling, DataType, Header};
 use super::nifti2::NIFTI2_HEADER_BYTES;
 use super::samples::decode_typed_dispatch;
+use crate::formats::budget::ScanBudget;
 use crate::volume::VolumeGeometry;
 use crate::{Error, Result};
 
@@ -27,6 +28,16 @@ const MAX_TRAILING_BYTES: u64 = 16 << 20;
 pub(super) enum Components {
     Scalar,
     Vector3,
+}
+
+impl Components {
+    /// Values per voxel.
+    fn count(self) -> usize {
+        match self {
+            Components::Scalar => 1,
+            Components::Vector3 => 3,
+        }
+    }
 }
 
 /// A parsed image whose voxel bytes are present and sized for its grid.
@@ -56,23 +67,29 @@ pub(super) fn read_file(path: &Path) -> Result<Vec<u8>> {
 }
 
 /// Parses the header, checks it against the wanted components and the available bytes,
-/// and returns the voxel bytes; nothing proportional to the header's dims is allocated
-/// before the dims are validated.
+/// and returns the voxel bytes; nothing proportional to the header's dims is allocated or
+/// inflated before the dims are validated and checked against `budget`.
 pub(super) fn parse_image<'a>(
     bytes: &'a [u8],
     what: &str,
     wanted: Components,
+    budget: &ScanBudget,
 ) -> Result<Image<'a>> {
     if bytes.starts_with(&GZIP_MAGIC) {
-        parse_gzipped_image(bytes, what, wanted)
+        parse_gzipped_image(bytes, what, wanted, budget)
     } else {
-        parse_raw_image(bytes, what, wanted)
+        parse_raw_image(bytes, what, wanted, budget)
     }
 }
 
 /// A gzipped file: header, extensions and voxels are inflated in turn, the voxels into a
 /// buffer that grows with what the stream delivers.
-fn parse_gzipped_image(bytes: &[u8], what: &str, wanted: Components) -> Result<Image<'static>> {
+fn parse_gzipped_image(
+    bytes: &[u8],
+    what: &str,
+    wanted: Components,
+    budget: &ScanBudget,
+) -> Result<Image<'static>> {
     let bad = |m: String| Error::scan(what, m);
     let mut stream = flate2::read::MultiGzDecoder::new(bytes);
     let mut head = Vec::with_capacity(NIFTI2_HEADER_BYTES);
@@ -81,6 +98,10 @@ fn parse_gzipped_image(bytes: &[u8], what: &str, wanted: Components) -> Result<I
     read_gz(&mut stream, &mut head, header_len - 4, what)?;
     let header = parse_header(&head, what)?;
     let (geometry, datatype, data_len) = layout(&header, what, wanted)?;
+    budget.check_volume(what, geometry.dims, wanted.count())?;
+    // vox_offset counts too: skipping a declared 4 GB extension area is as much inflating.
+    let declared = header.vox_offset as u64 + data_len as u64;
+    budget.check_inflation(what, "gzip stream", bytes.len() as u64, declared)?;
     let skip = header.vox_offset as usize - header_len;
     let mut extensions = Vec::new();
     let skipped = if skip <= MAX_EXTENSION_BYTES {
@@ -123,7 +144,12 @@ fn parse_gzipped_image(bytes: &[u8], what: &str, wanted: Components) -> Result<I
 }
 
 /// A raw file: the voxels are borrowed from `bytes`.
-fn parse_raw_image<'a>(bytes: &'a [u8], what: &str, wanted: Components) -> Result<Image<'a>> {
+fn parse_raw_image<'a>(
+    bytes: &'a [u8],
+    what: &str,
+    wanted: Components,
+    budget: &ScanBudget,
+) -> Result<Image<'a>> {
     let bad = |m: String| Error::scan(what, m);
     let header_len = header_length(bytes, what)?;
     let head = bytes.get(..header_len).ok_or_else(|| {
@@ -146,6 +172,7 @@ fn parse_raw_image<'a>(bytes: &'a [u8], what: &str, wanted: Components) -> Resul
                 bytes.len()
             ))
         })?;
+    budget.check_volume(what, geometry.dims, wanted.count())?;
     let extensions = &bytes[header_len..start];
     let geometry = refine_geometry(geometry, extensions, header.big_endian, what);
     finish_image(header, geometry, datatype, Cow::Borrowed(voxels), what)

@@ -57,8 +57,8 @@ mod samples;
 mod write;
 
 pub use read::{
-    read_nifti, read_nifti_bytes, read_nifti_labels, read_nifti_labels_bytes,
-    read_nifti_vector_field, read_nifti_vector_field_bytes,
+    read_nifti, read_nifti_bytes, read_nifti_bytes_within, read_nifti_labels,
+    read_nifti_labels_bytes, read_nifti_vector_field, read_nifti_vector_field_bytes,
 };
 pub use write::{write_nifti_ct, write_nifti_labels, write_nifti_vector_field};
 

@@ -7,18 +7,30 @@ use rayon::prelude::*;
 use super::image::{parse_image, read_file, Components};
 use super::samples::decode_samples;
 use super::{first_position, refuse_non_finite, voxel_ijk, INTENT_DISPLACEMENT, INTENT_VECTOR};
+use crate::formats::budget::ScanBudget;
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
-/// Reads a 3-D NIfTI-1 or NIfTI-2 file (raw or gzipped) into f32 values (HU for CT).
+/// Reads a 3-D NIfTI-1 or NIfTI-2 file (raw or gzipped) into f32 values (HU for CT), within
+/// [`ScanBudget::for_this_machine`].
 pub fn read_nifti(path: &Path) -> Result<Volume<f32>> {
     let bytes = read_file(path)?;
     read_nifti_bytes(&bytes, &path.display().to_string())
 }
 
-/// Reads NIfTI bytes (an upload); `what` names the source in errors.
+/// Reads NIfTI bytes (an upload) within [`ScanBudget::for_this_machine`]; `what` names the
+/// source in errors.
 pub fn read_nifti_bytes(bytes: &[u8], what: &str) -> Result<Volume<f32>> {
-    let image = parse_image(bytes, what, Components::Scalar)?;
+    read_nifti_bytes_within(bytes, what, &ScanBudget::for_this_machine())
+}
+
+/// Reads NIfTI bytes within `budget` (its ratio cap applies to gzip files).
+pub fn read_nifti_bytes_within(
+    bytes: &[u8],
+    what: &str,
+    budget: &ScanBudget,
+) -> Result<Volume<f32>> {
+    let image = parse_image(bytes, what, Components::Scalar, budget)?;
     let mut data = vec![0f32; image.geometry.voxel_count()];
     let (slope, inter) = image.scaling;
     decode_samples(&image, &mut data, |v| (v * slope + inter) as f32);
@@ -34,7 +46,8 @@ pub fn read_nifti_labels(path: &Path) -> Result<Volume<u8>> {
 
 /// Reads NIfTI label-map bytes; `what` names the source in errors.
 pub fn read_nifti_labels_bytes(bytes: &[u8], what: &str) -> Result<Volume<u8>> {
-    let image = parse_image(bytes, what, Components::Scalar)?;
+    let budget = ScanBudget::for_this_machine().without_ratio_cap();
+    let image = parse_image(bytes, what, Components::Scalar, &budget)?;
     let (slope, inter) = image.scaling;
     // 256 marks a voxel that is no label, so the conversion needs no error path per voxel.
     let mut codes = vec![0u16; image.geometry.voxel_count()];
@@ -74,7 +87,8 @@ pub fn read_nifti_vector_field_bytes(
     bytes: &[u8],
     what: &str,
 ) -> Result<(VolumeGeometry, Vec<[f32; 3]>)> {
-    let image = parse_image(bytes, what, Components::Vector3)?;
+    let budget = ScanBudget::for_this_machine().without_ratio_cap();
+    let image = parse_image(bytes, what, Components::Vector3, &budget)?;
     if image.intent_code != INTENT_VECTOR && image.intent_code != INTENT_DISPLACEMENT {
         tracing::warn!(
             "{what}: intent_code {} is not a vector intent (1006/1007); reading the 3 \
