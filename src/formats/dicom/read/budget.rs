@@ -11,34 +11,10 @@ const FALLBACK_BUDGET_BYTES: u64 = 4 << 30;
 /// Never below this, so that a small series reads on a loaded machine.
 const MIN_BUDGET_BYTES: u64 = 256 << 20;
 
-/// Bytes of memory the process may still take: MemAvailable, lowered by a cgroup limit.
-pub(super) fn available_memory_bytes() -> Option<u64> {
-    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let kib = meminfo
-        .lines()
-        .find_map(|l| l.strip_prefix("MemAvailable:"))?
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse::<u64>()
-        .ok()?;
-    let mut available = kib.saturating_mul(1024);
-    // In a container MemAvailable shows the host; the cgroup's limit is what kills us.
-    let cgroup = |name: &str| {
-        std::fs::read_to_string(format!("/sys/fs/cgroup/{name}"))
-            .ok()
-            .and_then(|s| s.trim().parse::<u64>().ok())
-    };
-    if let (Some(max), Some(current)) = (cgroup("memory.max"), cgroup("memory.current")) {
-        available = available.min(max.saturating_sub(current));
-    }
-    Some(available)
-}
-
 /// The default budget of one read: half the available memory, at least 256 MiB.
 pub(super) fn default_budget_bytes() -> u64 {
-    available_memory_bytes()
-        .map(|b| (b as f64 * AVAILABLE_SHARE) as u64)
+    crate::process::available_memory()
+        .map(|(b, _)| (b as f64 * AVAILABLE_SHARE) as u64)
         .unwrap_or(FALLBACK_BUDGET_BYTES)
         .max(MIN_BUDGET_BYTES)
 }
