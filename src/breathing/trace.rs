@@ -124,7 +124,7 @@ impl BreathingTrace {
     fn parse_located(text: &str, options: &TraceOptions) -> std::result::Result<Self, Fault> {
         let text = text.trim_start_matches('\u{feff}');
         let format = match options.format {
-            TraceFormat::Detect if text.trim_start().starts_with('{') => TraceFormat::Json,
+            TraceFormat::Detect if text.trim_start().starts_with(['{', '[']) => TraceFormat::Json,
             TraceFormat::Detect => TraceFormat::Csv,
             f => f,
         };
@@ -295,8 +295,9 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
     let vol_col = names.iter().position(|n| volume_unit(n).is_some());
     let (Some(tc), Some(vc)) = (time_col, vol_col) else {
         return Err(Fault::whole(format!(
-            "line {hline}: header '{header}' must name a time column (time_s or time_ms) and a \
-             volume column (volume_ml or volume_l), e.g. 'time_s,volume_ml'"
+            "line {hline}: header '{}' must name a time column (time_s or time_ms) and a \
+             volume column (volume_ml or volume_l), e.g. 'time_s,volume_ml'",
+            clip(header)
         )));
     };
     let units = (
@@ -321,7 +322,8 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
             cells[c].parse::<f64>().map_err(|_| {
                 at(format!(
                     "line {line}: '{}' in column {} is not a number",
-                    cells[c], names[c]
+                    clip(cells[c]),
+                    names[c]
                 ))
             })
         };
@@ -336,8 +338,15 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
 }
 
 fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits), Fault> {
-    let value: serde_json::Value =
-        serde_json::from_str(text).map_err(|e| Fault::whole(format!("not valid JSON: {e}")))?;
+    let value: serde_json::Value = serde_json::from_str(text)
+        .map_err(|e| Fault::whole(format!("not valid JSON: {}", clip(&e.to_string()))))?;
+    if !value.is_object() {
+        // serde would fill the struct from an array's items in order: refuse it instead.
+        return Err(Fault::whole(format!(
+            "expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}, found a JSON {}",
+            json_kind(&value)
+        )));
+    }
     let units = (
         if value.get("time_ms").is_some() {
             1e-3
@@ -364,10 +373,35 @@ fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnit
     }
     let trace: JsonTrace = serde_json::from_value(value).map_err(|e| {
         Fault::whole(format!(
-            "expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}: {e}"
+            "expected {{\"time_s\": [numbers], \"volume_ml\": [numbers]}}: {}",
+            clip(&e.to_string())
         ))
     })?;
     Ok((trace.time_s, trace.volume_ml, units))
+}
+
+/// What a JSON value is, in words.
+fn json_kind(value: &serde_json::Value) -> &'static str {
+    match value {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "boolean",
+        serde_json::Value::Number(_) => "number",
+        serde_json::Value::String(_) => "string",
+        serde_json::Value::Array(_) => "array",
+        serde_json::Value::Object(_) => "object",
+    }
+}
+
+/// Longest piece of the file quoted in a message, characters.
+const MAX_QUOTED_CHARS: usize = 120;
+
+/// `text`, cut to [`MAX_QUOTED_CHARS`] with an ellipsis: a message quotes the fault, it does
+/// not echo a 20 MB line (found by the hostile-input corpus).
+fn clip(text: &str) -> std::borrow::Cow<'_, str> {
+    match text.char_indices().nth(MAX_QUOTED_CHARS) {
+        Some((cut, _)) => format!("{}… ({} bytes)", &text[..cut], text.len()).into(),
+        None => text.into(),
+    }
 }
 
 /// What is wrong with a trace, and at which sample where one is to blame.
@@ -471,6 +505,28 @@ mod tests {
         }
         let e = BreathingTrace::new(vec![0.0, 1.0], vec![0.0]).unwrap_err();
         assert!(e.to_string().contains("2 times but 1 volumes"), "{e}");
+    }
+
+    #[test]
+    fn long_lines_are_quoted_cut_short_not_echoed() {
+        let header = "x".repeat(1 << 20);
+        let e = parse(&header).unwrap_err();
+        assert!(
+            e.contains("header 'xxx") && e.contains("(1048576 bytes)"),
+            "{e}"
+        );
+        assert!(e.len() < 400, "{} bytes", e.len());
+        let e = parse(&format!(
+            "time_s,volume_ml\n0,0\n1,{}x\n",
+            "9".repeat(1 << 20)
+        ))
+        .unwrap_err();
+        assert!(e.contains("line 3: '999") && e.len() < 400, "{e}");
+        let e = parse(&format!("{{\"time_s\": \"{}\"}}", "y".repeat(1 << 20))).unwrap_err();
+        assert!(e.contains("expected {\"time_s\"") && e.len() < 400, "{e}");
+        // A JSON array is read as JSON, so the reason is about JSON, not a CSV header.
+        let e = parse("[[0, 0], [1, 250]]").unwrap_err();
+        assert!(e.contains("found a JSON array"), "{e}");
     }
 
     #[test]
