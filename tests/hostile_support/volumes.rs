@@ -226,7 +226,7 @@ pub fn nifti_cases() -> Vec<Case> {
         .awaiting("volume-bounds"),
         Case::new(
             "singular sform",
-            Refused(&["affine's axis 0 has length 0 mm"]),
+            Refused(&["singular sform", "srow_x"]),
             nii(|n| {
                 n.i16(252, 0)
                     .f32(280, 0.0)
@@ -236,7 +236,7 @@ pub fn nifti_cases() -> Vec<Case> {
         ),
         Case::new(
             "sform with NaN",
-            Refused(&["affine's axis 1 has length NaN mm"]),
+            Refused(&["non-finite", "srow_x"]),
             nii(|n| n.i16(252, 0).f32(284, f32::NAN)),
         ),
         Case::new(
@@ -457,7 +457,7 @@ pub fn nrrd_cases() -> Vec<Case> {
         ),
         nrrd_case(
             "a 4 MB content line",
-            Accepted(&["grid [16, 16, 4]"]),
+            Refused(&["first 1048576 bytes", "not a NRRD header"]),
             format!(
                 "{NRRD_GEOMETRY}\nencoding: raw\ncontent: {}",
                 "x".repeat(4 << 20)
