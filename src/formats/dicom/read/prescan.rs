@@ -15,9 +15,9 @@ use super::walk::{walk, Encoding, Event, Visitor};
 
 /// Implicit VR Little Endian, the one syntax without VRs.
 const IMPLICIT_VR_LITTLE_ENDIAN: &str = "1.2.840.10008.1.2";
-/// A deflated data set may inflate to at most this many times its compressed size, as a zip
-/// entry may (`ArchiveLimits`).
-const MAX_INFLATE_RATIO: u64 = 250;
+// A deflated data set may inflate to at most this many times its compressed size: the cap
+// every compressed scan stream shares (zip entries, gzip NIfTI and NRRD).
+use crate::formats::budget::MAX_INFLATION_RATIO as MAX_INFLATE_RATIO;
 /// Memory dicom-rs takes per element, item or sequence beyond its value (tree node,
 /// header, small-vector): 226 bytes measured as the peak RSS difference of `lungmotion
 /// ingest` (release) on a slice carrying 1 000 000 vs 200 000 extra empty elements.
