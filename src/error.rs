@@ -290,9 +290,10 @@ impl Error {
     /// path only in their message text return `None`).
     pub fn path(&self) -> Option<&Path> {
         match self {
-            Error::Io { path, .. } | Error::Format { path, .. } | Error::OutputDir { path, .. } => {
-                Some(path)
-            }
+            Error::Io { path, .. }
+            | Error::Format { path, .. }
+            | Error::InvalidScan { scan: path, .. }
+            | Error::OutputDir { path, .. } => Some(path),
             Error::Config { file: p, .. }
             | Error::Trace { path: p, .. }
             | Error::Points { file: p, .. }
@@ -306,9 +307,10 @@ impl Error {
     /// data directory, or what the file is to the client).
     pub fn with_path_shown_as(mut self, shown_as: impl FnOnce(&Path) -> PathBuf) -> Self {
         let slot = match &mut self {
-            Error::Io { path, .. } | Error::Format { path, .. } | Error::OutputDir { path, .. } => {
-                Some(path)
-            }
+            Error::Io { path, .. }
+            | Error::Format { path, .. }
+            | Error::InvalidScan { scan: path, .. }
+            | Error::OutputDir { path, .. } => Some(path),
             Error::Config { file: p, .. }
             | Error::Trace { path: p, .. }
             | Error::Points { file: p, .. }
@@ -392,5 +394,16 @@ mod tests {
         .with_path_shown_as(|p| p.strip_prefix("/srv/data").unwrap().to_path_buf());
         assert_eq!(e.path(), Some(Path::new("jobs/1/job.json")));
         assert_eq!(e.to_string(), "cannot write jobs/1/job.json: disk full");
+        let e = Error::scan("/srv/data/tmp/upload-1.zip:IM0001", "no Rows (0028,0010)")
+            .with_path_shown_as(|p| {
+                p.to_string_lossy()
+                    .replacen("/srv/data/tmp/upload-1.zip", "the upload", 1)
+                    .into()
+            });
+        assert_eq!(e.path(), Some(Path::new("the upload:IM0001")));
+        assert_eq!(
+            e.to_string(),
+            "invalid scan: the upload:IM0001: no Rows (0028,0010)"
+        );
     }
 }
