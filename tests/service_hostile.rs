@@ -417,6 +417,59 @@ fn an_upload_nesting_200000_sequences_is_refused_and_the_server_keeps_answering(
     server.upload_scan(&sample("phantom-ct.nii.gz"));
 }
 
+/// A gzip NIfTI CT of 512 × 512 × `slices` whose HU values ramp and wrap, so that it compresses
+/// well below the readers' 250× ratio cap yet needs its full size in memory to be read.
+fn large_ramp_ct(path: &std::path::Path, slices: usize) {
+    use lungmotion::volume::{Volume, VolumeGeometry};
+    let geometry = VolumeGeometry::axis_aligned([512, 512, slices], [0.8, 0.8, 2.0], [0.0; 3]);
+    let data = (0..512 * 512 * slices)
+        .map(|n| ((n * 7 + n / 512 * 13 + n / (512 * 512) * 3) % 2000) as f32 - 1000.0)
+        .collect();
+    let ct = Volume::from_data(geometry, data).unwrap();
+    lungmotion::formats::nifti::write_nifti_ct(path, &ct).unwrap();
+}
+
+#[test]
+fn an_upload_needing_more_than_ingest_memory_mib_is_refused_by_name_and_the_server_lives() {
+    let scratch = Scratch::new("ingest-memory");
+    let data = scratch.join("data");
+    let ct = scratch.join("large.nii.gz");
+    large_ramp_ct(&ct, 240);
+    let upload = std::fs::read(&ct).unwrap();
+    let inflated = 512 * 512 * 240 * 2;
+    println!(
+        "measured: a {:.1} MB upload inflating {:.0}× to {} MB of voxels",
+        upload.len() as f64 / 1e6,
+        inflated as f64 / upload.len() as f64,
+        inflated / 1_000_000
+    );
+    let server = ServerProcess::start_with_env(
+        &data,
+        &["--workers", "1"],
+        &[("LUNGMOTION_INGEST_MEMORY_MIB", "256")],
+    );
+    let asked = Instant::now();
+    let resp = server.post_scan_bytes(upload, "application/gzip");
+    let body = assert_problem(resp, 422, &["256 MiB", "ingest_memory_mib"]);
+    println!(
+        "measured: refused after {:.2} s: {}",
+        asked.elapsed().as_secs_f64(),
+        body["detail"]
+    );
+    assert!(
+        body["type"]
+            .as_str()
+            .unwrap()
+            .ends_with("ingest-out-of-memory"),
+        "{body}"
+    );
+    assert_eq!(server.get_json("/healthz")["status"], "ok");
+    assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
+    assert_eq!(entries(&data.join("scans")), Vec::<String>::new());
+    // The limit is the child's alone: the same server still ingests a real scan.
+    server.upload_scan(&sample("phantom-ct.nii.gz"));
+}
+
 #[test]
 fn the_traces_reference_over_http_gives_the_clis_frames() {
     let scratch = Scratch::new("tracereference");

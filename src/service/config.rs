@@ -16,6 +16,7 @@
 //! header_read_timeout_s = 10  # a request's headers, whole
 //! body_read_timeout_s = 30    # the longest pause inside a request body
 //! ingest_timeout_s = 600      # reading and meshing one uploaded scan
+//! ingest_memory_mib = 8192    # address space of the child reading one upload; 0: no limit
 //! [run]                       # defaults of every simulation, as `lungmotion run --config`
 //! element_size_mm = 6
 //! ```
@@ -31,6 +32,12 @@ use crate::{Error, Result};
 
 /// Largest service configuration file read, bytes.
 const MAX_CONFIG_BYTES: u64 = 1 << 20;
+/// Default address space of the ingest child, MiB: a 512 × 512 × 141 chest CT (POPI) is read
+/// and meshed under `ulimit -v` 1.2 GiB (844 MB peak), so 8 GiB leaves room for 500-slice
+/// scans while a hostile file's runaway allocation stops there.
+pub const DEFAULT_INGEST_MEMORY_MIB: u64 = 8192;
+/// Smallest ingest child limit accepted, MiB.
+const MIN_INGEST_MEMORY_MIB: u64 = 256;
 
 /// Everything the service can be told.
 #[derive(Debug, Clone)]
@@ -61,6 +68,8 @@ pub struct ServiceConfig {
     pub body_read_timeout_s: f64,
     /// Longest time the ingest of one upload may take before it is stopped, s.
     pub ingest_timeout_s: f64,
+    /// Address space the ingest child may reserve, MiB (0: no limit; a thread is never limited).
+    pub ingest_memory_mib: u64,
     /// Where an upload's ingest runs (set by the program embedding the service, not by files).
     pub ingest_isolation: IngestIsolation,
     /// Defaults of every simulation; a request's options are merged over them.
@@ -100,6 +109,7 @@ impl Default for ServiceConfig {
             header_read_timeout_s: 10.0,
             body_read_timeout_s: 30.0,
             ingest_timeout_s: 600.0,
+            ingest_memory_mib: DEFAULT_INGEST_MEMORY_MIB,
             ingest_isolation: IngestIsolation::default(),
             run: RunConfig::default(),
         }
@@ -123,6 +133,7 @@ struct ServiceFile {
     header_read_timeout_s: Option<f64>,
     body_read_timeout_s: Option<f64>,
     ingest_timeout_s: Option<f64>,
+    ingest_memory_mib: Option<u64>,
     run: Option<toml::Value>,
 }
 
@@ -147,7 +158,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 11] = [
+pub const ENV_VARS: [&str; 12] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -159,6 +170,7 @@ pub const ENV_VARS: [&str; 11] = [
     "LUNGMOTION_HEADER_READ_TIMEOUT_S",
     "LUNGMOTION_BODY_READ_TIMEOUT_S",
     "LUNGMOTION_INGEST_TIMEOUT_S",
+    "LUNGMOTION_INGEST_MEMORY_MIB",
 ];
 
 impl ServiceConfig {
@@ -239,6 +251,7 @@ impl ServiceConfig {
         set(&mut self.header_read_timeout_s, file.header_read_timeout_s);
         set(&mut self.body_read_timeout_s, file.body_read_timeout_s);
         set(&mut self.ingest_timeout_s, file.ingest_timeout_s);
+        set(&mut self.ingest_memory_mib, file.ingest_memory_mib);
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -287,6 +300,9 @@ impl ServiceConfig {
         }
         if let Some(v) = env("LUNGMOTION_INGEST_TIMEOUT_S") {
             self.ingest_timeout_s = parsed("LUNGMOTION_INGEST_TIMEOUT_S", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_INGEST_MEMORY_MIB") {
+            self.ingest_memory_mib = parsed("LUNGMOTION_INGEST_MEMORY_MIB", &v)?;
         }
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);
@@ -355,6 +371,14 @@ impl ServiceConfig {
                     "{key} must be a number of seconds above 0 and at most 86400, not {seconds}"
                 ));
             }
+        }
+        // Below this the child's own threads and allocator arenas fail before any reader runs,
+        // which would refuse every upload for a reason that is not the upload's.
+        if self.ingest_memory_mib != 0 && self.ingest_memory_mib < MIN_INGEST_MEMORY_MIB {
+            return bad(&format!(
+                "ingest_memory_mib must be 0 (no limit) or at least {MIN_INGEST_MEMORY_MIB}, not {}",
+                self.ingest_memory_mib
+            ));
         }
         if let Some(token) = &self.api_token {
             if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
@@ -432,11 +456,14 @@ mod tests {
         std::fs::write(
             &path,
             "max_connections = 40\nheader_read_timeout_s = 2.5\nbody_read_timeout_s = 7\n\
-             ingest_timeout_s = 90\n",
+             ingest_timeout_s = 90\ningest_memory_mib = 3000\n",
         )
         .unwrap();
         let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
-        assert_eq!(c.max_connections, 40);
+        assert_eq!((c.max_connections, c.ingest_memory_mib), (40, 3000));
+        let env = |k: &str| (k == "LUNGMOTION_INGEST_MEMORY_MIB").then(|| "100".to_string());
+        let e = ServiceConfig::load(Some(&path), &env).unwrap_err();
+        assert!(e.to_string().contains("ingest_memory_mib"), "{e}");
         assert_eq!(
             (
                 c.header_read_timeout_s,

@@ -38,6 +38,19 @@ const MAX_MESSAGE_BYTES: u64 = 64 << 20;
 /// How often the server looks whether the child has finished.
 const CHILD_POLL: Duration = Duration::from_millis(20);
 
+/// Lines of the child's standard error kept to tell why it ended without an answer.
+const STDERR_TAIL_LINES: usize = 40;
+
+/// What the ingest of one upload may spend.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IngestLimits {
+    /// Wall time before the ingest is stopped.
+    pub timeout: Duration,
+    /// Address space of the ingest child, MiB (0: unlimited; an ingest on a thread cannot be
+    /// limited apart from the server).
+    pub memory_mib: u64,
+}
+
 /// What the server asks of an ingest child.
 #[derive(Debug, Serialize, Deserialize)]
 struct ChildRequest {
@@ -45,6 +58,9 @@ struct ChildRequest {
     upload: PathBuf,
     /// The run defaults whose ingest settings apply.
     run: RunConfig,
+    /// Address space the child limits itself to before reading, MiB (0: none).
+    #[serde(default)]
+    memory_mib: u64,
 }
 
 /// What an ingest child answers.
@@ -79,17 +95,40 @@ pub fn ingest_upload(upload: &Path, run: &RunConfig) -> ApiResult<Value> {
         .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))
 }
 
-/// [`ingest_upload`] where `isolation` says, the child given at most `timeout`. Blocks.
+/// [`ingest_upload`] where `isolation` says, a child held to `limits`. Blocks.
 pub fn ingest_isolated(
     isolation: &IngestIsolation,
     upload: &Path,
     run: &RunConfig,
-    timeout: Duration,
+    limits: IngestLimits,
 ) -> ApiResult<Value> {
     match isolation {
         IngestIsolation::Thread => ingest_upload(upload, run),
-        IngestIsolation::ChildProcess { program } => in_child(program, upload, run, timeout),
+        IngestIsolation::ChildProcess { program } => in_child(program, upload, run, limits),
     }
+}
+
+/// Caps this process's address space at `mib` MiB (`RLIMIT_AS`), so that a reader's runaway
+/// allocation fails inside the ingest child instead of pushing the machine into swap or the
+/// kernel's OOM killer, which might pick the server.
+#[cfg(unix)]
+fn limit_address_space(mib: u64) -> std::io::Result<()> {
+    let bytes = mib.saturating_mul(1 << 20) as libc::rlim_t;
+    let limit = libc::rlimit {
+        rlim_cur: bytes,
+        rlim_max: bytes,
+    };
+    // SAFETY: setrlimit reads the struct we pass and changes only this process's limits.
+    if unsafe { libc::setrlimit(libc::RLIMIT_AS, &limit) } == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+#[cfg(not(unix))]
+fn limit_address_space(_mib: u64) -> std::io::Result<()> {
+    Ok(())
 }
 
 /// Runs `work` on a thread with the default stack (the job workers'); a panic becomes a 500.
@@ -123,7 +162,17 @@ pub fn serve_ingest_child(input: impl Read, mut output: impl Write) -> std::io::
     input.take(MAX_MESSAGE_BYTES).read_to_end(&mut request)?;
     let answer = match serde_json::from_slice::<ChildRequest>(&request) {
         Ok(request) => {
-            let ingest = on_worker_sized_thread(|| ingest_upload(&request.upload, &request.run));
+            let limited = match request.memory_mib {
+                0 => Ok(()),
+                mib => limit_address_space(mib).map_err(|e| {
+                    ApiError::internal(format!(
+                        "ingest child: cannot limit its memory to {mib} MiB: {e}"
+                    ))
+                }),
+            };
+            let ingest = limited.and_then(|()| {
+                on_worker_sized_thread(|| ingest_upload(&request.upload, &request.run))
+            });
             match ingest {
                 Ok(summary) => ChildAnswer::Summary(summary),
                 Err(e) => ChildAnswer::Refused {
@@ -143,18 +192,25 @@ pub fn serve_ingest_child(input: impl Read, mut output: impl Write) -> std::io::
     output.flush()
 }
 
-/// Runs the ingest in `program serve --ingest-child`, killed after `timeout`.
-fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -> ApiResult<Value> {
+/// Runs the ingest in `program serve --ingest-child`, killed after `limits.timeout`.
+fn in_child(
+    program: &Path,
+    upload: &Path,
+    run: &RunConfig,
+    limits: IngestLimits,
+) -> ApiResult<Value> {
+    let timeout = limits.timeout;
     let request = serde_json::to_vec(&ChildRequest {
         upload: upload.to_path_buf(),
         run: run.clone(),
+        memory_mib: limits.memory_mib,
     })
     .map_err(|e| ApiError::internal(format!("ingest child request: {e}")))?;
     let mut child = Command::new(program)
         .args(["serve", "--ingest-child"])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
+        .stderr(Stdio::piped())
         .spawn()
         .map_err(|e| {
             ApiError::internal(format!(
@@ -177,6 +233,8 @@ fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -
         }
         answer
     });
+    let stderr = child.stderr.take();
+    let diagnostics = std::thread::spawn(move || stderr.map(relay_stderr).unwrap_or_default());
     let started = Instant::now();
     let status = loop {
         match child.try_wait() {
@@ -190,6 +248,7 @@ fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -
         let _ = child.kill();
         let _ = child.wait();
         let _ = reader.join();
+        let _ = diagnostics.join();
         return Err(ApiError::unprocessable(
             "ingest-timeout",
             format!(
@@ -200,6 +259,7 @@ fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -
         ));
     };
     let answer = reader.join().unwrap_or_default();
+    let stderr_tail = diagnostics.join().unwrap_or_default();
     match serde_json::from_slice::<ChildAnswer>(&answer) {
         Ok(ChildAnswer::Summary(summary)) => Ok(summary),
         Ok(ChildAnswer::Refused {
@@ -211,12 +271,44 @@ fn in_child(program: &Path, upload: &Path, run: &RunConfig, timeout: Duration) -
             known_slug(&slug),
             detail,
         )),
-        Err(_) => Err(crashed(status)),
+        Err(_) => Err(crashed(status, &stderr_tail, limits.memory_mib)),
     }
 }
 
-/// The refusal of an upload whose reader ended the child without an answer.
-fn crashed(status: ExitStatus) -> ApiError {
+/// Passes the child's standard error on to the server's (its log lines belong in the
+/// server's log) and keeps the last lines, which say why a child died without an answer.
+fn relay_stderr(stderr: impl Read) -> String {
+    use std::io::BufRead;
+    let mut tail = std::collections::VecDeque::with_capacity(STDERR_TAIL_LINES);
+    // Bounded per line: a child cannot make the server hold an endless one.
+    let mut lines = std::io::BufReader::new(stderr.take(MAX_MESSAGE_BYTES));
+    let mut line = Vec::new();
+    while matches!(lines.read_until(b'\n', &mut line), Ok(n) if n > 0) {
+        let text = String::from_utf8_lossy(&line).trim_end().to_string();
+        eprintln!("{text}");
+        if tail.len() == STDERR_TAIL_LINES {
+            tail.pop_front();
+        }
+        tail.push_back(text);
+        line.clear();
+    }
+    Vec::from(tail).join("\n")
+}
+
+/// The refusal of an upload whose reader ended the child without an answer, told from its
+/// exit signal and the last lines it wrote (Rust's runtime names an allocation it could not
+/// make and a stack overflow before it aborts).
+fn crashed(status: ExitStatus, stderr_tail: &str, memory_mib: u64) -> ApiError {
+    if memory_mib != 0 && stderr_tail.contains("memory allocation of") {
+        tracing::error!("ingest child ran out of its {memory_mib} MiB on an upload");
+        return ApiError::unprocessable(
+            "ingest-out-of-memory",
+            format!(
+                "reading the upload needed more than the {memory_mib} MiB an ingest may use \
+                 (ingest_memory_mib) and was stopped; nothing was stored"
+            ),
+        );
+    }
     #[cfg(unix)]
     let signal = {
         use std::os::unix::process::ExitStatusExt;
@@ -226,6 +318,9 @@ fn crashed(status: ExitStatus) -> ApiError {
     let signal: Option<i32> = None;
     let how = match signal {
         // What Rust's stack-overflow handler and `abort` raise.
+        Some(6) if stderr_tail.contains("has overflowed its stack") => {
+            "overflowed its stack (signal 6)".to_string()
+        }
         Some(6) => "aborted (signal 6: a stack overflow or an abort)".to_string(),
         Some(9) => "killed (signal 9: most likely out of memory)".to_string(),
         Some(11) => "crashed (signal 11: invalid memory access)".to_string(),
@@ -249,6 +344,7 @@ fn known_slug(slug: &str) -> &'static str {
         "ingest-failed",
         "invalid-input",
         "ingest-timeout",
+        "ingest-out-of-memory",
         "scan-reader-crashed",
     ]
     .into_iter()

@@ -168,6 +168,14 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
     }
     let request: SimulationRequest =
         serde_json::from_value(value).map_err(|e| invalid(format!("simulation request: {e}")))?;
+    // The scan was read when it was uploaded; a series named here could not change it, and
+    // silently ignoring it would run on a series the caller did not ask for.
+    if let Some(series) = request.options.get("series") {
+        return Err(invalid(format!(
+            "series {series}: the DICOM series is chosen when the scan is uploaded \
+             (POST /v1/scans?series=...); a simulation runs on the stored scan"
+        )));
+    }
     let mut merged = serde_json::to_value(defaults)
         .map_err(|e| ApiError::internal(format!("default options: {e}")))?;
     merge_options(&mut merged, &request.options);
@@ -386,5 +394,9 @@ mod tests {
             "points": [{"name": "a,b", "lps_mm": [0, 0, 0]}]});
         let (s, d) = status("application/json", &body.to_string());
         assert!(s == 422 && d.contains("points[0]"), "{s} {d}");
+        let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": v},
+            "series": "number:3"});
+        let (s, d) = status("application/json", &body.to_string());
+        assert!(s == 422 && d.contains("uploaded"), "{s} {d}");
     }
 }

@@ -13,7 +13,7 @@ use utoipa::ToSchema;
 use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
 use crate::formats::dicom::SeriesChoice;
 use crate::service::ids::ScanId;
-use crate::service::isolation::ingest_isolated;
+use crate::service::isolation::{ingest_isolated, IngestLimits};
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::store::{now_rfc3339, ScanRecord};
 use crate::service::upload::{receive_scan, TempFileGuard};
@@ -77,7 +77,7 @@ pub struct UploadOptions {
         (status = 413, description = "Over max_upload_mib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "JSON or text instead of a scan", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The body stopped arriving for body_read_timeout_s", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Not a CT, truncated, unsafe zip, no lungs found, a reader that crashed on the file (scan-reader-crashed) or an ingest over ingest_timeout_s", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Not a CT, truncated, unsafe zip, no lungs found, a reader that crashed on the file (scan-reader-crashed) an ingest over ingest_timeout_s or over ingest_memory_mib (ingest-out-of-memory)", body = Problem, content_type = "application/problem+json"),
     ),
     security(("bearer" = []))
 )]
@@ -123,7 +123,10 @@ pub async fn upload_scan(
             &config.ingest_isolation,
             &named,
             &run,
-            Duration::from_secs_f64(config.ingest_timeout_s),
+            IngestLimits {
+                timeout: Duration::from_secs_f64(config.ingest_timeout_s),
+                memory_mib: config.ingest_memory_mib,
+            },
         )?;
         let record = ScanRecord {
             scan_id: ScanId::random(),
