@@ -4,8 +4,8 @@
 //! The run summary reports peak memory and the benchmarks time phases with them, so they live
 //! below both.
 
-/// Resident-memory field `key` (VmRSS, VmHWM) of /proc/self/status in bytes.
-fn rss_bytes(key: &str) -> Option<u64> {
+/// Memory field `key` (VmRSS, VmHWM, VmSize) of /proc/self/status in bytes.
+fn status_bytes(key: &str) -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with(key))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
@@ -14,12 +14,12 @@ fn rss_bytes(key: &str) -> Option<u64> {
 
 /// Peak resident memory of the process so far, bytes.
 pub fn peak_rss_bytes() -> Option<u64> {
-    rss_bytes("VmHWM")
+    status_bytes("VmHWM")
 }
 
 /// Current resident memory of the process, bytes.
 pub fn current_rss_bytes() -> Option<u64> {
-    rss_bytes("VmRSS")
+    status_bytes("VmRSS")
 }
 
 /// Resets VmHWM to the current RSS (Linux `clear_refs` 5) so a phase's own peak is visible;
@@ -46,9 +46,11 @@ pub fn load_average() -> Option<[f64; 3]> {
     Some([it.next()??, it.next()??, it.next()??])
 }
 
-/// Memory this process may still take, bytes, and what said so: the smaller of the kernel's
-/// MemAvailable and the room left under the process's cgroup limit (v2 `memory.max`, v1
-/// `memory.limit_in_bytes`), since a container's limit is what kills it first.
+/// Memory this process may still take, bytes, and what said so: the smallest of the
+/// kernel's MemAvailable, the room left under the process's cgroup limit (v2 `memory.max`,
+/// v1 `memory.limit_in_bytes`), since a container's limit is what kills it first, and the
+/// room left under its address-space limit (`ulimit -v`, the service's `ingest_memory_mib`),
+/// past which every allocation fails.
 pub fn available_memory() -> Option<(u64, &'static str)> {
     let meminfo = std::fs::read_to_string("/proc/meminfo").ok();
     let machine = meminfo.as_deref().and_then(|m| {
@@ -64,10 +66,31 @@ pub fn available_memory() -> Option<(u64, &'static str)> {
                 "the cgroup's memory.limit_in_bytes",
             )
         });
-    match (machine, cgroup) {
-        (Some(m), Some(c)) => Some(if c.0 < m.0 { c } else { m }),
-        (m, c) => m.or(c),
-    }
+    [machine, cgroup, address_space_room()]
+        .into_iter()
+        .flatten()
+        .min_by_key(|(bytes, _)| *bytes)
+}
+
+/// The address-space limit (`RLIMIT_AS`, from /proc/self/limits) less what the process has
+/// mapped already (VmSize); `None` when unlimited or unreadable.
+fn address_space_room() -> Option<(u64, &'static str)> {
+    let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
+    let line = limits
+        .lines()
+        .find(|l| l.starts_with("Max address space"))?;
+    // "Max address space   <soft>   <hard>   bytes": the soft limit is the one enforced.
+    let soft: u64 = line
+        .trim_start_matches("Max address space")
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    let mapped = status_bytes("VmSize").unwrap_or(0);
+    Some((
+        soft.saturating_sub(mapped),
+        "the room under the address-space limit: ulimit -v, or the service's ingest_memory_mib",
+    ))
 }
 
 /// Limit minus usage of the cgroup files under /sys/fs/cgroup; `None` when unlimited

@@ -391,6 +391,43 @@ fn the_memory_budget_bounds_one_file_and_the_whole_read() {
 }
 
 #[test]
+fn a_zip_is_held_to_the_reads_memory_budget_before_any_file_is_parsed() {
+    let dir = scratch("zip-budget");
+    let series = dir.join("series");
+    std::fs::create_dir_all(&series).unwrap();
+    let (paths, volume) = write_small_series(&series);
+    let zip_path = dir.join("series.zip");
+    let mut zip = zip::ZipWriter::new(std::fs::File::create(&zip_path).unwrap());
+    let mut entry_bytes = 0;
+    for path in &paths {
+        let bytes = std::fs::read(path).unwrap();
+        entry_bytes += bytes.len() as u64;
+        let name = path.file_name().unwrap().to_string_lossy();
+        zip.start_file(name, zip::write::SimpleFileOptions::default())
+            .unwrap();
+        zip.write_all(&bytes).unwrap();
+    }
+    zip.finish().unwrap();
+    let read = |budget: u64| {
+        let options = DicomReadOptions {
+            memory_budget_bytes: Some(budget),
+            ..DicomReadOptions::default()
+        };
+        read_dicom_series_with(&zip_path, &options)
+    };
+    assert_eq!(read(64 << 20).unwrap().volume.as_slice(), volume.as_slice());
+    // The entries alone overrun the budget: refused while decompressing, naming it.
+    let e = read(entry_bytes / 2).unwrap_err().to_string();
+    assert!(
+        e.contains("series.zip")
+            && e.contains(&format!("more than {} bytes", entry_bytes / 2))
+            && e.contains("the memory this DICOM read may use"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
 fn a_series_with_every_element_as_vr_un_reads_like_the_original() {
     let un_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/dicom/un-vr");
     let series = read_dicom_series(&un_dir).unwrap();

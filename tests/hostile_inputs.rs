@@ -3,9 +3,9 @@
 //! acceptance) within bounded time and memory, never a panic.
 //!
 //! Reader cases run one per child process of this binary under `ulimit -v` (see
-//! `hostile_support`); cases waiting for another branch's fix are in the `*_awaiting_*`
-//! tests, which fail until that branch lands. HTTP cases run against a `lungmotion serve`
-//! child and check that it keeps answering and leaves nothing in its store's `tmp/`.
+//! `hostile_support`). HTTP cases run against a `lungmotion serve` child and check that it
+//! keeps answering and leaves nothing in its store's `tmp/`; the service's own hostile tests
+//! (slow clients, request ids, the nested-sequence upload) are in `service_hostile.rs`.
 
 mod hostile_support;
 mod service_support;
@@ -44,57 +44,38 @@ fn the_corpus_holds_at_least_150_generated_inputs() {
 
 #[test]
 fn dicom_hostile_inputs() {
-    run_group("dicom", dicom::cases, None);
-}
-
-#[test]
-fn dicom_hostile_inputs_awaiting_dicom_bounds() {
-    run_group("dicom", dicom::cases, Some("dicom-bounds"));
+    run_group("dicom", dicom::cases);
 }
 
 /// Every finding of `fuzz/run.sh` (minimised into `tests/data/fuzz/`) as a regression test.
 #[test]
-fn dicom_fuzz_findings_awaiting_dicom_bounds() {
-    run_group(
-        "fuzz-dicom",
-        dicom::fuzz_finding_cases,
-        Some("dicom-bounds"),
-    );
+fn dicom_fuzz_findings() {
+    run_group("fuzz-dicom", dicom::fuzz_finding_cases);
 }
 
 #[test]
 fn nifti_hostile_inputs() {
-    run_group("nifti", volumes::nifti_cases, None);
-}
-
-#[test]
-fn nifti_hostile_inputs_awaiting_volume_bounds() {
-    run_group("nifti", volumes::nifti_cases, Some("volume-bounds"));
+    run_group("nifti", volumes::nifti_cases);
 }
 
 #[test]
 fn nrrd_hostile_inputs() {
-    run_group("nrrd", volumes::nrrd_cases, None);
+    run_group("nrrd", volumes::nrrd_cases);
 }
 
 #[test]
 fn metaimage_hostile_inputs() {
-    run_group("metaimage", volumes::metaimage_cases, None);
-}
-
-#[test]
-fn metaimage_hostile_inputs_awaiting_volume_bounds() {
-    run_group("metaimage", volumes::metaimage_cases, Some("volume-bounds"));
+    run_group("metaimage", volumes::metaimage_cases);
 }
 
 #[test]
 fn zip_hostile_inputs() {
-    run_group("zip", zips::cases, None);
+    run_group("zip", zips::cases);
 }
 
 #[test]
 fn trace_hostile_inputs() {
-    run_group("trace", traces::cases, None);
+    run_group("trace", traces::cases);
 }
 
 /// HTTP cases in [`http_hostile_requests`], counted towards the 150.
@@ -257,57 +238,6 @@ fn http_hostile_requests() {
         "http: {count} cases, server peak RSS {} MiB",
         peak_kib / 1024
     );
-}
-
-/// A hostile request id is replaced, not echoed (issue 12 item 5).
-#[test]
-fn http_request_id_is_not_echoed_awaiting_service_hard() {
-    let scratch = Scratch::new("hostile-reqid");
-    let server = ServerProcess::start(&scratch.join("data"), &[]);
-    for id in ["<script>alert(1)</script>", "a b c", &"x".repeat(500)] {
-        let resp = server
-            .client()
-            .get(server.url("/healthz"))
-            .header("x-request-id", id)
-            .send()
-            .unwrap();
-        let echoed = resp
-            .headers()
-            .get("x-request-id")
-            .map(|v| v.as_bytes().to_vec());
-        assert!(echoed.is_some(), "no x-request-id answered");
-        assert_ne!(echoed.as_deref(), Some(id.as_bytes()), "{id:?} echoed back");
-    }
-}
-
-/// The upload that killed the server (a DICOM of 200 000 nested sequences) is refused and the
-/// server keeps answering.
-#[test]
-fn http_nested_sequence_upload_keeps_the_server_alive_awaiting_dicom_bounds() {
-    let scratch = Scratch::new("hostile-nested");
-    let data = scratch.join("data");
-    let server = ServerProcess::start(&data, &[]);
-    let mut slice = dicom::Slice::ct(0);
-    slice.trailer = dicom::nested_sequences(200_000);
-    let mut upload = zips::series_entries();
-    upload.push(("series/deep".into(), slice.bytes()));
-    let resp = server
-        .client()
-        .post(server.url("/v1/scans"))
-        .header("content-type", "application/zip")
-        .body(zips::zip_of(&upload))
-        .send();
-    let status = resp.map(|r| r.status().as_u16());
-    assert!(
-        matches!(status, Ok(s) if (400..500).contains(&s)),
-        "upload answered {status:?}"
-    );
-    assert_eq!(
-        server.get("/healthz").status(),
-        200,
-        "the server stopped answering"
-    );
-    assert_eq!(leftovers(&data), Vec::<String>::new(), "left in tmp/");
 }
 
 /// What the store's `tmp/` holds besides the readiness probe's `writable` file.

@@ -25,6 +25,8 @@ pub struct ArchiveLimits {
     pub max_entries: usize,
     /// Most bytes all entries together may decompress to.
     pub max_total_uncompressed_bytes: u64,
+    /// What that total limit is, as a refusal names it (a reader's memory budget, say).
+    pub total_limit_name: &'static str,
     /// Most bytes one entry may decompress to.
     pub max_entry_uncompressed_bytes: u64,
     /// Largest ratio of decompressed to compressed bytes for one entry (decompression-bomb guard).
@@ -39,6 +41,7 @@ impl Default for ArchiveLimits {
         ArchiveLimits {
             max_entries: 100_000,
             max_total_uncompressed_bytes: 4 << 30,
+            total_limit_name: "the limit of all entries together",
             max_entry_uncompressed_bytes: 2 << 30,
             max_entry_ratio: MAX_INFLATION_RATIO,
             ratio_exempt_bytes: RATIO_EXEMPT_BYTES,
@@ -137,8 +140,8 @@ pub fn read_zip_entries<R: Read + Seek>(
                 )
             } else if bound == remaining_total {
                 format!(
-                    "the archive decompresses to more than the limit of {} bytes",
-                    limits.max_total_uncompressed_bytes
+                    "the archive decompresses to more than {} bytes, {}",
+                    limits.max_total_uncompressed_bytes, limits.total_limit_name
                 )
             } else {
                 format!(

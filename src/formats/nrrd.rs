@@ -283,7 +283,13 @@ fn read_payload<'a>(
             flate2::read::MultiGzDecoder::new(payload)
                 .take(expected as u64 + 1)
                 .read_to_end(&mut out)
-                .map_err(|e| bad(format!("gzip data is corrupt: {e}")))?;
+                .map_err(|e| {
+                    bad(if e.kind() == std::io::ErrorKind::OutOfMemory {
+                        format!("not enough memory to inflate the {expected} bytes of gzip data")
+                    } else {
+                        format!("gzip data is corrupt: {e}")
+                    })
+                })?;
             Cow::Owned(out)
         }
         other => return Err(bad(format!("unsupported encoding '{other}'"))),

@@ -351,3 +351,49 @@ fn known_slug(slug: &str) -> &'static str {
     .find(|known| *known == slug)
     .unwrap_or("internal")
 }
+
+#[cfg(all(test, unix))]
+mod tests {
+    use super::*;
+    use std::os::unix::process::ExitStatusExt;
+
+    #[test]
+    fn a_dead_childs_last_words_name_its_cause() {
+        // A raw wait status of 6: killed by SIGABRT, as Rust's runtime ends both cases.
+        let aborted = ExitStatus::from_raw(6);
+        let oom = crashed(
+            aborted,
+            "reading\nmemory allocation of 251658240 bytes failed",
+            256,
+        );
+        assert_eq!(oom.slug, "ingest-out-of-memory");
+        assert!(oom.detail.contains("256 MiB") && oom.detail.contains("ingest_memory_mib"));
+        let overflow = crashed(
+            aborted,
+            "thread 'lungmotion-ingest' has overflowed its stack\nfatal runtime error",
+            256,
+        );
+        assert_eq!(overflow.slug, "scan-reader-crashed");
+        assert!(
+            overflow.detail.contains("overflowed its stack"),
+            "{}",
+            overflow.detail
+        );
+        // Without a limit an allocation failure is not blamed on one.
+        let unlimited = crashed(aborted, "memory allocation of 8 bytes failed", 0);
+        assert_eq!(unlimited.slug, "scan-reader-crashed");
+        let killed = crashed(ExitStatus::from_raw(9), "", 256);
+        assert!(killed.detail.contains("signal 9"), "{}", killed.detail);
+    }
+
+    #[test]
+    fn the_childs_standard_error_is_kept_to_its_last_lines() {
+        let text: String = (0..100).map(|i| format!("line {i}\n")).collect();
+        let tail = relay_stderr(text.as_bytes());
+        assert_eq!(tail.lines().count(), STDERR_TAIL_LINES);
+        assert!(
+            tail.starts_with("line 60") && tail.ends_with("line 99"),
+            "{tail}"
+        );
+    }
+}

@@ -52,8 +52,6 @@ pub type Outcome = Result<String, String>;
 pub struct Case {
     /// Unique within its group; says what is wrong with the input.
     pub name: String,
-    /// The branch whose fix this case waits for (it fails until that lands), if any.
-    pub awaits: Option<&'static str>,
     /// What must happen.
     pub expect: Expect,
     /// Generates the input under the scratch directory and reads it.
@@ -71,7 +69,6 @@ impl Case {
     ) -> Case {
         Case {
             name: name.into(),
-            awaits: None,
             expect,
             run: Box::new(run),
             address_space_kib: ADDRESS_SPACE_LIMIT_KIB,
@@ -82,12 +79,6 @@ impl Case {
     /// succeeds and shows in the peak RSS instead of failing politely under the limit.
     pub fn with_address_space_kib(mut self, kib: u64) -> Case {
         self.address_space_kib = kib;
-        self
-    }
-
-    /// Marks the case as waiting for `branch`'s fix.
-    pub fn awaiting(mut self, branch: &'static str) -> Case {
-        self.awaits = Some(branch);
         self
     }
 }
@@ -135,17 +126,14 @@ pub fn child_main(groups: &[(&str, Group)]) {
     println!("{RESULT_PREFIX}{json}");
 }
 
-/// Runs every case of `group` (those awaiting `awaits`, or those awaiting nothing) in its own
-/// child process and fails, listing every case that did not end as expected.
-pub fn run_group(group: &str, make: Group, awaits: Option<&str>) {
+/// Runs every case of `group` in its own child process and fails, listing every case that
+/// did not end as expected.
+pub fn run_group(group: &str, make: Group) {
     let cases = make();
     let mut failures = Vec::new();
     let mut ran = 0;
     let (mut slowest, mut heaviest) = ((Duration::ZERO, String::new()), (0u64, String::new()));
     for (index, case) in cases.iter().enumerate() {
-        if case.awaits != awaits {
-            continue;
-        }
         ran += 1;
         match run_child(group, index, case.address_space_kib) {
             Ok(result) => {
@@ -180,7 +168,7 @@ pub fn run_group(group: &str, make: Group, awaits: Option<&str>) {
         heaviest.0 / 1024,
         heaviest.1
     );
-    assert!(ran > 0, "no case in group {group} awaiting {awaits:?}");
+    assert!(ran > 0, "no case in group {group}");
     assert!(
         failures.is_empty(),
         "{} of {ran} {group} cases failed:\n{}",

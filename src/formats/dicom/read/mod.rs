@@ -54,13 +54,13 @@ pub fn read_dicom_series(input: &Path) -> Result<DicomSeries> {
 /// Reads a CT series from `input` with explicit options (series choice, zip limits).
 pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Result<DicomSeries> {
     let what = input.display().to_string();
-    let sources = gather_sources(input, options)?;
-    if sources.is_empty() {
-        return Err(Error::scan(what, "no files found"));
-    }
     let budget_bytes = options
         .memory_budget_bytes
         .unwrap_or_else(default_budget_bytes);
+    let sources = gather_sources(input, options, budget_bytes)?;
+    if sources.is_empty() {
+        return Err(Error::scan(what, "no files found"));
+    }
     let budget = MemoryBudget::new(budget_bytes);
     let parsed: Vec<std::result::Result<Parsed, Skipped>> = sources
         .into_par_iter()
@@ -113,7 +113,23 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
         ));
     }
     let series = select_series(&what, files, options, &mut warnings)?;
-    build_volume(&what, series, warnings)
+    build_volume(&what, series, warnings).map_err(|e| naming_skipped_files(e, &skipped))
+}
+
+/// A series refused as a whole (a gap, too few slices) may be refused because of files that
+/// were skipped; their reasons are the fault to fix, so the refusal carries them.
+fn naming_skipped_files(error: Error, skipped: &[Skipped]) -> Error {
+    match error {
+        Error::InvalidScan { scan, reason } if !skipped.is_empty() => Error::InvalidScan {
+            scan,
+            reason: format!(
+                "{reason}; {} file(s) were skipped and may be the missing part: {}",
+                skipped.len(),
+                summarize_skips(skipped)
+            ),
+        },
+        other => other,
+    }
 }
 
 /// A file to parse: on disk or already in memory (from a zip).
@@ -122,7 +138,13 @@ enum Source {
     Entry { zip: String, entry: ArchiveEntry },
 }
 
-fn gather_sources(input: &Path, options: &DicomReadOptions) -> Result<Vec<Source>> {
+/// The files of `input`; a zip's entries are decompressed into memory, so all of them
+/// together may take no more than the read's memory budget, `budget_bytes`.
+fn gather_sources(
+    input: &Path,
+    options: &DicomReadOptions,
+    budget_bytes: u64,
+) -> Result<Vec<Source>> {
     let meta = std::fs::metadata(input).at(IoOp::Metadata, input)?;
     if meta.is_dir() {
         let mut paths = Vec::new();
@@ -131,7 +153,13 @@ fn gather_sources(input: &Path, options: &DicomReadOptions) -> Result<Vec<Source
         Ok(paths.into_iter().map(Source::File).collect())
     } else if looks_like_zip(input) {
         let zip = input.display().to_string();
-        let entries = read_zip_file(input, &options.archive_limits)?;
+        let mut limits = options.archive_limits;
+        if budget_bytes < limits.max_total_uncompressed_bytes {
+            limits.max_total_uncompressed_bytes = budget_bytes;
+            limits.total_limit_name =
+                "the memory this DICOM read may use (half the memory available)";
+        }
+        let entries = read_zip_file(input, &limits)?;
         Ok(entries
             .into_iter()
             .filter(|e| !is_dicomdir_name(&e.name))
