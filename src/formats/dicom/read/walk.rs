@@ -133,6 +133,17 @@ pub(super) fn has_short_length(vr: VR) -> bool {
     )
 }
 
+/// Bytes of one value of a binary VR (PS3.5 6.2), 1 for text and byte strings.
+fn value_unit_bytes(vr: VR) -> usize {
+    use VR::*;
+    match vr {
+        US | SS | OW => 2,
+        UL | SL | FL | AT | OF | OL => 4,
+        FD | OD | OV | SV | UV => 8,
+        _ => 1,
+    }
+}
+
 fn u16_at(data: &[u8], pos: usize, encoding: Encoding) -> u16 {
     let b = [data[pos], data[pos + 1]];
     match encoding {
@@ -462,6 +473,18 @@ impl<'a> Walker<'a> {
                 self.push_sequence(Kind::Sequence, tag, length, Encoding::ImplicitLittle)?;
                 return visitor.visit(Event::SequenceStart { tag });
             }
+        }
+        // dicom-rs reads whole values only and goes on from there, one byte short of where
+        // this walk would: the two would then disagree on every later header (a fuzzer found
+        // dicom-rs reading pixel bytes as a 4 GB length that way).
+        let unit = value_unit_bytes(vr);
+        if !(length as usize).is_multiple_of(unit) {
+            return Err(format!(
+                "{} at byte {start} declares {length} bytes, not a whole number of its VR {}'s \
+                 {unit}-byte values (corrupt file)",
+                tag_name(tag),
+                vr.to_string()
+            ));
         }
         let value = &self.data[self.pos..self.pos + length as usize];
         self.pos += length as usize;
