@@ -428,6 +428,49 @@ fn a_zip_is_held_to_the_reads_memory_budget_before_any_file_is_parsed() {
 }
 
 #[test]
+fn a_4dct_whose_phases_share_one_series_is_refused_naming_the_phase_attribute() {
+    let dir = scratch("4dct-one-series");
+    let (phase1, volume) = write_small_series(&dir);
+    let uid = open_file(&phase1[0])
+        .unwrap()
+        .element(tags::SERIES_INSTANCE_UID)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .into_owned();
+    // The second phase: other images at the same positions, in the same series.
+    let other = dir.join("phase2");
+    std::fs::create_dir_all(&other).unwrap();
+    let exhaled = Volume::from_data(
+        volume.geometry,
+        volume.as_slice().iter().map(|v| v + 40.0).collect(),
+    )
+    .unwrap();
+    for path in write_ct_series(&exhaled, &other, &CtSeriesMetadata::default()).unwrap() {
+        edit(&path, |obj| {
+            obj.put(DataElement::new(
+                tags::SERIES_INSTANCE_UID,
+                VR::UI,
+                PrimitiveValue::from(uid.as_str()),
+            ));
+            obj.put(DataElement::new(
+                tags::ACQUISITION_NUMBER,
+                VR::IS,
+                PrimitiveValue::from("2"),
+            ));
+        });
+    }
+    let e = read_dicom_series(&dir).unwrap_err().to_string();
+    assert!(
+        e.contains("duplicate slice position")
+            && e.contains("AcquisitionNumber (1 and 2)")
+            && e.contains("4D-CT"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
 fn a_series_with_every_element_as_vr_un_reads_like_the_original() {
     let un_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/dicom/un-vr");
     let series = read_dicom_series(&un_dir).unwrap();

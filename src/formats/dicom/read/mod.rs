@@ -488,6 +488,35 @@ fn order_along_normal<'a>(mut slices: Vec<Slice<'a>>, normal: &Vector3<f64>) -> 
 
 /// Duplicates: identical pixels and rescale are dropped (exports repeat files), anything else
 /// at the same position is refused; at least 2 distinct positions must remain.
+/// Attributes that tell the phases or repeats of a 4D-CT apart when they share one series.
+const PHASE_TAGS: [(Tag, &str); 4] = [
+    (
+        tags::TEMPORAL_POSITION_IDENTIFIER,
+        "TemporalPositionIdentifier",
+    ),
+    (tags::ACQUISITION_NUMBER, "AcquisitionNumber"),
+    (tags::TRIGGER_TIME, "TriggerTime"),
+    (tags::ACQUISITION_TIME, "AcquisitionTime"),
+];
+
+/// Why two images may share a position: the first phase attribute whose values differ,
+/// named so the user can split the series (lungmotion reads one breathing phase).
+fn phase_hint(a: &ParsedFile, b: &ParsedFile) -> String {
+    PHASE_TAGS
+        .iter()
+        .find_map(|&(tag, name)| {
+            let (x, y) = (text(&a.object, tag)?, text(&b.object, tag)?);
+            (x != y).then(|| {
+                format!(
+                    "; they differ in {name} ({x} and {y}): a 4D-CT whose phases share one \
+                     series? lungmotion reads one phase: give it one phase's files (split by \
+                     {name}) or a series per phase"
+                )
+            })
+        })
+        .unwrap_or_default()
+}
+
 fn drop_duplicate_slices<'a>(
     slices: Vec<Slice<'a>>,
     normal: &Vector3<f64>,
@@ -523,10 +552,11 @@ fn drop_duplicate_slices<'a>(
                 }
                 return Err(label.error(format!(
                     "{} and {} are both at {:.3} mm along the slice normal but hold different \
-                     images (duplicate slice position)",
+                     images (duplicate slice position){}",
                     previous.name,
                     slice.name,
-                    along(&slice)
+                    along(&slice),
+                    phase_hint(previous.file, slice.file)
                 )));
             }
         }
