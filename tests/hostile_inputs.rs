@@ -228,7 +228,7 @@ fn http_hostile_requests() {
     assert_eq!(count, HTTP_CASES, "update HTTP_CASES");
     std::thread::sleep(Duration::from_millis(200));
     assert_eq!(leftovers(&data), Vec::<String>::new(), "left in tmp/");
-    let peak_kib = server_peak_rss_kib(server.pid());
+    let peak_kib = hostile_support::peak_rss_kib(&server.pid().to_string());
     assert!(
         peak_kib < 2 << 20,
         "server peak RSS {} MiB",
@@ -245,16 +245,4 @@ fn leftovers(data_dir: &std::path::Path) -> Vec<String> {
     let mut names = entries(&data_dir.join("tmp"));
     names.retain(|n| n != "writable");
     names
-}
-
-/// The peak resident set of process `pid`, KiB.
-fn server_peak_rss_kib(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmHWM:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        })
-        .unwrap_or(0)
 }

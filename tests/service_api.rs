@@ -276,26 +276,20 @@ fn nifti_journey_gives_the_clis_displacement_field() {
     .unwrap();
     let cli_out = scratch.join("cli-out");
     let cli_started = Instant::now();
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_lungmotion"))
-        .arg("run")
-        .arg("--ct")
-        .arg(&ct)
-        .arg("--trace")
-        .arg(scratch.join("trace.csv"))
-        .arg("--config")
-        .arg(scratch.join("run.toml"))
-        .arg("--points")
-        .arg(scratch.join("points.csv"))
-        .arg("--out")
-        .arg(&cli_out)
-        .arg("--quiet")
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "lungmotion run: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    run_cli(&[
+        &"run",
+        &"--ct",
+        &ct,
+        &"--trace",
+        &scratch.join("trace.csv"),
+        &"--config",
+        &scratch.join("run.toml"),
+        &"--points",
+        &scratch.join("points.csv"),
+        &"--out",
+        &cli_out,
+        &"--quiet",
+    ]);
     println!(
         "measured: the same job with `lungmotion run` took {:.2} s",
         cli_started.elapsed().as_secs_f64()
@@ -305,16 +299,7 @@ fn nifti_journey_gives_the_clis_displacement_field() {
             .unwrap();
     assert_same_geometry(&served_geometry, &cli_geometry, "service vs CLI");
     assert_eq!(served.len(), cli_field.len());
-    let max_difference_mm = served
-        .iter()
-        .flatten()
-        .zip(cli_field.iter().flatten())
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
-    let cli_peak_mm = cli_field
-        .iter()
-        .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
-        .fold(0.0f32, f32::max);
+    let (max_difference_mm, cli_peak_mm) = field_difference_mm(&served, &cli_field);
     println!(
         "measured: frame {k}: max voxel difference service vs CLI = {max_difference_mm:e} mm \
          (peak displacement {cli_peak_mm:.3} mm)"

@@ -509,22 +509,18 @@ fn the_traces_reference_over_http_gives_the_clis_frames() {
     )
     .unwrap();
     let cli_out = scratch.join("cli-out");
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_lungmotion"))
-        .args(["run", "--quiet", "--ct"])
-        .arg(&ct)
-        .arg("--trace")
-        .arg(scratch.join("trace.json"))
-        .arg("--config")
-        .arg(scratch.join("run.toml"))
-        .arg("--out")
-        .arg(&cli_out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "lungmotion run: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    run_cli(&[
+        &"run",
+        &"--quiet",
+        &"--ct",
+        &ct,
+        &"--trace",
+        &scratch.join("trace.json"),
+        &"--config",
+        &scratch.join("run.toml"),
+        &"--out",
+        &cli_out,
+    ]);
     let cli: Value =
         serde_json::from_str(&std::fs::read_to_string(cli_out.join("summary.json")).unwrap())
             .unwrap();
@@ -557,16 +553,7 @@ fn the_traces_reference_over_http_gives_the_clis_frames() {
         &cli_out.join(format!("frames/{k}/displacement.nii.gz")),
     )
     .unwrap();
-    let difference_mm = served_field
-        .iter()
-        .flatten()
-        .zip(cli_field.iter().flatten())
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
-    let peak_mm = cli_field
-        .iter()
-        .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
-        .fold(0.0f32, f32::max);
+    let (difference_mm, peak_mm) = field_difference_mm(&served_field, &cli_field);
     println!(
         "measured: frame {k} with reference = absolute: service vs CLI differ by at most \
          {difference_mm:e} mm (peak {peak_mm:.2} mm)"

@@ -114,7 +114,7 @@ pub fn child_main(groups: &[(&str, Group)]) {
     let start = Instant::now();
     let outcome = (case.run)(&scratch);
     let elapsed = start.elapsed();
-    let peak = peak_rss_kib();
+    let peak = peak_rss_kib("self");
     let _ = std::fs::remove_dir_all(&scratch);
     let json = serde_json::json!({
         "ok": outcome.is_ok(),
@@ -300,9 +300,10 @@ fn reset_peak_rss() {
     let _ = std::fs::write("/proc/self/clear_refs", "5");
 }
 
-/// This process's peak resident set since the last reset, KiB (0 where /proc is missing).
-fn peak_rss_kib() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
+/// The peak resident set of `process` (a pid, or `self`: since the last reset), KiB (0 where
+/// /proc is missing).
+pub fn peak_rss_kib(process: &str) -> u64 {
+    std::fs::read_to_string(format!("/proc/{process}/status"))
         .ok()
         .and_then(|s| {
             s.lines()

@@ -571,3 +571,34 @@ pub fn stray_tmp_files(data_dir: &Path) -> Vec<String> {
         .filter(|n| n != "writable")
         .collect()
 }
+
+/// The largest component difference between two displacement fields on one grid, mm, and
+/// the largest displacement of the second (the reference), mm.
+pub fn field_difference_mm(field: &[[f32; 3]], reference: &[[f32; 3]]) -> (f32, f32) {
+    assert_eq!(field.len(), reference.len(), "fields on different grids");
+    let difference = field
+        .iter()
+        .flatten()
+        .zip(reference.iter().flatten())
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    let peak = reference
+        .iter()
+        .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+        .fold(0.0f32, f32::max);
+    (difference, peak)
+}
+
+/// Runs `lungmotion <args>` to its end, failing the test with its standard error if it fails.
+pub fn run_cli(args: &[&dyn AsRef<std::ffi::OsStr>]) {
+    let output = Command::new(env!("CARGO_BIN_EXE_lungmotion"))
+        .args(args.iter().map(|a| a.as_ref()))
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "lungmotion {:?}: {}",
+        args.first().map(|a| a.as_ref()),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
