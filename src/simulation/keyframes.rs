@@ -1,22 +1,27 @@
 //! Quasi-static breathing frames without one solve per frame.
 //!
-//! In quasi-static breathing the lung's shape is a smooth function of its volume alone (an
-//! elastic body, no rate effects), so it is solved at a few *key volumes* and every frame is
-//! interpolated from them. Keys are Chebyshev–Lobatto points of the requested volume range
-//! and the interpolant is barycentric Lagrange on them, which converges geometrically for a
-//! smooth response. Its error is *measured*, not assumed: the points halfway (in angle)
-//! between n Lobatto points are exactly the new points of the 2n − 1 Lobatto set, so a sweep
-//! of 2n − 1 keys holds both an n-key interpolant (every other key) and n − 1 direct solves
-//! to check it against; the sweep is accepted, with all its keys, when that coarser
-//! interpolant predicts every check within the tolerance in mm, and is otherwise redone with
-//! twice the keys.
+//! In quasi-static breathing the lung's shape is a function of its volume alone (an elastic
+//! body, no rate effects), so it is solved at a few *key volumes* and every frame is
+//! interpolated from them: locally, by the cubic Lagrange polynomial through the four keys
+//! nearest its volume. Local, because the response is smooth only piecewise: a node sliding
+//! on the chest wall's distance field changes direction where it crosses into another voxel
+//! cell of the field, and on the POPI lungs at 8 mm one such node put a kink near +720 mL into
+//! a 0–1000 mL ramp. A global polynomial through all keys (Chebyshev–Lobatto, as before)
+//! converges only slowly at a kink and spreads its error over the whole range; 65 keys still
+//! missed 0.1 mm there.
 //!
-//! Each sweep is solved in ascending volume from the lowest key, so all its states lie on one
-//! gradual-inflation path. The loaded lung can have more than one equilibrium (on the phantom
-//! at 6 mm a mediastinal corner node sat 0.67 mm apart at 500 mL when reached in one step
-//! instead of 100 mL steps); keys from a coarse sweep mixed with checks from a fine one read
-//! as an interpolation error that no number of keys removed. Checking within one sweep keeps
-//! that property without solving the coarse keys twice.
+//! The error is *measured*, not assumed, without extra solves: each key is predicted by the
+//! local interpolant of the keys around it with that key left out, and must be matched within
+//! the tolerance in mm (leaving it out widens the stencil, so this bounds the error of the
+//! interpolant that includes it). Where a key fails, the two intervals beside it are halved
+//! by new keys and the new and failing keys are checked again, so keys gather where the
+//! response bends and a smooth response costs its first sweep only.
+//!
+//! The first sweep is solved in ascending volume from the lowest key and each later key is
+//! solved from the key just below it, so all states lie on one gradual-inflation path. The
+//! loaded lung can have more than one equilibrium (on the phantom at 6 mm a mediastinal corner
+//! node sat 0.67 mm apart at 500 mL when reached in one step instead of 100 mL steps); a
+//! state from another branch would read as an interpolation error no number of keys removes.
 
 use serde::Serialize;
 
@@ -25,12 +30,14 @@ use crate::math::V3;
 use crate::{Error, Result};
 
 /// Largest number of key volumes before the interpolation is declared not worth it.
-pub const MAX_KEYS: usize = 65;
+pub const MAX_KEYS: usize = 129;
 
-/// Keys of the first sweep: over a 500 mL tidal range its largest volume step is 96 mL, small
-/// enough for Newton from the predicted state on the 4 mm CIP lungs, and its every-other-key
-/// interpolant (5 keys) already met 0.1 mm on them at 8 mm.
+/// Keys of the first sweep, evenly spaced: over a 500 mL tidal range a step of 62.5 mL,
+/// small enough for Newton from the predicted state on the 4 mm CIP lungs.
 pub const FIRST_SWEEP_KEYS: usize = 9;
+
+/// Keys in one local interpolant.
+const STENCIL: usize = 4;
 
 /// Solved key volumes and the interpolant over them.
 #[derive(Debug, Clone)]
@@ -39,7 +46,6 @@ pub struct VolumeKeyframes {
     pub volumes_ml: Vec<f64>,
     /// The solved state at each key.
     pub states: Vec<DrivenState>,
-    bary: Vec<f64>,
     /// What building the keys measured.
     pub report: KeyframeReport,
 }
@@ -49,11 +55,15 @@ pub struct VolumeKeyframes {
 pub struct KeyframeReport {
     /// Number of key volumes solved.
     pub keys: usize,
-    /// Largest node-position difference between interpolation and direct solve at the check
-    /// volumes, mm (measured with every other key, a bound on the error of all of them).
+    /// Largest node-position difference between a key's direct solve and the local
+    /// interpolant of the keys around it without it, mm (a bound on the interpolation error).
     pub measured_error_mm: f64,
     /// Tolerance asked for, mm.
     pub tolerance_mm: f64,
+    /// Rounds of refinement after the first sweep.
+    pub refinements: usize,
+    /// Smallest distance between two keys, mL (where the response bends most).
+    pub smallest_key_step_ml: f64,
     /// Equilibrium solves spent, all keys together.
     pub solves: usize,
     /// Newton iterations spent, all solves together.
@@ -64,14 +74,13 @@ pub struct KeyframeReport {
     pub solve_time_s: f64,
 }
 
-/// `n` Chebyshev–Lobatto points of [lo, hi], increasing.
-pub fn chebyshev_lobatto(lo: f64, hi: f64, n: usize) -> Vec<f64> {
-    (0..n)
-        .map(|j| {
-            let theta = std::f64::consts::PI * j as f64 / (n - 1) as f64;
-            0.5 * (lo + hi) - 0.5 * (hi - lo) * theta.cos()
-        })
-        .collect()
+/// Where a key's leave-one-out check failed worst.
+#[derive(Debug, Clone, Copy)]
+struct Miss {
+    key: usize,
+    error_mm: f64,
+    volume_ml: f64,
+    node: usize,
 }
 
 impl VolumeKeyframes {
@@ -103,72 +112,133 @@ impl VolumeKeyframes {
             0.5 * (lo_ml + hi_ml) + 0.5 * span,
         );
         let rest = driver.rest_positions().to_vec();
+        Self::refine(&rest, lo, hi, tolerance_mm, |volume_ml, from| {
+            if let Some(below) = from {
+                driver.warm_start(below);
+            }
+            driver.solve_volume(volume_ml, volume_tolerance_ml)
+        })
+    }
+
+    /// The adaptive key placement over `lo..=hi` mL, whatever solves the states: `solve(v,
+    /// from)` returns the equilibrium at volume change `v`, continuing from the solved state
+    /// `from` when given, else from the previous solve.
+    pub fn refine(
+        rest: &[V3],
+        lo: f64,
+        hi: f64,
+        tolerance_mm: f64,
+        mut solve: impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
+    ) -> Result<Self> {
         let mut scratch = vec![V3::zeros(); rest.len()];
         let mut spent = Spent::default();
-        let first = driver.solve_volume(lo, volume_tolerance_ml)?;
+        // One ascending sweep from the lowest key, each solve starting from the states just
+        // below it, so that every key lies on the same gradual-inflation path.
+        let first = solve(lo, None)?;
         spent.add(&first);
-        let mut n = FIRST_SWEEP_KEYS;
+        let mut states = vec![first];
+        for j in 1..FIRST_SWEEP_KEYS {
+            let v = lo + (hi - lo) * j as f64 / (FIRST_SWEEP_KEYS - 1) as f64;
+            let state = solve(v, (j == 1).then(|| &states[0]))?;
+            spent.add(&state);
+            states.push(state);
+        }
+        // The end keys have no keys beyond them to check them against: the checks of their
+        // neighbours cover the intervals beside them.
+        let mut checked = vec![false; states.len()];
+        checked[0] = true;
+        checked[states.len() - 1] = true;
+        let mut worst_passed: f64 = 0.0;
+        let mut refinements = 0;
         loop {
-            // One ascending sweep from the lowest key, each solve starting from the states
-            // just below it, so that every key lies on the same gradual-inflation path.
-            driver.warm_start(&first);
-            let mut states = Vec::with_capacity(n);
-            states.push(first.clone());
-            for &v in &chebyshev_lobatto(lo, hi, n)[1..] {
-                let state = driver.solve_volume(v, volume_tolerance_ml)?;
-                spent.add(&state);
-                states.push(state);
+            let volumes: Vec<f64> = states.iter().map(|s| s.volume_change_ml).collect();
+            let mut failing = Vec::new();
+            let mut worst: Option<Miss> = None;
+            for (k, done) in checked.iter_mut().enumerate() {
+                if *done {
+                    continue;
+                }
+                let miss = leave_one_out(&states, &volumes, k, rest, &mut scratch);
+                tracing::debug!(
+                    keys = states.len(),
+                    volume_ml = miss.volume_ml,
+                    error_mm = miss.error_mm,
+                    node = miss.node,
+                    "key volume checked against the interpolant of its neighbours"
+                );
+                if miss.error_mm <= tolerance_mm {
+                    *done = true;
+                    worst_passed = worst_passed.max(miss.error_mm);
+                } else {
+                    failing.push(k);
+                    if worst.is_none_or(|w| miss.error_mm > w.error_mm) {
+                        worst = Some(miss);
+                    }
+                }
             }
-            // Every other key is the Lobatto set of (n + 1) / 2 points; the keys between
-            // them are direct solves that its interpolant must reproduce.
-            let coarse = Self::from_states(states.iter().step_by(2).cloned().collect(), 0.0);
-            let mut error_mm: f64 = 0.0;
-            for check in states.iter().skip(1).step_by(2) {
-                coarse.positions_at(&rest, check.volume_change_ml, &mut scratch);
-                let e = scratch
-                    .iter()
-                    .zip(&check.positions_m)
-                    .map(|(a, b)| (a - b).norm())
-                    .fold(0.0, f64::max);
-                error_mm = error_mm.max(e * 1e3);
-            }
-            if error_mm <= tolerance_mm {
+            let Some(worst) = worst else {
                 let mut out = Self::from_states(states, tolerance_mm);
-                out.report.measured_error_mm = error_mm;
+                out.report.measured_error_mm = worst_passed;
+                out.report.refinements = refinements;
                 out.report.solves = spent.solves;
                 out.report.newton_iterations = spent.newton_iterations;
                 out.report.linear_iterations = spent.linear_iterations;
                 out.report.solve_time_s = spent.solve_time_s;
                 return Ok(out);
+            };
+            // Halve the intervals on both sides of every failing key (interval i lies between
+            // keys i and i + 1; failing keys are never end keys).
+            let mut split = vec![false; states.len() - 1];
+            for &k in &failing {
+                split[k - 1] = true;
+                split[k] = true;
             }
-            if n >= MAX_KEYS {
-                return Err(Error::NotConverged {
-                    iterations: n,
-                    residual: error_mm,
-                    tolerance: tolerance_mm,
-                });
+            let added = split.iter().filter(|&&s| s).count();
+            if states.len() + added > MAX_KEYS {
+                return Err(not_smooth(
+                    rest,
+                    worst,
+                    &volumes,
+                    states.len(),
+                    tolerance_mm,
+                ));
             }
-            n = 2 * n - 1;
+            refinements += 1;
+            let mut refined = Vec::with_capacity(states.len() + added);
+            let mut refined_checked = Vec::with_capacity(states.len() + added);
+            let last = states.len() - 1;
+            for (i, state) in states.into_iter().enumerate() {
+                refined.push(state);
+                refined_checked.push(checked[i] && !failing.contains(&i));
+                if i < last && split[i] {
+                    let mid = 0.5 * (volumes[i] + volumes[i + 1]);
+                    let state = solve(mid, refined.last())?;
+                    spent.add(&state);
+                    refined.push(state);
+                    refined_checked.push(false);
+                }
+            }
+            states = refined;
+            checked = refined_checked;
         }
     }
 
     fn from_states(states: Vec<DrivenState>, tolerance_mm: f64) -> Self {
-        let n = states.len();
-        // Barycentric weights of Chebyshev–Lobatto points; the keys sit at their solved
-        // volumes (within the volume tolerance of the ideal points), so use the general formula.
         let volumes: Vec<f64> = states.iter().map(|s| s.volume_change_ml).collect();
-        let bary = (0..n)
-            .map(|j| {
-                1.0 / (0..n)
-                    .filter(|&k| k != j)
-                    .map(|k| volumes[j] - volumes[k])
-                    .product::<f64>()
-            })
-            .collect();
+        let smallest_key_step_ml = volumes
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .fold(f64::INFINITY, f64::min);
         let report = KeyframeReport {
-            keys: n,
+            keys: states.len(),
             measured_error_mm: f64::NAN,
             tolerance_mm,
+            refinements: 0,
+            smallest_key_step_ml: if smallest_key_step_ml.is_finite() {
+                smallest_key_step_ml
+            } else {
+                0.0
+            },
             solves: states.iter().map(|s| s.solves).sum(),
             newton_iterations: states.iter().map(|s| s.newton_iterations).sum(),
             linear_iterations: states.iter().map(|s| s.linear_iterations).sum(),
@@ -177,53 +247,145 @@ impl VolumeKeyframes {
         VolumeKeyframes {
             volumes_ml: volumes,
             states,
-            bary,
             report,
         }
     }
 
-    /// Lagrange weights of the keys at volume change `dv_ml` (extrapolation beyond the keys
-    /// is allowed but grows less accurate with distance).
+    /// Interpolation weights of the keys at volume change `dv_ml`: the cubic Lagrange
+    /// weights of the four keys nearest it (fewer when there are fewer keys), zero for the
+    /// others. Beyond the end keys this extrapolates from the outermost four.
     pub fn weights(&self, dv_ml: f64, out: &mut Vec<f64>) {
         out.clear();
-        if let Some(j) = self.volumes_ml.iter().position(|&v| v == dv_ml) {
-            out.extend((0..self.volumes_ml.len()).map(|k| f64::from(u8::from(k == j))));
-            return;
-        }
-        let terms = self
-            .volumes_ml
-            .iter()
-            .zip(&self.bary)
-            .map(|(v, w)| w / (dv_ml - v));
-        out.extend(terms);
-        let sum: f64 = out.iter().sum();
-        for w in out.iter_mut() {
-            *w /= sum;
-        }
+        out.resize(self.volumes_ml.len(), 0.0);
+        let mut stencil = [0usize; STENCIL];
+        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        lagrange(&self.volumes_ml, &stencil[..used], dv_ml, |k, w| out[k] = w);
     }
 
     /// Node positions at volume change `dv_ml`, written into `out`.
     pub fn positions_at(&self, rest_m: &[V3], dv_ml: f64, out: &mut [V3]) {
-        let mut w = Vec::with_capacity(self.states.len());
-        self.weights(dv_ml, &mut w);
-        out.copy_from_slice(rest_m);
-        for (state, &wk) in self.states.iter().zip(&w) {
-            for ((o, x), r) in out.iter_mut().zip(&state.positions_m).zip(rest_m) {
-                *o += (x - r) * wk;
-            }
-        }
+        let mut stencil = [0usize; STENCIL];
+        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        interpolate(
+            &self.states,
+            &self.volumes_ml,
+            &stencil[..used],
+            rest_m,
+            dv_ml,
+            out,
+        );
     }
 
     /// Surface pressure at volume change `dv_ml`, Pa.
     pub fn pressure_at(&self, dv_ml: f64) -> f64 {
-        let mut w = Vec::with_capacity(self.states.len());
-        self.weights(dv_ml, &mut w);
-        self.states
-            .iter()
-            .zip(&w)
-            .map(|(s, wk)| s.pressure_pa * wk)
-            .sum()
+        let mut stencil = [0usize; STENCIL];
+        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        let mut p = 0.0;
+        lagrange(&self.volumes_ml, &stencil[..used], dv_ml, |k, w| {
+            p += w * self.states[k].pressure_pa
+        });
+        p
     }
+}
+
+/// The (up to) [`STENCIL`] keys nearest `dv_ml` in `volumes` (increasing), `skip` left out,
+/// written to `out` in increasing order; returns how many.
+fn local_stencil(
+    volumes: &[f64],
+    skip: Option<usize>,
+    dv_ml: f64,
+    out: &mut [usize; STENCIL],
+) -> usize {
+    let keys: Vec<usize> = (0..volumes.len()).filter(|&k| Some(k) != skip).collect();
+    let n = keys.len().min(STENCIL);
+    // The first key above dv, then a window of n keys centred on the interval it closes.
+    let above = keys.partition_point(|&k| volumes[k] <= dv_ml);
+    let start = above.saturating_sub(n / 2).min(keys.len() - n);
+    out[..n].copy_from_slice(&keys[start..start + n]);
+    n
+}
+
+/// Calls `weight(k, w)` with the Lagrange weight of each key `k` of `stencil` at `dv_ml`.
+fn lagrange(volumes: &[f64], stencil: &[usize], dv_ml: f64, mut weight: impl FnMut(usize, f64)) {
+    for &j in stencil {
+        let w = stencil
+            .iter()
+            .filter(|&&k| k != j)
+            .map(|&k| (dv_ml - volumes[k]) / (volumes[j] - volumes[k]))
+            .product::<f64>();
+        weight(j, w);
+    }
+}
+
+/// Positions at `dv_ml` interpolated from the keys of `stencil`, into `out`.
+fn interpolate(
+    states: &[DrivenState],
+    volumes: &[f64],
+    stencil: &[usize],
+    rest_m: &[V3],
+    dv_ml: f64,
+    out: &mut [V3],
+) {
+    out.copy_from_slice(rest_m);
+    lagrange(volumes, stencil, dv_ml, |k, wk| {
+        for ((o, x), r) in out.iter_mut().zip(&states[k].positions_m).zip(rest_m) {
+            *o += (x - r) * wk;
+        }
+    });
+}
+
+/// How far key `k`'s solved positions are from the local interpolant of the other keys.
+fn leave_one_out(
+    states: &[DrivenState],
+    volumes: &[f64],
+    k: usize,
+    rest_m: &[V3],
+    scratch: &mut [V3],
+) -> Miss {
+    let mut stencil = [0usize; STENCIL];
+    let used = local_stencil(volumes, Some(k), volumes[k], &mut stencil);
+    interpolate(
+        states,
+        volumes,
+        &stencil[..used],
+        rest_m,
+        volumes[k],
+        scratch,
+    );
+    let (node, error_m) = scratch
+        .iter()
+        .zip(&states[k].positions_m)
+        .map(|(a, b)| (a - b).norm())
+        .enumerate()
+        .fold((0, 0.0), |m, (i, e)| if e > m.1 { (i, e) } else { m });
+    Miss {
+        key: k,
+        error_mm: error_m * 1e3,
+        volume_ml: volumes[k],
+        node,
+    }
+}
+
+/// The refusal when keys keep missing: where, by how much, and what it means.
+fn not_smooth(
+    rest_m: &[V3],
+    worst: Miss,
+    volumes: &[f64],
+    keys: usize,
+    tolerance_mm: f64,
+) -> Error {
+    let k = worst.key;
+    let step = (volumes[k] - volumes[k - 1]).min(volumes[k + 1] - volumes[k]);
+    let p = rest_m[worst.node] * 1e3;
+    Error::InvalidModel(format!(
+        "the lung's shape does not follow its volume smoothly near {:.1} mL: with {keys} key \
+         volumes, {:.2} mL apart there, node {} (rest position {:.1}, {:.1}, {:.1} mm) is still \
+         {:.3} mm from the interpolation of its neighbours (tolerance {tolerance_mm} mm). Its \
+         equilibrium jumps or bends there (a node crossing a cell of the chest wall's distance \
+         field, or two equilibria); raise interpolation_tolerance_mm or set \
+         solve_every_frame = true",
+        worst.volume_ml, step, worst.node, p.x, p.y, p.z, worst.error_mm
+    ))
 }
 
 /// Solver work summed over the states of a build.
@@ -287,14 +449,83 @@ mod tests {
         assert_eq!(x, keys.states[2].positions_m);
     }
 
-    #[test]
-    fn lobatto_points_nest_when_doubled() {
-        let coarse = chebyshev_lobatto(-1.0, 3.0, 5);
-        let fine = chebyshev_lobatto(-1.0, 3.0, 9);
-        for (j, c) in coarse.iter().enumerate() {
-            assert!((fine[2 * j] - c).abs() < 1e-12);
+    /// A state whose node 0 moves by `x_mm(v)` along x and node 1 stays at rest.
+    fn synthetic(volume_ml: f64, x_mm: impl Fn(f64) -> f64) -> DrivenState {
+        DrivenState {
+            positions_m: vec![
+                V3::new(x_mm(volume_ml) * 1e-3, 0.0, 0.0),
+                V3::new(0.0, 0.0, 0.1),
+            ],
+            pressure_pa: -volume_ml / 3.0,
+            volume_change_ml: volume_ml,
+            solves: 1,
+            newton_iterations: 2,
+            linear_iterations: 10,
+            residual: 1e-7,
+            wall_time_s: 0.0,
         }
-        assert_eq!(coarse[0], -1.0);
-        assert!((coarse[4] - 3.0).abs() < 1e-12);
+    }
+
+    fn rest() -> Vec<V3> {
+        vec![V3::zeros(), V3::new(0.0, 0.0, 0.1)]
+    }
+
+    #[test]
+    fn keys_gather_at_a_kink_and_the_interpolant_meets_the_tolerance_everywhere() {
+        // A smooth stretch plus a node that starts sliding at 713 mL (slope change 0.02
+        // mm/mL), as a wall node crossing a cell of the distance field does.
+        let x_mm = |v: f64| 0.03 * v + 2e-6 * v * v + 0.02 * (v - 713.0).max(0.0);
+        let keys =
+            VolumeKeyframes::refine(&rest(), 0.0, 1000.0, 0.1, |v, _| Ok(synthetic(v, x_mm)))
+                .unwrap();
+        let r = &keys.report;
+        assert!(r.refinements > 0 && r.keys < 40, "{r:?}");
+        assert!(r.measured_error_mm <= 0.1, "{r:?}");
+        // The refinement went to the kink: the closest keys sit beside it, the far end of
+        // the range kept the first sweep's spacing.
+        let v = &keys.volumes_ml;
+        let closest = (1..v.len())
+            .min_by(|&a, &b| (v[a] - v[a - 1]).total_cmp(&(v[b] - v[b - 1])))
+            .unwrap();
+        assert!((v[closest] - 713.0).abs() < 50.0, "{v:?}");
+        assert!(v.iter().filter(|&&x| x < 300.0).count() <= 3, "{v:?}");
+        let mut x = rest();
+        let worst = (0..=2000)
+            .map(|i| {
+                let v = i as f64 * 0.5;
+                keys.positions_at(&rest(), v, &mut x);
+                (x[0].x * 1e3 - x_mm(v)).abs()
+            })
+            .fold(0.0, f64::max);
+        assert!(worst <= 0.1, "worst interpolation error {worst} mm");
+        assert!((keys.pressure_at(300.0) + 100.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_smooth_response_takes_the_first_sweep_only() {
+        let keys = VolumeKeyframes::refine(&rest(), 0.0, 500.0, 0.1, |v, _| {
+            Ok(synthetic(v, |v| 0.05 * v - 1e-5 * v * v))
+        })
+        .unwrap();
+        assert_eq!((keys.report.keys, keys.report.refinements), (9, 0));
+        assert!(keys.report.measured_error_mm < 1e-9, "{:?}", keys.report);
+    }
+
+    #[test]
+    fn a_jump_is_refused_naming_where_and_which_node() {
+        // Two equilibria: node 0 snaps 1 mm at 480 mL. No number of keys interpolates that.
+        let e = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, 0.1, |v, _| {
+            Ok(synthetic(v, |v| {
+                0.03 * v + if v > 480.0 { 1.0 } else { 0.0 }
+            }))
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("does not follow its volume smoothly near 48")
+                && e.contains("node 0")
+                && e.contains("solve_every_frame"),
+            "{e}"
+        );
     }
 }
