@@ -141,7 +141,7 @@ fn bad_traces_points_and_configurations_are_named() {
         "time_s,volume_ml\n0,0\n1,100\n0.5,50\n2,0\n",
     )
     .unwrap();
-    std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,10\n2,0\n").unwrap();
+    std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,300\n2,0\n").unwrap();
     std::fs::write(dir.join("points.csv"), "name,x_mm,y_mm\ntumour,1,2\n").unwrap();
     std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
     let cases: [(&[&str], &str); 4] = [
@@ -218,7 +218,7 @@ fn exit_code_within_a_minute(command: &mut std::process::Command) -> (Option<i32
 fn exit_status_is_2_for_refused_input_in_every_subcommand_and_1_for_failures_while_working() {
     let dir = temp_dir("exit");
     let out = dir.join("out");
-    std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,10\n2,0\n").unwrap();
+    std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,300\n2,0\n").unwrap();
     std::fs::write(dir.join("nan.csv"), "time_s,volume_ml\n0,0\n1,NaN\n2,0\n").unwrap();
     std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
     std::fs::write(dir.join("service.toml"), "wokers = 3\n").unwrap();

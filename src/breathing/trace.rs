@@ -25,6 +25,9 @@ pub const MAX_VOLUME_LOSS_ML: f64 = 3000.0;
 pub const MAX_FLOW_ML_PER_S: f64 = 15_000.0;
 /// Most samples a trace may hold (a day at 100 Hz is 8.6 million).
 pub const MAX_SAMPLES: usize = 10_000_000;
+/// Least peak-to-peak volume a trace read from a file or request may have, mL: a shallow
+/// breath moves a few hundred; under this the column is most likely litres read as mL.
+pub const MIN_PEAK_TO_PEAK_ML: f64 = 20.0;
 
 /// Lung volume change from the scanned state over time.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -133,7 +136,18 @@ impl BreathingTrace {
             _ => parse_csv(text)?,
         };
         let seconds = options.seconds_per_time_unit.unwrap_or(header_units.0);
-        let ml = options.ml_per_volume_unit.unwrap_or(header_units.1);
+        // A volume column without a unit is read only with the unit given by name: litres
+        // read as millilitres make a run that "succeeds" with no motion at all.
+        let ml = options
+            .ml_per_volume_unit
+            .or(header_units.1)
+            .ok_or_else(|| {
+                Fault::whole(
+                    "the volume column 'volume' has no unit: name it volume_ml (millilitres) or \
+                 volume_l (litres), or give ml_per_volume_unit"
+                        .into(),
+                )
+            })?;
         let offset = match options.reference {
             VolumeReference::ChangeFromScan => 0.0,
             VolumeReference::Absolute { scanned_volume_ml } => {
@@ -160,6 +174,20 @@ impl BreathingTrace {
             }
             fault
         })?;
+        let (lowest, highest) = trace
+            .volume_change_ml
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        if highest - lowest < MIN_PEAK_TO_PEAK_ML {
+            return Err(Fault::whole(format!(
+                "the volume varies by only {:.3} mL from its lowest to its highest sample, far \
+                 less than a breath (at least {MIN_PEAK_TO_PEAK_ML} mL): if the column holds \
+                 litres, name it volume_l or give ml_per_volume_unit = 1000",
+                highest - lowest
+            )));
+        }
         Ok(trace)
     }
 
@@ -259,8 +287,9 @@ impl BreathingTrace {
     }
 }
 
-/// Seconds and mL per unit of the columns named in a header.
-type ColumnUnits = (f64, f64);
+/// Seconds and mL per unit of the columns named in a header (`None`: a volume column named
+/// without its unit).
+type ColumnUnits = (f64, Option<f64>);
 
 fn time_unit(name: &str) -> Option<f64> {
     match name {
@@ -272,7 +301,7 @@ fn time_unit(name: &str) -> Option<f64> {
 
 fn volume_unit(name: &str) -> Option<f64> {
     match name {
-        "volume_ml" | "volume_change_ml" | "volume" => Some(1.0),
+        "volume_ml" | "volume_change_ml" => Some(1.0),
         "volume_l" | "volume_change_l" => Some(1e3),
         _ => None,
     }
@@ -292,7 +321,10 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
         .map(|c| c.trim().trim_matches('"').to_ascii_lowercase())
         .collect();
     let time_col = names.iter().position(|n| time_unit(n).is_some());
-    let vol_col = names.iter().position(|n| volume_unit(n).is_some());
+    let vol_col = names
+        .iter()
+        .position(|n| volume_unit(n).is_some())
+        .or_else(|| names.iter().position(|n| n == "volume"));
     let (Some(tc), Some(vc)) = (time_col, vol_col) else {
         return Err(Fault::whole(format!(
             "line {hline}: header '{}' must name a time column (time_s or time_ms) and a \
@@ -300,10 +332,7 @@ fn parse_csv(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnits
             clip(header)
         )));
     };
-    let units = (
-        time_unit(&names[tc]).unwrap(),
-        volume_unit(&names[vc]).unwrap(),
-    );
+    let units = (time_unit(&names[tc]).unwrap(), volume_unit(&names[vc]));
     let (mut times, mut volumes) = (Vec::new(), Vec::new());
     for (line, row) in lines {
         let at = |reason: String| Fault {
@@ -353,11 +382,11 @@ fn parse_json(text: &str) -> std::result::Result<(Vec<f64>, Vec<f64>, ColumnUnit
         } else {
             1.0
         },
-        if value.get("volume_l").is_some() {
+        Some(if value.get("volume_l").is_some() {
             1e3
         } else {
             1.0
-        },
+        }),
     );
     // Non-finite numbers cannot be written in JSON; `null` (what many tools write for NaN)
     // is reported as such rather than as a type error.
@@ -462,6 +491,33 @@ mod tests {
         };
         let t = BreathingTrace::parse("time_s,volume_ml\n0,3000\n1,3400\n", &opts).unwrap();
         assert_eq!(t.volume_change_ml, vec![0.0, 400.0]);
+    }
+
+    #[test]
+    fn a_volume_column_without_its_unit_is_refused_unless_the_unit_is_given() {
+        // The issue's case: litres under a bare `volume` header were read as mL.
+        let litres = "time,volume\n0,0\n2,0.5\n4,0\n";
+        let e = parse(litres).unwrap_err();
+        assert!(
+            e.contains("'volume' has no unit") && e.contains("volume_l"),
+            "{e}"
+        );
+        let opts = TraceOptions {
+            ml_per_volume_unit: Some(1000.0),
+            ..TraceOptions::default()
+        };
+        let t = BreathingTrace::parse(litres, &opts).unwrap();
+        assert_eq!(t.volume_change_ml, vec![0.0, 500.0, 0.0]);
+    }
+
+    #[test]
+    fn a_trace_moving_less_than_a_breath_is_refused_as_a_likely_unit_error() {
+        let e = parse("time_s,volume_ml\n0,0\n2,0.5\n4,0\n").unwrap_err();
+        assert!(
+            e.contains("varies by only 0.500 mL") && e.contains("volume_l"),
+            "{e}"
+        );
+        assert!(parse("time_s,volume_l\n0,0\n2,0.5\n4,0\n").is_ok());
     }
 
     #[test]
