@@ -104,6 +104,17 @@ impl VolumeGeometry {
         Ok(())
     }
 
+    /// The sub-grid of `dims` voxels whose voxel (0, 0, 0) is this grid's voxel `start`:
+    /// same spacing and direction, origin moved there. Its voxels are this grid's voxels.
+    pub fn sub_grid(&self, start: [usize; 3], dims: [usize; 3]) -> VolumeGeometry {
+        let start_ijk = Vector3::new(start[0] as f64, start[1] as f64, start[2] as f64);
+        VolumeGeometry {
+            dims,
+            origin_lps_mm: self.voxel_to_lps_mm(start_ijk).into(),
+            ..*self
+        }
+    }
+
     /// Number of voxels.
     pub fn voxel_count(&self) -> usize {
         self.dims.iter().product()
@@ -250,6 +261,29 @@ impl<T: Copy> Volume<T> {
         let data = Array3::from_shape_vec(array_shape(&geometry), data)
             .expect("length checked against the grid above");
         Ok(Volume { geometry, data })
+    }
+
+    /// The voxels of the sub-grid `start`, `dims` (see [`VolumeGeometry::sub_grid`]), copied;
+    /// refused when it leaves the grid.
+    pub fn crop(&self, start: [usize; 3], dims: [usize; 3]) -> Result<Volume<T>> {
+        if (0..3).any(|a| dims[a] == 0 || start[a] + dims[a] > self.geometry.dims[a]) {
+            return Err(Error::argument(
+                "volume crop",
+                format!(
+                    "{dims:?} voxels from {start:?} leave the grid {:?}",
+                    self.geometry.dims
+                ),
+            ));
+        }
+        let view = self.data.slice(ndarray::s![
+            start[2]..start[2] + dims[2],
+            start[1]..start[1] + dims[1],
+            start[0]..start[0] + dims[0]
+        ]);
+        Volume::from_data(
+            self.geometry.sub_grid(start, dims),
+            view.iter().copied().collect(),
+        )
     }
 
     /// Value at voxel (i, j, k).

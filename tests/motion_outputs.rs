@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use lungmotion::datasets::cip_chest_ct64;
 use lungmotion::formats::nrrd::read_nrrd;
 use lungmotion::model::{Material, VoxelGrid};
-use lungmotion::outputs::displacement_field::FieldSampler;
+use lungmotion::outputs::displacement_field::{FieldGrid, FieldSampler};
 use lungmotion::outputs::plots::{
     lung_centroid_lps_mm, render_breathing_curve, render_displacement_look, viridis, Arrow,
     BreathingCurve, DisplacementLook, DisplacementLookInput, ARROW_COLOUR, OVERLAY_OPACITY,
@@ -75,7 +75,8 @@ fn sampling_a_field_is_fast_and_exact() {
             }
         }
     }
-    let sampler = FieldSampler::new(&lungs, &mesh, &vec![1; mesh.elements.len()]).unwrap();
+    let sampler =
+        FieldSampler::new(&lungs, &mesh, &vec![1; mesh.elements.len()], FieldGrid::Ct).unwrap();
     let shift = Vector3::new(0.001, -0.002, -0.012);
     let moved: Vec<_> = mesh.rest_positions_m.iter().map(|x| x + shift).collect();
     let mut field = vec![[f32::NAN; 3]; g.voxel_count()];

@@ -8,6 +8,7 @@ use std::sync::OnceLock;
 use lungmotion::breathing::{BreathingTrace, LujanBreathing};
 use lungmotion::formats::nifti;
 use lungmotion::ingest::scan::load_ct;
+use lungmotion::outputs::displacement_field::FieldGrid;
 use lungmotion::outputs::quicklook::read_png;
 use lungmotion::outputs::trajectories::read_trajectories;
 use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
@@ -119,18 +120,35 @@ fn the_simulated_volume_follows_the_curve_at_every_frame() {
 }
 
 #[test]
-fn fields_are_on_the_ct_grid_finite_and_zero_outside_the_lungs() {
+fn fields_are_on_the_lung_box_of_the_ct_grid_finite_and_zero_outside_the_lungs() {
     let (out, s) = demo_run();
     let ct = load_ct(&sample_volumes_dir().join("phantom-dicom"))
         .unwrap()
         .ct;
-    let lungs = nifti::read_nifti_labels(&out.join("ingest/lung-mask.nii.gz")).unwrap();
-    assert!(lungs.geometry.same_grid(&ct.geometry, 1e-3));
+    let whole_lungs = nifti::read_nifti_labels(&out.join("ingest/lung-mask.nii.gz")).unwrap();
+    assert!(whole_lungs.geometry.same_grid(&ct.geometry, 1e-3));
+    // The default grid: the CT's voxels around the lungs, every lung voxel inside it.
+    let grid = &s.field_grid;
+    assert_eq!(grid.kind, FieldGrid::LungBox);
+    assert_eq!(grid.ct_dims, ct.geometry.dims);
+    let box_geometry = ct
+        .geometry
+        .sub_grid(grid.start_voxel_in_ct, grid.geometry.dims);
+    assert!(box_geometry.same_grid(&grid.geometry, 1e-6));
+    assert!(grid.geometry.voxel_count() < ct.geometry.voxel_count());
+    let lungs = whole_lungs
+        .crop(grid.start_voxel_in_ct, grid.geometry.dims)
+        .unwrap();
+    let lung_voxels = |v: &[u8]| v.iter().filter(|&&l| l != 0).count();
+    assert_eq!(
+        lung_voxels(lungs.as_slice()),
+        lung_voxels(whole_lungs.as_slice())
+    );
     for f in [&s.frames[0], &s.frames[5]] {
         let (geometry, field) =
             nifti::read_nifti_vector_field(&out.join(&f.files.displacement_nifti)).unwrap();
-        assert!(geometry.same_grid(&ct.geometry, 1e-3), "{geometry:?}");
-        assert_eq!(field.len(), ct.geometry.voxel_count());
+        assert!(geometry.same_grid(&grid.geometry, 1e-3), "{geometry:?}");
+        assert_eq!(field.len(), grid.geometry.voxel_count());
         let mut max_mm: f64 = 0.0;
         for (u, &l) in field.iter().zip(lungs.as_slice()) {
             assert!(u.iter().all(|c| c.is_finite()));

@@ -27,6 +27,7 @@
 //! mesh_vtu = false                     # frames/<k>/mesh.vtu (deformed mesh for ParaView)
 //! ingest_files = true                  # ingest/: lung mask, groups, mesh, ingest.json
 //! quicklooks = true                    # breathing-curve and end-inhale PNGs
+//! field_grid = "lung_box"              # or "ct": the fields on the whole CT grid
 //! ```
 
 use std::path::Path;
@@ -38,6 +39,7 @@ use crate::formats::dicom::{DicomReadOptions, SeriesChoice};
 use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
+use crate::outputs::displacement_field::FieldGrid;
 use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest configuration file read, bytes (a real one is well under 2 kB).
@@ -136,6 +138,8 @@ pub struct OutputConfig {
     pub ingest_files: bool,
     /// Write the PNG quick looks.
     pub quicklooks: bool,
+    /// The displacement fields' grid: the box around the lungs (default) or the whole CT.
+    pub field_grid: FieldGrid,
 }
 
 impl Default for RunConfig {
@@ -173,6 +177,7 @@ impl Default for OutputConfig {
             mesh_vtu: false,
             ingest_files: true,
             quicklooks: true,
+            field_grid: FieldGrid::default(),
         }
     }
 }

@@ -166,7 +166,7 @@ pub fn run_breathing(
     observer.stage(RunStage::Ingest);
     let t = Instant::now();
     let outcome = ingest_scan(&scan, &config.ingest_settings())?;
-    let lung = build_lung_scene(&outcome, &inputs.points)?;
+    let lung = build_lung_scene(&outcome, &inputs.points, config.outputs.field_grid)?;
     if config.outputs.ingest_files {
         write_ingest_files(staging.dir(), &scan.ct, &outcome)?;
     }
@@ -174,7 +174,7 @@ pub fn run_breathing(
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
-    let geometry = scan.ct.geometry;
+    let geometry = *lung.field.geometry();
     let mut sink = FrameSink::open(
         &lung,
         geometry,
@@ -221,6 +221,7 @@ pub fn run_breathing(
             inputs,
             &scan.ct,
             &outcome.segmentation.lungs,
+            &lung.field,
             &written.records,
             &capture,
         )?;
@@ -234,6 +235,11 @@ pub fn run_breathing(
         written.records,
         written.trajectories,
         end_inhale,
+        summary::FieldGridSummary::of(
+            config.outputs.field_grid,
+            &lung.field,
+            scan.ct.geometry.dims,
+        ),
         timings,
     );
     record_final_timings(&mut summary, t, t_total);
@@ -267,11 +273,20 @@ struct LungScene {
 
 /// Builds the mechanical scene of the ingested lungs and locates the CT voxels and the
 /// tracked points in its mesh.
-fn build_lung_scene(outcome: &IngestOutcome, tracked: &[TrackedPoint]) -> Result<LungScene> {
+fn build_lung_scene(
+    outcome: &IngestOutcome,
+    tracked: &[TrackedPoint],
+    field_grid: crate::outputs::displacement_field::FieldGrid,
+) -> Result<LungScene> {
     let model = &outcome.model;
     let scene = lung_scene(model)?;
     let mesh = &scene.mesh;
-    let field = FieldSampler::new(&outcome.segmentation.lungs, mesh, &model.element_lung)?;
+    let field = FieldSampler::new(
+        &outcome.segmentation.lungs,
+        mesh,
+        &model.element_lung,
+        field_grid,
+    )?;
     let point_positions: Vec<[f64; 3]> = tracked.iter().map(|p| p.rest_lps_mm).collect();
     let points = PointSampler::new(&point_positions, mesh, &model.element_lung).map_err(|e| {
         Error::Points {

@@ -14,6 +14,7 @@ pub(super) fn write_quicklooks(
     inputs: &RunInputs,
     ct: &crate::volume::Volume<f32>,
     lungs: &crate::volume::Volume<u8>,
+    field: &crate::outputs::displacement_field::FieldSampler,
     records: &[FrameRecord],
     end_inhale: &EndInhaleCapture,
 ) -> Result<()> {
@@ -49,6 +50,15 @@ pub(super) fn write_quicklooks(
         "End-inhale (frame {}, t = {:.2} s, +{:.0} mL): displacement, coronal slice through {}",
         f.index, f.time_s, f.simulated_volume_ml, through
     );
+    // The look draws the CT under the field on the field's own grid: the lung box by default.
+    let (start, dims) = (field.start(), field.geometry().dims);
+    let cropped;
+    let (ct, lungs) = if dims == ct.geometry.dims {
+        (ct, lungs)
+    } else {
+        cropped = (ct.crop(start, dims)?, lungs.crop(start, dims)?);
+        (&cropped.0, &cropped.1)
+    };
     let look = render_displacement_look(&DisplacementLookInput {
         ct,
         lungs,

@@ -11,7 +11,9 @@ use crate::math::V3;
 use crate::model::{Material, NodeConstraint};
 use crate::motion::dynamic::DynamicReport;
 use crate::motion::{FrameSummary, MotionReport};
+use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
 use crate::simulation::Scene;
+use crate::volume::VolumeGeometry;
 
 /// The machine-readable record of a run (`summary.json`); scripts rely on its field names.
 #[derive(Debug, Clone, Serialize)]
@@ -36,6 +38,8 @@ pub struct RunSummary {
     pub motion: MotionReport,
     /// The dynamic run (time step, steps, compliance), when the dynamic mode was used.
     pub dynamic: Option<DynamicReport>,
+    /// The grid every frame's displacement field is written on.
+    pub field_grid: FieldGridSummary,
     /// One entry per output frame, in time order.
     pub frames: Vec<FrameRecord>,
     /// The frame with the largest volume, with physical checks.
@@ -48,6 +52,31 @@ pub struct RunSummary {
     pub peak_memory_mib: Option<f64>,
     /// Everything the user should know.
     pub warnings: Vec<String>,
+}
+
+/// Where the displacement fields lie on the CT grid.
+#[derive(Debug, Clone, Serialize)]
+pub struct FieldGridSummary {
+    /// `lung_box` (the lungs' box plus a margin) or `ct` (the whole CT grid).
+    pub kind: FieldGrid,
+    /// The fields' grid (as in their headers): the CT's spacing and direction.
+    pub geometry: VolumeGeometry,
+    /// The CT voxel that is the field's voxel (0, 0, 0).
+    pub start_voxel_in_ct: [usize; 3],
+    /// The CT's own grid size, for comparison.
+    pub ct_dims: [usize; 3],
+}
+
+impl FieldGridSummary {
+    /// The grid of `field`, a sub-grid of a CT of `ct_dims` voxels.
+    pub fn of(kind: FieldGrid, field: &FieldSampler, ct_dims: [usize; 3]) -> Self {
+        FieldGridSummary {
+            kind,
+            geometry: *field.geometry(),
+            start_voxel_in_ct: field.start(),
+            ct_dims,
+        }
+    }
 }
 
 /// The trace as the run used it.
@@ -222,6 +251,7 @@ impl RunSummary {
         frames: Vec<FrameRecord>,
         points: Vec<PointTrajectory>,
         end_inhale: EndInhaleSummary,
+        field_grid: FieldGridSummary,
         timings_s: BTreeMap<String, f64>,
     ) -> Self {
         motion.frames.clear();
@@ -266,6 +296,7 @@ impl RunSummary {
             ingest: outcome.summary.clone(),
             motion,
             dynamic,
+            field_grid,
             frames,
             end_inhale,
             points,
@@ -285,8 +316,9 @@ fn conventions() -> BTreeMap<&'static str, &'static str> {
         (
             "displacement_nifti",
             "NIfTI-1 vector image, intent 1007, 3 float32 components in LPS millimetres (ITK / \
-             elastix convention, not RAS), on the input CT's grid and affine, zero outside the \
-             lungs; the tissue at voxel x is at x + u(x)",
+             elastix convention, not RAS), on the input CT's voxels (spacing and direction; by \
+             default only the box around the lungs plus 2 voxels, its origin that box's first \
+             voxel: see field_grid), zero outside the lungs; the tissue at voxel x is at x + u(x)",
         ),
         (
             "volumes",

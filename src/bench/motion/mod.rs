@@ -48,7 +48,7 @@ use crate::motion::{
     elastic_compliance_ml_per_pa, lung_scene, run_motion, MotionReport, MotionSettings,
     REFERENCE_PRESSURE_PA,
 };
-use crate::outputs::displacement_field::FieldSampler;
+use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
 use crate::process::{
     current_rss_bytes, load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss,
 };
@@ -431,10 +431,12 @@ fn build_case(ct_path: &std::path::Path, element_size_mm: f64) -> Result<(Case, 
     let scene = lung_scene(&outcome.model)?;
     let scene_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
+    // As `lungmotion run` writes them by default.
     let sampler = FieldSampler::new(
         &outcome.segmentation.lungs,
         &scene.mesh,
         &outcome.model.element_lung,
+        FieldGrid::LungBox,
     )?;
     let field_sampler_s = t.elapsed().as_secs_f64();
     let build = ModelBuild {
@@ -567,7 +569,7 @@ fn bench_serving(
     let key_build_s = t.elapsed().as_secs_f64();
     let rest = &scene.mesh.rest_positions_m;
     let mut positions = rest.clone();
-    let mut field_mm = vec![[0.0f32; 3]; case.lungs.geometry.voxel_count()];
+    let mut field_mm = vec![[0.0f32; 3]; case.sampler.geometry().voxel_count()];
     let mut field_times = Vec::with_capacity(repeats);
     let mut node_times = Vec::with_capacity(repeats);
     // One untimed pass so first-touch page faults of the field buffer are not timed.
