@@ -28,6 +28,11 @@ use crate::{Error, Result};
 /// How far (in cells) a lung voxel outside every element looks for one of its lung.
 const SEARCH_RADIUS_CELLS: i64 = 2;
 
+/// Steps the field's millimetres are rounded to (1/64 mm: at most 0.008 mm off, a twelfth
+/// of the 0.1 mm interpolation tolerance). Rounded float32 values end in zero bits, which
+/// gzip packs: a POPI end-inhale frame went from 31 MB to 10 MB at the same level.
+pub const FIELD_STEPS_PER_MM: f32 = 64.0;
+
 /// Zero voxels kept around the lungs in a [`FieldGrid::LungBox`] field, so that a reader
 /// interpolating at the lung's edge finds the field's zero there, not the end of the image.
 pub const LUNG_BOX_MARGIN_VOXELS: usize = 2;
@@ -220,8 +225,9 @@ impl FieldSampler {
         self.voxels.len()
     }
 
-    /// Writes the displacement (node positions minus rest positions, metres) as millimetres
-    /// on every voxel of the field's grid: zero outside the lungs. `out` has one entry per
+    /// Writes the displacement (node positions minus rest positions, metres) as millimetres,
+    /// in steps of 1/[`FIELD_STEPS_PER_MM`], on every voxel of the field's grid: zero outside
+    /// the lungs. `out` has one entry per
     /// voxel and is reused across frames: nothing is allocated per call.
     pub fn sample_mm(&self, mesh: &HexMesh, positions_m: &[V3], out: &mut [[f32; 3]]) {
         assert_eq!(
@@ -249,8 +255,10 @@ impl FieldSampler {
                         let n = n as usize;
                         u += (positions_m[n] - rest[n]) * f64::from(w[corner]);
                     }
+                    let step =
+                        |m: f64| (m as f32 * FIELD_STEPS_PER_MM).round() / FIELD_STEPS_PER_MM;
                     chunk[self.voxels[s] as usize - start] =
-                        [(u.x * 1e3) as f32, (u.y * 1e3) as f32, (u.z * 1e3) as f32];
+                        [step(u.x * 1e3), step(u.y * 1e3), step(u.z * 1e3)];
                 }
             });
     }
@@ -508,8 +516,13 @@ mod tests {
             };
             for c in 0..3 {
                 assert!(
-                    (u[c] as f64 - expected[c]).abs() < 1e-4,
+                    (u[c] as f64 - expected[c]).abs() <= 0.5 / f64::from(FIELD_STEPS_PER_MM) + 1e-6,
                     "{idx}: {u:?} vs {expected}"
+                );
+                assert_eq!(
+                    (u[c] * FIELD_STEPS_PER_MM).fract(),
+                    0.0,
+                    "{u:?}: not in steps"
                 );
             }
         }

@@ -318,7 +318,8 @@ fn conventions() -> BTreeMap<&'static str, &'static str> {
             "NIfTI-1 vector image, intent 1007, 3 float32 components in LPS millimetres (ITK / \
              elastix convention, not RAS), on the input CT's voxels (spacing and direction; by \
              default only the box around the lungs plus 2 voxels, its origin that box's first \
-             voxel: see field_grid), zero outside the lungs; the tissue at voxel x is at x + u(x)",
+             voxel: see field_grid), values rounded to 1/64 mm, zero outside the lungs; the tissue at \
+             voxel x is at x + u(x)",
         ),
         (
             "volumes",

@@ -18,7 +18,7 @@
 //!   a failure with its error text and the benchmark goes on.
 //! * **Serving** (interpolated sizes only): the keys are built once more by the same call
 //!   `run_motion` makes (`VolumeKeyframes::build` with the same tolerances), then the 10
-//!   phases' fields are produced from them (`positions_at` + `sample_mm` on the CT grid),
+//!   phases' fields are produced from them (`positions_at` + `sample_mm` on the lung box),
 //!   repeated, median → fields per second; separately `positions_at` alone (node states
 //!   per second).
 //! * **Accuracy**: the same cycle with `solve_every_frame` (one direct volume-driven solve per
@@ -54,7 +54,6 @@ use crate::process::{
 };
 use crate::simulation::keyframes::VolumeKeyframes;
 use crate::simulation::{BreathingDriver, Scene};
-use crate::volume::Volume;
 use crate::{Error, Result};
 
 /// Target wall time of the whole 10-phase cycle at 8 mm elements, s.
@@ -294,7 +293,6 @@ pub struct MotionBenchReport {
 /// The lung model and what the cycle needs from it, built as `lungmotion run` builds it.
 struct Case {
     scene: Scene,
-    lungs: Volume<u8>,
     sampler: FieldSampler,
     material: Material,
 }
@@ -454,7 +452,6 @@ fn build_case(ct_path: &std::path::Path, element_size_mm: f64) -> Result<(Case, 
     };
     let case = Case {
         scene,
-        lungs: outcome.segmentation.lungs,
         sampler,
         material,
     };
@@ -630,7 +627,7 @@ fn bench_accuracy(
         interpolated.push(x.to_vec());
         Ok(())
     })?;
-    let voxels = case.lungs.geometry.voxel_count();
+    let voxels = case.sampler.geometry().voxel_count();
     let mut field_a = vec![[0.0f32; 3]; voxels];
     let mut field_b = vec![[0.0f32; 3]; voxels];
     let rest = &scene.mesh.rest_positions_m;
