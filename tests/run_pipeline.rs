@@ -177,6 +177,7 @@ fn tracked_points_and_quick_looks_match_the_summary() {
         for (a, d_a) in d.iter().enumerate() {
             assert!((row.displacement_mm[a] - d_a).abs() < 1e-3);
             assert!((row.position_lps_mm[a] - p.rest_lps_mm[a] - d_a).abs() < 1e-3);
+            assert!((row.rest_lps_mm[a] - p.rest_lps_mm[a]).abs() < 1e-3);
         }
         assert!(row.inside_lung, "{} outside the lung", row.point);
     }

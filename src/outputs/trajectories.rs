@@ -9,11 +9,12 @@
 //! * Points file (user input): header `name,x_mm,y_mm,z_mm`, then one row per point at its
 //!   position in the CT (rest, i.e. at the scan's breathing state). Names are unique and
 //!   non-empty; coordinates finite.
-//! * Trajectories file (output): header
-//!   `frame,time_s,point,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm,inside_lung`, one row per (frame,
-//!   point), frames in increasing order and points in the points file's order. `x,y,z` is
-//!   the moved position (rest position + displacement), `dx,dy,dz` the displacement from the
-//!   CT's position, both in LPS mm written with 4 decimals (0.1 µm); `time_s` is seconds on
+//! * Trajectories file (output): header `frame,time_s,point,rest_x_mm,rest_y_mm,rest_z_mm,
+//!   moved_x_mm,moved_y_mm,moved_z_mm,dx_mm,dy_mm,dz_mm,inside_lung`, one row per (frame,
+//!   point), frames in increasing order and points in the points file's order. `rest_*` is
+//!   the point as given (its place in the CT), `moved_*` where it is at the frame (rest +
+//!   displacement), `dx,dy,dz` the displacement, all in LPS mm written with 4 decimals
+//!   (0.1 µm); `time_s` is seconds on
 //!   the breathing trace's clock with 6 decimals; `inside_lung` is `true` when the point lies
 //!   inside an element of the lung mesh and `false` when it was extrapolated from the
 //!   nearest one. The file is written under a `.partial` name and renamed when complete, so a
@@ -31,8 +32,8 @@ use crate::{Error, IoContext, IoOp, Result};
 pub const POINTS_HEADER: &str = "name,x_mm,y_mm,z_mm";
 
 /// Header line of the trajectories file.
-pub const TRAJECTORY_HEADER: &str =
-    "frame,time_s,point,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm,inside_lung";
+pub const TRAJECTORY_HEADER: &str = "frame,time_s,point,rest_x_mm,rest_y_mm,rest_z_mm,\
+    moved_x_mm,moved_y_mm,moved_z_mm,dx_mm,dy_mm,dz_mm,inside_lung";
 
 /// Most points a points file may list (more is a sign of a wrong file, e.g. a point cloud).
 pub const MAX_POINTS: usize = 10_000;
@@ -55,6 +56,8 @@ pub struct TrajectorySample {
     pub time_s: f64,
     /// Name of the tracked point.
     pub point: String,
+    /// Position given in the points file (in the CT), LPS mm.
+    pub rest_lps_mm: [f64; 3],
     /// Moved position, LPS mm.
     pub position_lps_mm: [f64; 3],
     /// Displacement from the CT position, LPS mm.
@@ -217,8 +220,12 @@ impl<W: Write> TrajectoryWriter<W> {
             // Writing into a String cannot fail.
             let _ = writeln!(
                 self.line,
-                "{frame},{time_s:.6},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{inside}",
+                "{frame},{time_s:.6},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},\
+                 {inside}",
                 p.name,
+                x[0],
+                x[1],
+                x[2],
                 x[0] + d[0],
                 x[1] + d[1],
                 x[2] + d[2],
@@ -307,12 +314,12 @@ pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySampl
             .map_err(|_| format!("line {n}: frame {:?} is not a non-negative integer", f[0]))?;
         let time_s = parse_finite(n, "time_s", f[1])?;
         let point = parse_name(n, f[2])?.to_string();
-        let mut v = [0.0; 6];
-        for (c, value) in v.iter_mut().enumerate() {
-            let column = ["x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm"][c];
-            *value = parse_finite(n, column, f[3 + c])?;
+        let mut v = [0.0; 9];
+        let columns = TRAJECTORY_HEADER.split(',').skip(3);
+        for ((value, column), field) in v.iter_mut().zip(columns).zip(&f[3..12]) {
+            *value = parse_finite(n, column, field)?;
         }
-        let inside_lung = match f[9] {
+        let inside_lung = match f[12] {
             "true" | "1" => true,
             "false" | "0" => false,
             other => return Err(format!("line {n}: inside_lung {other:?} is not true/false")),
@@ -321,8 +328,9 @@ pub fn parse_trajectories(text: &str) -> std::result::Result<Vec<TrajectorySampl
             frame,
             time_s,
             point,
-            position_lps_mm: [v[0], v[1], v[2]],
-            displacement_mm: [v[3], v[4], v[5]],
+            rest_lps_mm: [v[0], v[1], v[2]],
+            position_lps_mm: [v[3], v[4], v[5]],
+            displacement_mm: [v[6], v[7], v[8]],
             inside_lung,
         });
         Ok(())
@@ -466,17 +474,21 @@ mod tests {
 
     #[test]
     fn trajectories_file_errors_name_the_line_and_the_problem() {
-        let row = "0,0.000000,p,1,2,3,0,0,0,true";
+        let row = "0,0.000000,p,1,2,3,1.5,2,3,0.5,0,0,true";
         let cases = [
             (String::new(), "empty trajectories file".to_string()),
             (format!("{row}\n"), "line 1: header".to_string()),
             (
                 format!("{TRAJECTORY_HEADER}\n# note\n0,0,p,1,2,3\n"),
-                "line 3: 6 fields, expected 10".to_string(),
+                "line 3: 6 fields, expected 13".to_string(),
             ),
             (
-                format!("{TRAJECTORY_HEADER}\n{row}\n0,0,p,1,2,3,0,0,0,maybe\n"),
+                format!("{TRAJECTORY_HEADER}\n{row}\n0,0,p,1,2,3,1,2,3,0,0,0,maybe\n"),
                 "line 3: inside_lung \"maybe\"".to_string(),
+            ),
+            (
+                format!("{TRAJECTORY_HEADER}\n0,0,p,1,2,3,1,x,3,0,0,0,true\n"),
+                "line 2: moved_y_mm \"x\"".to_string(),
             ),
         ];
         for (text, expected) in &cases {
@@ -486,7 +498,9 @@ mod tests {
         let crlf = format!("\u{feff}{TRAJECTORY_HEADER}\r\n\r\n{row}\r\n");
         let samples = parse_trajectories(&crlf).unwrap();
         assert_eq!(samples.len(), 1);
-        assert_eq!(samples[0].position_lps_mm, [1.0, 2.0, 3.0]);
+        assert_eq!(samples[0].rest_lps_mm, [1.0, 2.0, 3.0]);
+        assert_eq!(samples[0].position_lps_mm, [1.5, 2.0, 3.0]);
+        assert_eq!(samples[0].displacement_mm, [0.5, 0.0, 0.0]);
     }
 
     #[test]
