@@ -35,9 +35,13 @@ enum Command {
     /// "volume_ml": [...]}` also read; absolute volumes and other units via --config). By
     /// default 10 phases of the first breathing cycle are output (phase 0 = end-inhale), like
     /// a 4D-CT; the lung is driven by the surface pressure that gives each frame's volume.
+    /// Other instants in the config's [motion] table: instants = { kind = "phases", count =
+    /// N }, { kind = "every_sample" }, { kind = "every_kth", k = K } (every K-th sample) or
+    /// { kind = "frame_rate", hz = F } (F frames per second over the whole trace).
     ///
-    /// Writes into --out: frames/<k>/displacement.nii.gz (vector field on the CT's grid,
-    /// components in LPS millimetres as ITK/elastix read them, zero outside the lungs),
+    /// Writes into --out: frames/<k>/displacement.nii.gz (vector field on the CT's voxels
+    /// around the lungs, or the whole grid with field_grid = "ct"; components in LPS
+    /// millimetres as ITK/elastix read them, zero outside the lungs),
     /// summary.json (per-frame time, target and simulated volume, pressure, displacement,
     /// solver effort), trajectories.csv (tracked points), breathing.png and
     /// end-inhale-displacement.png, and ingest/ (lung mask, groups, mesh). The directory is

@@ -143,7 +143,9 @@ pub async fn job_frames(
            ("k" = usize, Path, description = "Frame index"), FieldFormat),
     responses(
         (status = 200, description = "NIfTI-1 vector field (gzip; 3 float32 components in LPS \
-            millimetres, on the CT's grid and affine, zero outside the lungs) or, with \
+            millimetres, on the CT's voxels around the lungs (its spacing and direction, origin \
+            at the box's first voxel; the whole grid with outputs.field_grid = ct), zero \
+            outside the lungs) or, with \
             `format=mha`, the same as MetaImage",
          content(("application/gzip"), ("application/octet-stream"))),
         (status = 404, description = "No such job or frame", body = Problem, content_type = "application/problem+json"),
