@@ -7,8 +7,8 @@ use lungmotion::bench::Outcome;
 
 #[test]
 #[cfg_attr(
-    not(feature = "slow-tests"),
-    ignore = "slow study (motion benchmark): cargo test --features slow-tests"
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (motion benchmark): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn quick_motion_bench_reports_a_coherent_cycle() {
     let report = run_motion_bench(&MotionBenchOptions::quick()).expect("benchmark ran");

@@ -542,6 +542,10 @@ fn a_zipped_series_reads_like_the_directory() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn the_cip_series_matches_its_nrrd_exactly() {
     let Some(case) = cip_chest_ct64() else {
         println!("skipped: shared data not found");
@@ -569,6 +573,10 @@ fn the_cip_series_matches_its_nrrd_exactly() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn the_totalsegmentator_jpeg2000_series_reads_in_position_order() {
     let Some(case) = totalseg_abdomen_ct() else {
         println!("skipped: shared data not found");

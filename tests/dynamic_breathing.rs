@@ -179,8 +179,8 @@ fn bad_inputs_are_refused_with_reasons() {
 /// lung (C ≈ 7 mL/Pa here) would take ≈ 150 Pa, beyond the ≈ 80 Pa this mesh survives.
 #[test]
 #[cfg_attr(
-    not(feature = "slow-tests"),
-    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests"
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn cip_lungs_one_dynamic_cycle() {
     if lungmotion::datasets::cip_chest_ct64().is_none() {

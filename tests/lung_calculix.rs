@@ -16,8 +16,8 @@ use lungmotion::validation::lung_calculix::{
 
 #[test]
 #[cfg_attr(
-    not(feature = "slow-tests"),
-    ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests"
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn end_inhale_frame_agrees_with_calculix() {
     if lungmotion::datasets::cip_chest_ct64().is_none() {

@@ -744,6 +744,10 @@ fn real_case(h: f64, pressure_pa: f64, solve: bool) {
 const CIP_PRESSURE_PA: f64 = -30.0;
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn cip_lungs_at_8_mm_inflate_downwards_with_the_hilum_held() {
     real_case(8.0, CIP_PRESSURE_PA, true);
 }
@@ -751,6 +755,10 @@ fn cip_lungs_at_8_mm_inflate_downwards_with_the_hilum_held() {
 /// At 4 mm the model is built and checked; its solve (minutes with block Jacobi on this
 /// machine) belongs to the breathing benchmark, not the test suite.
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn cip_lungs_at_4_mm_give_a_clean_model() {
     real_case(4.0, CIP_PRESSURE_PA, false);
 }
@@ -759,6 +767,10 @@ fn cip_lungs_at_4_mm_give_a_clean_model() {
 /// touch (coarse levels identify nodes by lattice point) and stalled at residual 0.45 with
 /// the sliding planes; such meshes now take block Jacobi, which converges.
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn default_solver_settings_converge_on_both_lungs() {
     let Some((lungs, airways)) = cip_masks() else {
         println!("skipped: shared data not found");

@@ -481,6 +481,10 @@ fn trajectories_round_trip_through_a_file_written_frame_by_frame() {
 /// The CIP chest CT with a synthetic end-inhale field (the base descends up to 15 mm,
 /// the apex stays): a picture to look at, and its basic facts checked.
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn the_cip_chest_displacement_look_renders() {
     let Some(dir) = cip_chest_ct64() else {
         println!("skipped: shared data not found");

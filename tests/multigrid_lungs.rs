@@ -252,8 +252,8 @@ fn cip_scene(element_size_mm: f64) -> Option<Scene> {
 
 #[test]
 #[cfg_attr(
-    not(feature = "slow-tests"),
-    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests"
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
     let Some(scene) = cip_scene(8.0) else {
@@ -304,8 +304,8 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
 
 #[test]
 #[cfg_attr(
-    not(feature = "slow-tests"),
-    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests"
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn cip_lungs_inflate_to_500_ml_with_multigrid_as_with_block_jacobi() {
     let Some(scene) = cip_scene(8.0) else {

@@ -566,6 +566,10 @@ fn nifti2_is_read_with_its_double_precision_geometry() {
 // ---------------------------------------------------------------------------------------
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn totalsegmentator_ct_reads_with_ras_axes_and_round_trips() {
     let Some(dir) = totalseg_abdomen_ct() else {
         println!("skipped: shared data not found");
@@ -620,6 +624,10 @@ fn totalsegmentator_ct_reads_with_ras_axes_and_round_trips() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn cip_nrrd_written_as_nifti_reads_back_identical() {
     let Some(dir) = cip_chest_ct64() else {
         println!("skipped: shared data not found");

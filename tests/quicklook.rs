@@ -265,6 +265,10 @@ fn png_round_trip_is_exact_and_garbage_is_refused() {
 }
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn overview_of_the_cip_chest_shows_the_right_lung_on_the_image_left() {
     let Some(dir) = lungmotion::datasets::cip_chest_ct64() else {
         println!("skipped: shared data not found");

@@ -15,6 +15,10 @@ fn union(v: &Volume<u8>) -> Volume<u8> {
 }
 
 #[test]
+#[cfg_attr(
+    not(shared_data),
+    ignore = "needs the shared CT data (../shared/data or LUNGMOTION_SHARED_DATA; see README)"
+)]
 fn cip_case_matches_the_expert_lung_map() {
     let Some(dir) = cip_chest_ct64() else {
         println!("skipped: shared data not found");
