@@ -131,16 +131,13 @@ impl VolumeKeyframes {
         mut solve: impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
     ) -> Result<Self> {
         let mut scratch = vec![V3::zeros(); rest.len()];
-        let mut spent = Spent::default();
         // One ascending sweep from the lowest key, each solve starting from the states just
         // below it, so that every key lies on the same gradual-inflation path.
         let first = solve(lo, None)?;
-        spent.add(&first);
         let mut states = vec![first];
         for j in 1..FIRST_SWEEP_KEYS {
             let v = lo + (hi - lo) * j as f64 / (FIRST_SWEEP_KEYS - 1) as f64;
             let state = solve(v, (j == 1).then(|| &states[0]))?;
-            spent.add(&state);
             states.push(state);
         }
         // The end keys have no keys beyond them to check them against: the checks of their
@@ -180,10 +177,6 @@ impl VolumeKeyframes {
                 let mut out = Self::from_states(states, tolerance_mm);
                 out.report.measured_error_mm = worst_passed;
                 out.report.refinements = refinements;
-                out.report.solves = spent.solves;
-                out.report.newton_iterations = spent.newton_iterations;
-                out.report.linear_iterations = spent.linear_iterations;
-                out.report.solve_time_s = spent.solve_time_s;
                 return Ok(out);
             };
             // Halve the intervals on both sides of every failing key (interval i lies between
@@ -209,11 +202,10 @@ impl VolumeKeyframes {
             let last = states.len() - 1;
             for (i, state) in states.into_iter().enumerate() {
                 refined.push(state);
-                refined_checked.push(checked[i] && !failing.contains(&i));
+                refined_checked.push(checked[i]);
                 if i < last && split[i] {
                     let mid = 0.5 * (volumes[i] + volumes[i + 1]);
                     let state = solve(mid, refined.last())?;
-                    spent.add(&state);
                     refined.push(state);
                     refined_checked.push(false);
                 }
@@ -296,12 +288,18 @@ fn local_stencil(
     dv_ml: f64,
     out: &mut [usize; STENCIL],
 ) -> usize {
-    let keys: Vec<usize> = (0..volumes.len()).filter(|&k| Some(k) != skip).collect();
-    let n = keys.len().min(STENCIL);
+    // The keys without `skip`, counted by rank r: key r, or r + 1 from `skip` on. Ranked,
+    // not collected, because frames are interpolated in the hot path.
+    let skipped = |r: usize| usize::from(skip.is_some_and(|k| r >= k));
+    let keys = volumes.len() - usize::from(skip.is_some());
+    let n = keys.min(STENCIL);
     // The first key above dv, then a window of n keys centred on the interval it closes.
-    let above = keys.partition_point(|&k| volumes[k] <= dv_ml);
-    let start = above.saturating_sub(n / 2).min(keys.len() - n);
-    out[..n].copy_from_slice(&keys[start..start + n]);
+    let first_above = volumes.partition_point(|&v| v <= dv_ml);
+    let above = first_above - usize::from(skip.is_some_and(|k| k < first_above));
+    let start = above.saturating_sub(n / 2).min(keys - n);
+    for (i, slot) in out[..n].iter_mut().enumerate() {
+        *slot = start + i + skipped(start + i);
+    }
     n
 }
 
@@ -386,24 +384,6 @@ fn not_smooth(
          solve_every_frame = true",
         worst.volume_ml, step, worst.node, p.x, p.y, p.z, worst.error_mm
     ))
-}
-
-/// Solver work summed over the states of a build.
-#[derive(Default)]
-struct Spent {
-    solves: usize,
-    newton_iterations: usize,
-    linear_iterations: usize,
-    solve_time_s: f64,
-}
-
-impl Spent {
-    fn add(&mut self, s: &DrivenState) {
-        self.solves += s.solves;
-        self.newton_iterations += s.newton_iterations;
-        self.linear_iterations += s.linear_iterations;
-        self.solve_time_s += s.wall_time_s;
-    }
 }
 
 #[cfg(test)]
@@ -499,6 +479,35 @@ mod tests {
             .fold(0.0, f64::max);
         assert!(worst <= 0.1, "worst interpolation error {worst} mm");
         assert!((keys.pressure_at(300.0) + 100.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn stencils_are_the_four_keys_around_a_volume_without_the_one_left_out() {
+        // The reference: the kept keys listed, then the window around the first one above.
+        let reference = |volumes: &[f64], skip: Option<usize>, dv: f64| -> Vec<usize> {
+            let keys: Vec<usize> = (0..volumes.len()).filter(|&k| Some(k) != skip).collect();
+            let n = keys.len().min(STENCIL);
+            let above = keys.partition_point(|&k| volumes[k] <= dv);
+            let start = above.saturating_sub(n / 2).min(keys.len() - n);
+            keys[start..start + n].to_vec()
+        };
+        for len in 2..9 {
+            let volumes: Vec<f64> = (0..len).map(|k| (k * k) as f64).collect();
+            for skip in std::iter::once(None).chain((0..len).map(Some)) {
+                if len == 2 && skip.is_some() {
+                    continue;
+                }
+                for dv in [-1.0, 0.0, 0.5, 3.0, 4.0, 20.0, 100.0] {
+                    let mut got = [0; STENCIL];
+                    let n = local_stencil(&volumes, skip, dv, &mut got);
+                    assert_eq!(
+                        got[..n],
+                        reference(&volumes, skip, dv),
+                        "{len} {skip:?} {dv}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
