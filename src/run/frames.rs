@@ -38,10 +38,9 @@ pub(super) struct FrameSink<'a> {
 
 impl<'a> FrameSink<'a> {
     /// Prepares `frames/` and, with tracked points, `trajectories.csv` in the staging
-    /// directory for one frame per instant of `times`.
+    /// directory for one frame per instant of `times`, the fields on the sampler's grid.
     pub(super) fn open(
         lung: &'a LungScene,
-        geometry: VolumeGeometry,
         staging_dir: &Path,
         outputs: &'a OutputConfig,
         inputs: &RunInputs,
@@ -49,6 +48,7 @@ impl<'a> FrameSink<'a> {
     ) -> Result<Self> {
         let frames_dir = staging_dir.join("frames");
         std::fs::create_dir_all(&frames_dir).at(IoOp::CreateDir, &frames_dir)?;
+        let geometry = *lung.field.geometry();
         Ok(FrameSink {
             field: &lung.field,
             points: &lung.points,

@@ -174,15 +174,7 @@ pub fn run_breathing(
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
-    let geometry = *lung.field.geometry();
-    let mut sink = FrameSink::open(
-        &lung,
-        geometry,
-        staging.dir(),
-        &config.outputs,
-        inputs,
-        &times,
-    )?;
+    let mut sink = FrameSink::open(&lung, staging.dir(), &config.outputs, inputs, &times)?;
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
