@@ -351,3 +351,25 @@ fn rotated_lattice_converges_like_an_aligned_one() {
         "rotated solution differs by {worst} m (scale {scale} m)"
     );
 }
+
+#[test]
+fn a_cancel_raised_during_one_long_solve_stops_that_solve() {
+    // A tolerance below round-off keeps Newton, then the explicit fallback, busy for far longer
+    // than the flag takes to rise: only checks inside the solve can end it as a cancellation.
+    let scene = symmetric_block_under_pressure([16, 16, 16], 0.005, Material::LUNG, -20.0).unwrap();
+    let flag = lungmotion::simulation::CancelFlag::default();
+    let settings = QuasiStaticSettings {
+        tolerance: 1e-300,
+        max_newton_iterations: 1_000_000,
+        cancel: Some(flag.clone()),
+        ..QuasiStaticSettings::default()
+    };
+    let mut solver = QuasiStaticSolver::new(&scene, settings).unwrap();
+    let raiser = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+    let r = solver.solve(None);
+    raiser.join().unwrap();
+    assert!(matches!(r, Err(Error::Cancelled(_))), "{r:?}");
+}

@@ -58,6 +58,9 @@ pub struct MotionSettings {
     /// Raised by another thread to stop the run before its next equilibrium solve.
     #[serde(skip)]
     pub cancel: Option<crate::simulation::CancelFlag>,
+    /// Told of every equilibrium the solves reach (progress displays and job records).
+    #[serde(skip)]
+    pub progress: Option<crate::simulation::SolveProgressSink>,
 }
 
 impl Default for MotionSettings {
@@ -70,6 +73,7 @@ impl Default for MotionSettings {
             volume_tolerance_fraction: 0.005,
             solver: QuasiStaticSettings::default(),
             cancel: None,
+            progress: None,
         }
     }
 }
@@ -168,6 +172,9 @@ pub fn run_motion(
     )?;
     if let Some(flag) = &settings.cancel {
         driver.set_cancel(flag.clone());
+    }
+    if let Some(sink) = &settings.progress {
+        driver.set_progress(sink.clone());
     }
     let rest = scene.mesh.rest_positions_m.clone();
     let keyframes = solve_key_volumes(
@@ -461,6 +468,41 @@ mod tests {
         assert_eq!(
             frames, 1,
             "the rest state needs no solve; the next one is refused"
+        );
+    }
+
+    #[test]
+    fn every_equilibrium_reached_is_reported_to_the_progress_sink() {
+        let (scene, v0) = block();
+        let trace = BreathingTrace::new(vec![0.0, 1.0, 2.0], vec![0.0, 0.01 * v0, 0.0]).unwrap();
+        let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let sink = {
+            let seen = seen.clone();
+            crate::simulation::SolveProgressSink(std::sync::Arc::new(move |p| {
+                seen.lock().unwrap().push(p)
+            }))
+        };
+        let settings = MotionSettings {
+            instants: OutputInstants::EverySample,
+            solve_every_frame: true,
+            progress: Some(sink),
+            ..MotionSettings::default()
+        };
+        run_motion(&scene, &Material::LUNG, &trace, &settings, &mut |_, _| {
+            Ok(())
+        })
+        .unwrap();
+        let seen = seen.lock().unwrap();
+        assert!(!seen.is_empty());
+        for (i, p) in seen.iter().enumerate() {
+            assert_eq!(p.equilibria, i + 1, "{seen:?}");
+        }
+        let peak = seen.iter().map(|p| p.volume_change_ml).fold(0.0, f64::max);
+        let want_ml = 0.01 * v0;
+        // Within the volume driver's tolerance; key volumes may reach a little beyond.
+        assert!(
+            peak > 0.99 * want_ml && peak < 1.05 * want_ml,
+            "{peak} vs {want_ml}"
         );
     }
 }

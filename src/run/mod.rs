@@ -103,8 +103,12 @@ pub trait RunObserver {
     fn cancelled(&self) -> bool {
         false
     }
-    /// A flag that, once raised, also stops the run between equilibrium solves.
+    /// A flag that, once raised, also stops the run inside equilibrium solves.
     fn cancel_flag(&self) -> Option<crate::simulation::CancelFlag> {
+        None
+    }
+    /// Where to report each equilibrium the solves reach (called on the solving thread).
+    fn solve_progress(&self) -> Option<crate::simulation::SolveProgressSink> {
         None
     }
 }
@@ -251,6 +255,7 @@ fn check_inputs(
     inputs.trace.validate()?;
     let mut settings = config.motion_settings();
     settings.cancel = observer.cancel_flag();
+    settings.progress = observer.solve_progress();
     let times = settings.instants.times(&inputs.trace)?;
     Ok((settings, times))
 }

@@ -75,10 +75,32 @@ pub struct BreathingDriver<'s> {
     predicted: Vec<V3>,
     /// Raised by the caller to stop before the next equilibrium solve.
     cancel: Option<CancelFlag>,
+    /// Told of every equilibrium reached.
+    progress: Option<SolveProgressSink>,
+    equilibria: usize,
 }
 
 /// A flag another thread raises to stop a long computation at its next check.
 pub type CancelFlag = std::sync::Arc<std::sync::atomic::AtomicBool>;
+
+/// Where a breathing solve stands after each equilibrium it reaches.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SolveProgress {
+    /// Equilibria reached so far by this driver (key volumes, bisection steps, frames).
+    pub equilibria: usize,
+    /// Lung volume change of the latest equilibrium from the scanned state, mL.
+    pub volume_change_ml: f64,
+}
+
+/// Receives [`SolveProgress`] on the solving thread (a progress bar, a job record).
+#[derive(Clone)]
+pub struct SolveProgressSink(pub std::sync::Arc<dyn Fn(SolveProgress) + Send + Sync>);
+
+impl std::fmt::Debug for SolveProgressSink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SolveProgressSink")
+    }
+}
 
 impl<'s> BreathingDriver<'s> {
     /// Prepares the solver for `scene`, whose surface pressures sum to `reference_pressure_pa`
@@ -121,6 +143,8 @@ impl<'s> BreathingDriver<'s> {
             slope_ml: -compliance_ml_per_pa * reference_pressure_pa,
             predicted: Vec::new(),
             cancel: None,
+            progress: None,
+            equilibria: 0,
         })
     }
 
@@ -224,7 +248,13 @@ impl<'s> BreathingDriver<'s> {
     /// last equilibrium when the corrector fails; every equilibrium reached joins the path.
     /// Stops every later solve with [`Error::Cancelled`] once `flag` is raised.
     pub fn set_cancel(&mut self, flag: CancelFlag) {
+        self.solver.set_cancel(flag.clone());
         self.cancel = Some(flag);
+    }
+
+    /// Tells `sink` of every equilibrium reached from now on.
+    pub fn set_progress(&mut self, sink: SolveProgressSink) {
+        self.progress = Some(sink);
     }
 
     fn solve_factor(&mut self, lambda: f64, reports: &mut Vec<SolveReport>) -> Result<Vec<V3>> {
@@ -326,6 +356,13 @@ impl<'s> BreathingDriver<'s> {
     /// Appends an equilibrium to the path and refines the slope dV/dλ from the last two.
     fn push_equilibrium(&mut self, lambda: f64, positions_m: Vec<V3>) {
         let dv_ml = self.volume_change_ml(&positions_m);
+        self.equilibria += 1;
+        if let Some(sink) = &self.progress {
+            (sink.0)(SolveProgress {
+                equilibria: self.equilibria,
+                volume_change_ml: dv_ml,
+            });
+        }
         if let Some(p) = self.path.last() {
             // The volume grows with suction, so a slope of the wrong sign means the two solves
             // were too close to tell: keep the previous estimate.

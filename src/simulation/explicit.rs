@@ -98,6 +98,9 @@ pub struct ExplicitSettings {
     pub kinetic_energy_fraction: f64,
     /// Steps between equilibrium and blow-up checks.
     pub check_every: usize,
+    /// Raised by another thread to stop at the next check with [`Error::Cancelled`].
+    #[serde(skip)]
+    pub cancel: Option<super::CancelFlag>,
 }
 
 impl Default for ExplicitSettings {
@@ -109,6 +112,7 @@ impl Default for ExplicitSettings {
             residual_tolerance: 1e-6,
             kinetic_energy_fraction: 1e-10,
             check_every: 50,
+            cancel: None,
         }
     }
 }
@@ -260,6 +264,15 @@ impl<'s> ExplicitIntegrator<'s> {
             ke = self.kinetic_energy_j();
             peak_ke = peak_ke.max(ke);
             guard.check(self.scene, &self.positions, ke, self.steps)?;
+            if settings
+                .cancel
+                .as_ref()
+                .is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed))
+            {
+                return Err(Error::Cancelled(
+                    "stopped during explicit relaxation".into(),
+                ));
+            }
             let (a, b) = (&mut self.force, &mut self.scratch);
             residual = self.scene.relative_residual(&self.positions, (a, b));
             if residual <= settings.residual_tolerance

@@ -69,10 +69,13 @@ pub fn scale(alpha: f64, y: &mut [f64]) {
 /// Restarted GMRES(m) with right preconditioning, so the residual it tracks is the true one.
 ///
 /// Solves A·x = b starting from x; stops at ‖b − A·x‖ ≤ rtol·‖b‖ or `max_iter` iterations.
-/// Returns (iterations, achieved relative residual).
+/// Returns (iterations, achieved relative residual). Returns early, with the iterate so
+/// far, once `stop()` answers true (checked every iteration: a cancelled job stops here).
+#[allow(clippy::too_many_arguments)]
 pub fn gmres(
     apply: &mut dyn FnMut(&[f64], &mut [f64]),
     precondition: &mut dyn FnMut(&[f64], &mut [f64]),
+    stop: &dyn Fn() -> bool,
     b: &[f64],
     x: &mut [f64],
     restart: usize,
@@ -140,7 +143,7 @@ pub fn gmres(
             iters += 1;
             k_done = k + 1;
             rel = g[k + 1].abs() / bnorm;
-            if rel <= rtol || iters >= max_iter || h[k][k] == 0.0 {
+            if rel <= rtol || iters >= max_iter || h[k][k] == 0.0 || stop() {
                 break;
             }
         }
@@ -156,7 +159,7 @@ pub fn gmres(
         for (j, yj) in y.iter().enumerate() {
             axpy(*yj, &z[j], x);
         }
-        if rel <= rtol || iters >= max_iter {
+        if rel <= rtol || iters >= max_iter || stop() {
             apply(x, &mut w);
             let r: f64 = b
                 .iter()
@@ -193,7 +196,7 @@ mod tests {
         let mut b = vec![0.0; n];
         apply(&want, &mut b);
         let mut x = vec![0.0; n];
-        let (_, rel) = gmres(&mut apply, &mut id, &b, &mut x, 10, 1e-12, 500);
+        let (_, rel) = gmres(&mut apply, &mut id, &|| false, &b, &mut x, 10, 1e-12, 500);
         assert!(rel < 1e-11);
         for (a, b) in x.iter().zip(&want) {
             assert!((a - b).abs() < 1e-9);

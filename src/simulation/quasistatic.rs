@@ -42,6 +42,10 @@ pub struct QuasiStaticSettings {
     /// trap them), continue with critically damped explicit relaxation for at most this many
     /// steps; 0 disables the fallback.
     pub relaxation_max_steps: usize,
+    /// Raised by another thread to stop the solve at its next Newton, Krylov or relaxation
+    /// check (a cancelled job must stop within a second, not at the end of a long solve).
+    #[serde(skip)]
+    pub cancel: Option<super::CancelFlag>,
 }
 
 /// Preconditioner of the Krylov solves.
@@ -64,6 +68,7 @@ impl Default for QuasiStaticSettings {
             preconditioner: PreconditionerKind::Auto,
             smoothing_degree: 4,
             relaxation_max_steps: 2_000_000,
+            cancel: None,
         }
     }
 }
@@ -266,6 +271,7 @@ impl<'s> QuasiStaticSolver<'s> {
         let mut sigma = 0.0;
         let mut res = residual(scene, constraints, lambda, x, w);
         for it in 0..self.settings.max_newton_iterations {
+            self.check_cancelled()?;
             if !res.is_finite() {
                 return Err(Error::Diverged {
                     step: report.newton_iterations,
@@ -285,6 +291,7 @@ impl<'s> QuasiStaticSolver<'s> {
             };
             let (accepted, taken) = self.newton_step(&increment, &base, &mut sigma, x, w, report);
             report.newton_iterations += 1;
+            self.check_cancelled()?;
             tracing::debug!(
                 it,
                 res,
@@ -405,6 +412,7 @@ impl<'s> QuasiStaticSolver<'s> {
             residual_tolerance: tol,
             kinetic_energy_fraction: 1.0,
             max_steps: self.settings.relaxation_max_steps,
+            cancel: self.settings.cancel.clone(),
             ..Default::default()
         })?;
         report.relaxation_steps += outcome.steps;
@@ -419,6 +427,20 @@ impl<'s> QuasiStaticSolver<'s> {
                 tolerance: tol,
             })
         }
+    }
+
+    /// Stops every later solve, and the one under way at its next check, once `flag` is raised.
+    pub fn set_cancel(&mut self, flag: super::CancelFlag) {
+        self.settings.cancel = Some(flag);
+    }
+
+    fn check_cancelled(&self) -> Result<()> {
+        if is_raised(&self.settings.cancel) {
+            return Err(Error::Cancelled(
+                "stopped during an equilibrium solve".into(),
+            ));
+        }
+        Ok(())
     }
 
     fn set_shift(&mut self, sigma: f64) {
@@ -503,9 +525,11 @@ impl<'s> QuasiStaticSolver<'s> {
             }
         };
         let mut delta = vec![0.0; b.len()];
+        let cancel = &self.settings.cancel;
         let (lin, lin_res) = linalg::gmres(
             &mut apply,
             &mut precondition,
+            &|| is_raised(cancel),
             b,
             &mut delta,
             40,
@@ -515,6 +539,11 @@ impl<'s> QuasiStaticSolver<'s> {
         report.linear_iterations += lin;
         (delta, lin, lin_res)
     }
+}
+
+fn is_raised(flag: &Option<super::CancelFlag>) -> bool {
+    flag.as_ref()
+        .is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed))
 }
 
 /// One load increment's equilibrium problem: its constraints, load factor λ and the length
