@@ -45,6 +45,7 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::InvalidModel(_)
         | Error::Diverged { .. }
         | Error::NotConverged { .. }
+        | Error::VolumeUnreachable(_)
         | Error::External(_)
         | Error::Cancelled(_)
         | Error::Store { .. } => false,

@@ -187,7 +187,8 @@ pub fn run_breathing(
         &times,
         &mut sink,
         observer,
-    )?;
+    )
+    .map_err(|e| name_element_groups(e, &outcome.model))?;
     let written = sink.finish();
     timings.insert(
         "motion_solve".to_string(),
@@ -316,6 +317,25 @@ fn write_ingest_files(
     std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
     write_ingest_outputs(&dir, ct, outcome)?;
     Ok(())
+}
+
+/// Adds the anatomical groups of the named element's nodes to a [`Error::VolumeUnreachable`],
+/// which the solver, knowing only the mesh, leaves out.
+fn name_element_groups(error: Error, model: &crate::ingest::lung_model::LungModel) -> Error {
+    let Error::VolumeUnreachable(mut unreachable) = error else {
+        return error;
+    };
+    let mut names: Vec<&str> = model.mesh.mesh.elements[unreachable.element]
+        .iter()
+        .map(|&n| {
+            crate::ingest::lung_model::ConstraintGroup::from_code(model.node_group[n as usize])
+                .map_or("interior", |g| g.name())
+        })
+        .collect();
+    names.sort_unstable();
+    names.dedup();
+    unreachable.group = Some(names.join(", "));
+    Error::VolumeUnreachable(unreachable)
 }
 
 /// Drives the scene through the trace, quasi-static or dynamic as configured, handing every
