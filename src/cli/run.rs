@@ -149,7 +149,8 @@ impl BreathingRun {
     }
 }
 
-/// The run's summary on stdout: model, frame table, end-inhale, tracked points, timings.
+/// The run's summary on stdout: model, frame table, the breathing's extremes (end-inhale,
+/// deepest expiration) with the tracked points there, timings.
 fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
     let m = &summary.model;
     println!(
@@ -170,30 +171,27 @@ fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
             s.mean_displacement_mm
         );
     }
-    let e = &summary.end_inhale;
-    println!(
-        "end-inhale (frame {}): max displacement {:.1} mm at LPS ({:.0}, {:.0}, {:.0}) mm \
-         ({} lung, {}); base moves {:+.1} mm, apex {:+.1} mm in z",
-        e.frame,
-        e.max_displacement_mm,
-        e.max_displacement_at_lps_mm[0],
-        e.max_displacement_at_lps_mm[1],
-        e.max_displacement_at_lps_mm[2],
-        e.max_displacement_lung,
-        e.max_displacement_group,
-        e.mean_base_dz_mm,
-        e.mean_apex_dz_mm
-    );
-    for p in &summary.points {
-        let d = p.displacement_mm[e.frame];
+    let extremes: Vec<_> = summary.extremes().collect();
+    if extremes.is_empty() {
         println!(
-            "{}: end-inhale displacement ({:+.1}, {:+.1}, {:+.1}) mm, |d| = {:.1} mm",
-            p.name,
-            d[0],
-            d[1],
-            d[2],
-            (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            "no frame leaves the scanned volume by more than {} mL: no breathing extreme to report",
+            lungmotion::run::SCANNED_STATE_TOLERANCE_ML
         );
+    }
+    for e in &extremes {
+        println!("{}", e.describe());
+        for p in &summary.points {
+            let d = p.displacement_mm[e.frame];
+            println!(
+                "{}: {} displacement ({:+.1}, {:+.1}, {:+.1}) mm, |d| = {:.1} mm",
+                p.name,
+                e.kind.label(),
+                d[0],
+                d[1],
+                d[2],
+                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            );
+        }
     }
     println!(
         "solved in {:.2} s ({} key volumes), {:.2} s in all; wrote {}",

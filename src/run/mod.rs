@@ -13,10 +13,11 @@
 //!   and elastix expect (not RAS, whatever the NIfTI world frame); zero outside the lungs.
 //!   `u(x)` is where the tissue at CT voxel `x` has moved: `x + u(x)` at that instant.
 //!   Optionally `displacement.mha` (MetaImage, same convention) and `mesh.vtu` (the deformed
-//!   mesh, LPS millimetres, point data `displacement_mm`).
+//!   mesh, LPS millimetres, point data `displacement_mm` and `group`, cell data `lung`).
 //! * `trajectories.csv`: tracked points per frame (see [`crate::outputs::trajectories`]).
 //! * `summary.json`: [`RunSummary`].
-//! * `breathing.png`, `end-inhale-displacement.png`: quick looks.
+//! * `breathing.png`, `end-inhale-displacement.png` (or `deepest-expiration-displacement.png`
+//!   for a trace that never rises above the scanned volume): quick looks.
 //! * `ingest/`: the ingest outputs (lung mask, groups, mesh, `ingest.json`).
 
 pub mod config;
@@ -33,8 +34,8 @@ use std::time::Instant;
 pub use crate::outputs::trajectories::TrackedPoint;
 pub use config::{MotionConfig, OutputConfig, RunConfig};
 pub use summary::{
-    EndInhaleSummary, FrameFiles, FrameRecord, ModelSummary, PointTrajectory, RunSummary,
-    TraceSummary,
+    BreathExtreme, BreathExtremeSummary, FrameFiles, FrameRecord, ModelSummary, PointTrajectory,
+    RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM, SCANNED_STATE_TOLERANCE_ML,
 };
 
 use crate::breathing::BreathingTrace;
@@ -178,7 +179,14 @@ pub fn run_breathing(
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
-    let mut sink = FrameSink::open(&lung, staging.dir(), &config.outputs, inputs, &times)?;
+    let mut sink = FrameSink::open(
+        &lung,
+        &outcome.model,
+        staging.dir(),
+        &config.outputs,
+        inputs,
+        &times,
+    )?;
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
@@ -199,16 +207,23 @@ pub fn run_breathing(
     observer.stage(RunStage::Finishing);
     check_cancel(observer, "the summary")?;
     let t = Instant::now();
-    let capture = written
-        .end_inhale
-        .ok_or_else(|| Error::argument("run output", "the run produced no frame"))?;
-    let end_inhale = summary::end_inhale_summary(
-        &outcome.model,
-        &lung.scene,
-        capture.frame,
-        &capture.positions_m,
-        &report,
-    );
+    if written.records.is_empty() {
+        return Err(Error::argument("run output", "the run produced no frame"));
+    }
+    let extremes = written
+        .extremes
+        .iter()
+        .map(|c| {
+            summary::extreme_summary(
+                c.kind,
+                &outcome.model,
+                &lung.scene,
+                c.frame,
+                &c.positions_m,
+                &report,
+            )
+        })
+        .collect();
     if let Some(file) = written.trajectory_file {
         file.finish()?;
     }
@@ -220,7 +235,7 @@ pub fn run_breathing(
             &outcome.segmentation.lungs,
             &lung.field,
             &written.records,
-            &capture,
+            written.pictured.as_ref(),
         )?;
     }
     let mut summary = RunSummary::new(
@@ -231,7 +246,7 @@ pub fn run_breathing(
         dynamic,
         written.records,
         written.trajectories,
-        end_inhale,
+        extremes,
         summary::FieldGridSummary::of(
             config.outputs.field_grid,
             &lung.field,
