@@ -42,7 +42,7 @@ use crate::breathing::BreathingTrace;
 use crate::durable::write_atomic;
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
-use crate::ingest::scan::load_ct_with;
+use crate::ingest::scan::{load_ct_with, LoadedScan};
 use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
@@ -114,6 +114,56 @@ pub trait RunObserver {
     }
 }
 
+/// A CT read and ingested (segmentation, cubic elements, constraint groups, wall): what a
+/// run needs before its solves. The service keeps them so that several jobs on one scan
+/// with the same ingest settings read and ingest it once.
+pub struct IngestedScan {
+    /// The CT as read.
+    pub scan: LoadedScan,
+    /// Its ingest.
+    pub outcome: IngestOutcome,
+}
+
+impl IngestedScan {
+    /// Reads `ct_path` and ingests it with `config`'s settings, reporting the two stages to
+    /// `observer` and stopping between them when it cancels; adds the stages' wall times to
+    /// `timings` (`load_ct`, `ingest`).
+    pub fn read(
+        ct_path: &Path,
+        config: &RunConfig,
+        observer: &mut dyn RunObserver,
+        timings: &mut BTreeMap<String, f64>,
+    ) -> Result<Self> {
+        observer.stage(RunStage::LoadingScan);
+        let t = Instant::now();
+        let scan = load_ct_with(ct_path, &config.dicom_read_options())?;
+        timings.insert("load_ct".to_string(), t.elapsed().as_secs_f64());
+        check_cancel(observer, "ingest")?;
+        observer.stage(RunStage::Ingest);
+        let t = Instant::now();
+        let outcome = ingest_scan(&scan, &config.ingest_settings())?;
+        timings.insert("ingest".to_string(), t.elapsed().as_secs_f64());
+        Ok(IngestedScan { scan, outcome })
+    }
+
+    /// Bytes held by its voxel grids and wall distance field (the bulk of it), for a
+    /// cache's budget.
+    pub fn approximate_bytes(&self) -> u64 {
+        let voxels = |dims: [usize; 3]| dims.iter().product::<usize>() as u64;
+        let seg = &self.outcome.segmentation;
+        let model = &self.outcome.model;
+        let ct_bytes = voxels(self.scan.ct.geometry.dims) * 4;
+        let masks = [&seg.lungs, &seg.airways, &seg.body, &model.groups_volume]
+            .iter()
+            .map(|v| voxels(v.geometry.dims))
+            .sum::<u64>();
+        let wall = model.wall.values_m.len() as u64 * 8;
+        let mesh = model.mesh.mesh.rest_positions_m.len() as u64 * 64
+            + model.mesh.mesh.elements.len() as u64 * 64;
+        ct_bytes + masks + wall + mesh
+    }
+}
+
 /// An observer that ignores everything.
 pub struct SilentObserver;
 
@@ -157,25 +207,43 @@ pub fn run_breathing(
     out_dir: &Path,
     observer: &mut dyn RunObserver,
 ) -> Result<RunSummary> {
+    run_breathing_on(inputs, config, out_dir, observer, None)
+}
+
+/// [`run_breathing`] on `prepared`: the CT of `inputs.ct_path` already read and ingested with
+/// `config`'s settings (the caller's promise), with the wall times of that reading to report
+/// (none when it was read for an earlier run); or reading and ingesting it when `None`.
+pub fn run_breathing_on(
+    inputs: &RunInputs,
+    config: &RunConfig,
+    out_dir: &Path,
+    observer: &mut dyn RunObserver,
+    prepared: Option<(&IngestedScan, BTreeMap<String, f64>)>,
+) -> Result<RunSummary> {
     let t_total = Instant::now();
     let mut timings = BTreeMap::new();
     let (settings, times) = check_inputs(inputs, config, observer)?;
     let staging = OutputStaging::new(out_dir)?;
 
-    observer.stage(RunStage::LoadingScan);
+    let read;
+    let ingested = match prepared {
+        Some((ingested, read_timings)) => {
+            timings = read_timings;
+            observer.stage(RunStage::Ingest);
+            ingested
+        }
+        None => {
+            read = IngestedScan::read(&inputs.ct_path, config, observer, &mut timings)?;
+            &read
+        }
+    };
+    let (scan, outcome) = (&ingested.scan, &ingested.outcome);
     let t = Instant::now();
-    let scan = load_ct_with(&inputs.ct_path, &config.dicom_read_options())?;
-    timings.insert("load_ct".to_string(), t.elapsed().as_secs_f64());
-    check_cancel(observer, "ingest")?;
-
-    observer.stage(RunStage::Ingest);
-    let t = Instant::now();
-    let outcome = ingest_scan(&scan, &config.ingest_settings())?;
-    let lung = build_lung_scene(&outcome, &inputs.points, config.outputs.field_grid)?;
+    let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
     if config.outputs.ingest_files {
-        write_ingest_files(staging.dir(), &scan.ct, &outcome)?;
+        write_ingest_files(staging.dir(), &scan.ct, outcome)?;
     }
-    timings.insert("ingest".to_string(), t.elapsed().as_secs_f64());
+    *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
@@ -241,7 +309,7 @@ pub fn run_breathing(
     let mut summary = RunSummary::new(
         inputs,
         config,
-        &outcome,
+        outcome,
         report,
         dynamic,
         written.records,

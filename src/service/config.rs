@@ -17,6 +17,7 @@
 //! body_read_timeout_s = 30    # the longest pause inside a request body
 //! ingest_timeout_s = 600      # reading and meshing one uploaded scan
 //! ingest_memory_mib = 8192    # address space of the child reading one upload; 0: no limit
+//! ingest_cache_mib = 1024     # scans kept read and ingested for the next job; 0: none
 //! [run]                       # defaults of every simulation, as `lungmotion run --config`
 //! element_size_mm = 6
 //! ```
@@ -36,6 +37,9 @@ const MAX_CONFIG_BYTES: u64 = 1 << 20;
 /// and meshed under `ulimit -v` 1.2 GiB (844 MB peak), so 8 GiB leaves room for 500-slice
 /// scans while a hostile file's runaway allocation stops there.
 pub const DEFAULT_INGEST_MEMORY_MIB: u64 = 8192;
+/// Default memory for scans kept read and ingested between jobs, MiB: one POPI-sized chest
+/// CT with its ingest (about 0.6 GB).
+pub const DEFAULT_INGEST_CACHE_MIB: u64 = 1024;
 /// Smallest ingest child limit accepted, MiB.
 const MIN_INGEST_MEMORY_MIB: u64 = 256;
 
@@ -70,6 +74,8 @@ pub struct ServiceConfig {
     pub ingest_timeout_s: f64,
     /// Address space the ingest child may reserve, MiB (0: no limit; a thread is never limited).
     pub ingest_memory_mib: u64,
+    /// Memory for scans kept read and ingested for the next job on them, MiB (0: none).
+    pub ingest_cache_mib: u64,
     /// Where an upload's ingest runs (set by the program embedding the service, not by files).
     pub ingest_isolation: IngestIsolation,
     /// Defaults of every simulation; a request's options are merged over them.
@@ -110,6 +116,7 @@ impl Default for ServiceConfig {
             body_read_timeout_s: 30.0,
             ingest_timeout_s: 600.0,
             ingest_memory_mib: DEFAULT_INGEST_MEMORY_MIB,
+            ingest_cache_mib: DEFAULT_INGEST_CACHE_MIB,
             ingest_isolation: IngestIsolation::default(),
             run: RunConfig::default(),
         }
@@ -134,6 +141,7 @@ struct ServiceFile {
     body_read_timeout_s: Option<f64>,
     ingest_timeout_s: Option<f64>,
     ingest_memory_mib: Option<u64>,
+    ingest_cache_mib: Option<u64>,
     run: Option<toml::Value>,
 }
 
@@ -158,7 +166,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 12] = [
+pub const ENV_VARS: [&str; 13] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -171,6 +179,7 @@ pub const ENV_VARS: [&str; 12] = [
     "LUNGMOTION_BODY_READ_TIMEOUT_S",
     "LUNGMOTION_INGEST_TIMEOUT_S",
     "LUNGMOTION_INGEST_MEMORY_MIB",
+    "LUNGMOTION_INGEST_CACHE_MIB",
 ];
 
 impl ServiceConfig {
@@ -252,6 +261,7 @@ impl ServiceConfig {
         set(&mut self.body_read_timeout_s, file.body_read_timeout_s);
         set(&mut self.ingest_timeout_s, file.ingest_timeout_s);
         set(&mut self.ingest_memory_mib, file.ingest_memory_mib);
+        set(&mut self.ingest_cache_mib, file.ingest_cache_mib);
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -303,6 +313,9 @@ impl ServiceConfig {
         }
         if let Some(v) = env("LUNGMOTION_INGEST_MEMORY_MIB") {
             self.ingest_memory_mib = parsed("LUNGMOTION_INGEST_MEMORY_MIB", &v)?;
+        }
+        if let Some(v) = env("LUNGMOTION_INGEST_CACHE_MIB") {
+            self.ingest_cache_mib = parsed("LUNGMOTION_INGEST_CACHE_MIB", &v)?;
         }
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);

@@ -14,9 +14,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use super::ids::{JobId, ScanId};
+use super::ingest_cache::{IngestCache, IngestKey};
+use super::progress::JobObserver;
 use super::store::{now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, Store};
 use crate::breathing::BreathingTrace;
-use crate::run::{run_breathing, RunInputs, RunObserver, RunStage};
+use crate::run::{run_breathing_on, IngestedScan, RunInputs, RunObserver};
 use crate::simulation::CancelFlag;
 use crate::{Error, IoContext, IoOp, Result};
 
@@ -39,7 +41,8 @@ pub enum SubmitRefusal {
 pub enum CancelOutcome {
     /// The job was waiting and is now cancelled.
     Cancelled,
-    /// The job is running; it stops at its next equilibrium solve, stage or frame.
+    /// The job is running and is now `cancelling`: the solver stops at its next Newton or
+    /// Krylov iteration (or the run at its next frame or stage), then it is `cancelled`.
     Requested,
     /// The job had already finished.
     AlreadyFinished,
@@ -49,7 +52,7 @@ pub enum CancelOutcome {
 #[derive(Debug, Clone, Default)]
 pub struct JobCounts {
     /// Jobs known, by state.
-    pub by_state: [usize; 5],
+    pub by_state: [usize; 6],
     /// Jobs waiting for a worker.
     pub queued: usize,
     /// Jobs running.
@@ -66,10 +69,11 @@ const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
 
-/// A job the server knows of: its record, and while it runs the flag that stops it (seen
-/// by the run's stages, frames and solves) and why it was raised.
+/// A job the server knows of: its record (shared with the run's progress callbacks), and
+/// while it runs the flag that stops it (seen by the run's stages, frames and the solver's
+/// iterations) and why it was raised.
 struct LiveJob {
-    record: Mutex<JobRecord>,
+    record: Arc<Mutex<JobRecord>>,
     stop: CancelFlag,
     cancel: AtomicU8,
 }
@@ -77,7 +81,7 @@ struct LiveJob {
 impl LiveJob {
     fn new(record: JobRecord) -> Arc<Self> {
         Arc::new(LiveJob {
-            record: Mutex::new(record),
+            record: Arc::new(Mutex::new(record)),
             stop: CancelFlag::default(),
             cancel: AtomicU8::new(CANCEL_NONE),
         })
@@ -104,6 +108,7 @@ struct Shared {
     changed: Condvar,
     queue_capacity: usize,
     workers: usize,
+    ingests: Arc<IngestCache>,
 }
 
 /// The job queue and its workers.
@@ -118,12 +123,14 @@ pub struct Workers {
 }
 
 impl JobManager {
-    /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads.
+    /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads, which
+    /// keep the scans they ingest in `ingests`.
     pub fn start(
         store: Store,
         workers: usize,
         queue_capacity: usize,
         max_attempts: u32,
+        ingests: Arc<IngestCache>,
     ) -> Result<(Self, Workers)> {
         let (records, problems) = store.list_jobs()?;
         for p in problems {
@@ -163,6 +170,17 @@ impl JobManager {
                     store.save_job(&record)?;
                     tracing::warn!(job = %record.job_id, "interrupted too often, failed");
                 }
+                JobState::Cancelling => {
+                    // The client's wish stands: the run it stopped is not started again.
+                    record.state = JobState::Cancelled;
+                    record.error = Some(
+                        "cancelled by a client while running (the server stopped before the \
+                         run did)"
+                            .into(),
+                    );
+                    record.finished_at = Some(now_rfc3339());
+                    store.save_job(&record)?;
+                }
                 JobState::Running => {
                     record.state = JobState::Queued;
                     record.progress = JobProgress::default();
@@ -188,6 +206,7 @@ impl JobManager {
             changed: Condvar::new(),
             queue_capacity,
             workers,
+            ingests,
         });
         let threads = (0..workers)
             .map(|i| {
@@ -226,7 +245,8 @@ impl JobManager {
                 retry_after_s: self.retry_after_s(&board),
             }));
         }
-        let record = JobRecord::queued(scan_id);
+        let mut record = JobRecord::queued(scan_id);
+        record.progress.frames_total = frames_total(request);
         // On disk before it is acknowledged: an accepted job is never lost.
         self.shared.store.put_job(&record, request)?;
         board
@@ -280,9 +300,15 @@ impl JobManager {
                 Ok(Some(CancelOutcome::Cancelled))
             }
             JobState::Running => {
+                // Visible (and on disk) before the flag is raised, so a client polling after
+                // its DELETE sees `cancelling`, never `running`.
+                record.state = JobState::Cancelling;
+                self.shared.store.save_job(&record)?;
                 live.request_stop(CANCEL_CLIENT);
+                tracing::info!(job = %id, "cancellation requested; the run stops at its next check");
                 Ok(Some(CancelOutcome::Requested))
             }
+            JobState::Cancelling => Ok(Some(CancelOutcome::Requested)),
             _ => Ok(Some(CancelOutcome::AlreadyFinished)),
         }
     }
@@ -316,6 +342,11 @@ impl JobManager {
             counts.by_state[i] += 1;
         }
         counts
+    }
+
+    /// The scans jobs have read and ingested.
+    pub fn ingest_cache(&self) -> &IngestCache {
+        &self.shared.ingests
     }
 
     /// Whether shutdown has begun.
@@ -359,9 +390,9 @@ impl JobManager {
             }
         }
         drop(board);
-        // A run checks for cancellation between stages, frames and equilibrium solves, not
-        // inside one; a worker still busy after this is left behind, and its job, still
-        // `running` on disk, is re-run at the next start.
+        // A run checks for cancellation between stages and frames and in every Newton and
+        // Krylov iteration, but not inside the ingest; a worker still busy after this is left
+        // behind, and its job, still `running` on disk, is re-run at the next start.
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             for t in workers.threads {
@@ -400,7 +431,10 @@ fn worker_loop(shared: &Shared) {
                     record.state = JobState::Running;
                     record.attempts += 1;
                     record.started_at = Some(now_rfc3339());
-                    record.progress = JobProgress::default();
+                    record.progress = JobProgress {
+                        frames_total: record.progress.frames_total,
+                        ..JobProgress::default()
+                    };
                     drop(record);
                     board.running += 1;
                     break live;
@@ -447,14 +481,35 @@ fn run_job(shared: &Shared, live: &LiveJob) {
             .unwrap_or_else(|| "unknown panic".into());
         Err(Error::InvalidModel(format!("internal error: {what}")))
     });
+    let cancelled_by_client = live.cancel.load(Ordering::SeqCst) == CANCEL_CLIENT;
     let mut record = lock(&live.record);
     match outcome {
+        Ok(()) if cancelled_by_client => {
+            // The run published its outputs before it saw the flag; the client asked for
+            // none, and a cancelled job has none.
+            if let Err(e) = shared.store.remove_job_output(id) {
+                tracing::warn!(job = %id, "cannot remove the outputs of a cancelled job: {e}");
+            }
+            record.state = JobState::Cancelled;
+            record.error = Some(
+                "cancelled by a client while running (the run had just finished; its outputs \
+                 were removed)"
+                    .into(),
+            );
+        }
         Ok(()) => {
             record.state = JobState::Done;
             record.error = None;
             record.progress.fraction = 1.0;
             record.progress.stage = None;
             record.progress.stage_label = None;
+            record.progress.seconds_left = Some(0.0);
+        }
+        Err(_) if cancelled_by_client => {
+            // Whatever the stop surfaced as (a cancellation, or a solve cut short), the
+            // client asked for it.
+            record.state = JobState::Cancelled;
+            record.error = Some("cancelled by a client while running".into());
         }
         Err(Error::Cancelled(_)) if live.cancel.load(Ordering::SeqCst) == CANCEL_SHUTDOWN => {
             // Not the job's fault: it runs again after the restart, without using an attempt.
@@ -466,7 +521,7 @@ fn run_job(shared: &Shared, live: &LiveJob) {
         }
         Err(Error::Cancelled(_)) => {
             record.state = JobState::Cancelled;
-            record.error = Some("cancelled by a client while running".into());
+            record.error = Some("cancelled while running".into());
         }
         Err(e) => {
             record.state = JobState::Failed;
@@ -507,6 +562,19 @@ fn client_message(e: Error, root: &std::path::Path) -> String {
     e.to_string().replace(&format!("{}/", root.display()), "")
 }
 
+/// Frames a job will write, from its trace and output instants (none when they are unusable:
+/// the run then fails saying why).
+fn frames_total(request: &JobRequest) -> Option<usize> {
+    let trace = BreathingTrace::new(request.time_s.clone(), request.volume_ml.clone()).ok()?;
+    let times = request
+        .config
+        .motion_settings()
+        .instants
+        .times(&trace)
+        .ok()?;
+    Some(times.len())
+}
+
 fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Result<()> {
     let request = shared.store.job_request(id)?;
     let scan = shared.store.scan(scan_id)?.ok_or_else(|| Error::Store {
@@ -514,6 +582,9 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         reason: "the scan was deleted before the job ran".into(),
     })?;
     shared.store.clear_partial_outputs(id)?;
+    // Jobs queued by an older server have no count yet.
+    let frames = frames_total(&request);
+    lock(&live.record).progress.frames_total = frames;
     let JobRequest {
         config,
         time_s,
@@ -527,73 +598,39 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         trace_source,
         points: points.iter().map(Into::into).collect(),
     };
-    let mut observer = JobObserver {
-        store: &shared.store,
-        live,
-    };
-    run_breathing(
+    let mut observer = JobObserver::new(&shared.store, live.record.clone(), live.stop.clone());
+    let (ingested, read_timings) = ingested_scan(shared, scan_id, &inputs, &config, &mut observer)?;
+    run_breathing_on(
         &inputs,
         &config,
         &shared.store.job_output_dir(id),
         &mut observer,
+        Some((&ingested, read_timings)),
     )?;
     Ok(())
 }
 
-/// Carries a run's progress into the job record (on disk at each stage).
-struct JobObserver<'a> {
-    store: &'a Store,
-    live: &'a LiveJob,
-}
-
-/// Where each stage starts in the progress fraction (solving dominates).
-fn stage_start(stage: RunStage) -> f64 {
-    match stage {
-        RunStage::LoadingScan => 0.0,
-        RunStage::Ingest => 0.05,
-        RunStage::Solving => 0.15,
-        RunStage::WritingFrames => 0.7,
-        RunStage::Finishing => 0.95,
+/// The job's scan read and ingested with its settings: from the cache when an earlier job
+/// did it (no wall times then), else read and ingested now and kept there.
+fn ingested_scan(
+    shared: &Shared,
+    scan_id: ScanId,
+    inputs: &RunInputs,
+    config: &crate::run::RunConfig,
+    observer: &mut dyn RunObserver,
+) -> Result<(Arc<IngestedScan>, std::collections::BTreeMap<String, f64>)> {
+    let key = IngestKey::new(scan_id, config);
+    if let Some(ingested) = shared.ingests.get(&key) {
+        tracing::info!(scan = %scan_id, "ingest reused: the scan was read and ingested with these settings before");
+        return Ok((ingested, Default::default()));
     }
-}
-
-fn stage_name(stage: RunStage) -> &'static str {
-    match stage {
-        RunStage::LoadingScan => "loading_scan",
-        RunStage::Ingest => "ingest",
-        RunStage::Solving => "solving",
-        RunStage::WritingFrames => "writing_frames",
-        RunStage::Finishing => "finishing",
-    }
-}
-
-impl RunObserver for JobObserver<'_> {
-    fn stage(&mut self, stage: RunStage) {
-        let mut record = lock(&self.live.record);
-        record.progress.stage = Some(stage_name(stage).to_string());
-        record.progress.stage_label = Some(stage.label().to_string());
-        record.progress.fraction = stage_start(stage);
-        if let Err(e) = self.store.save_job(&record) {
-            tracing::warn!(job = %record.job_id, "cannot record progress: {e}");
-        }
-    }
-
-    fn frame_written(&mut self, done: usize, total: usize) {
-        let mut record = lock(&self.live.record);
-        record.progress.frames_written = done;
-        record.progress.frames_total = Some(total);
-        let (a, b) = (
-            stage_start(RunStage::WritingFrames),
-            stage_start(RunStage::Finishing),
-        );
-        record.progress.fraction = a + (b - a) * done as f64 / total.max(1) as f64;
-    }
-
-    fn cancelled(&self) -> bool {
-        self.live.stop.load(Ordering::SeqCst)
-    }
-
-    fn cancel_flag(&self) -> Option<CancelFlag> {
-        Some(self.live.stop.clone())
-    }
+    let mut timings = Default::default();
+    let ingested = Arc::new(IngestedScan::read(
+        &inputs.ct_path,
+        config,
+        observer,
+        &mut timings,
+    )?);
+    shared.ingests.insert_ingested(key, ingested.clone());
+    Ok((ingested, timings))
 }

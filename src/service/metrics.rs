@@ -12,6 +12,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
+use super::ingest_cache::IngestCache;
 use super::jobs::JobCounts;
 use super::store::JobState;
 
@@ -142,6 +143,27 @@ impl ServiceMetrics {
         self.scans_ingested.inc();
     }
 
+    /// Adds the ingest cache's series: jobs that reused an ingest, jobs that ingested, and
+    /// the bytes the cache holds.
+    pub fn register_ingest_cache(&self, cache: &IngestCache) {
+        let mut registry = self.registry.lock().unwrap_or_else(|p| p.into_inner());
+        registry.register(
+            "lungmotion_job_ingests_reused",
+            "Jobs that reused a scan read and ingested with the same settings by an earlier job",
+            cache.reused.clone(),
+        );
+        registry.register(
+            "lungmotion_job_ingests",
+            "Jobs that read and ingested their scan",
+            cache.ingested.clone(),
+        );
+        registry.register(
+            "lungmotion_ingest_cache_bytes",
+            "Memory held by scans kept read and ingested for the next job (approximate)",
+            cache.bytes.clone(),
+        );
+    }
+
     /// The text exposition, with the job gauges read from `counts` now.
     pub fn render(&self, counts: &JobCounts) -> String {
         for (state, n) in JobState::ALL.iter().zip(counts.by_state) {
@@ -172,7 +194,7 @@ mod tests {
         m.observe_request("GET", "/v1/jobs/{id}", 200, 0.001);
         m.observe_upload(1234);
         let counts = JobCounts {
-            by_state: [2, 1, 0, 0, 0],
+            by_state: [2, 1, 0, 0, 0, 0],
             queued: 2,
             running: 1,
         };

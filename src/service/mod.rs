@@ -2,9 +2,10 @@
 //! and scripts. A thin shell over [`crate::run::run_breathing`] and the ingest stage:
 //!
 //! * [`config`]: file, environment and command-line settings, merged in one place;
-//! * [`ids`]: unguessable scan and job ids;
+//! * [`ids`]: unguessable scan and job ids; [`ingest_cache`]: scans ingested for jobs, by settings;
 //! * [`store`]: the on-disk store with atomic records;
-//! * [`jobs`]: the bounded queue and worker pool, recovery after a restart;
+//! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
+//!   [`progress`]: a running job's progress and time left;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
 //! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
@@ -19,11 +20,13 @@ pub mod body_timeout;
 pub mod config;
 pub mod connections;
 pub mod ids;
+pub mod ingest_cache;
 pub mod isolation;
 pub mod jobs;
 pub mod metrics;
 pub mod openapi;
 pub mod problem;
+mod progress;
 pub mod request;
 pub mod routes;
 pub mod server;

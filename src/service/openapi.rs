@@ -1,15 +1,19 @@
 //! The OpenAPI 3.1 document served at `/openapi.json`, generated from the handlers' and
-//! types' annotations so that it describes exactly what the code does.
+//! types' annotations so that it describes exactly what the code does; the run options'
+//! schema is in [`run_options`], checked against the run configuration's keys.
 
+use serde_json::{json, Value};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
 use super::problem::Problem;
 use super::routes::{
-    self, FrameEntry, FrameList, Health, JobLinks, JobStatus, ScanLinks, ScanView,
-    SimulationRequest, TraceBody,
+    self, FrameEntry, FrameList, Health, JobLinks, JobStatus, OutputFile, OutputFileList,
+    ScanLinks, ScanView, SimulationRequest, TraceBody,
 };
 use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
+
+pub mod run_options;
 
 /// The API description.
 #[derive(OpenApi)]
@@ -36,6 +40,8 @@ use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
         routes::job_frames,
         routes::frame_displacement,
         routes::job_trajectories,
+        routes::job_files,
+        routes::job_file,
         routes::healthz,
         routes::readyz,
         routes::metrics,
@@ -43,7 +49,8 @@ use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
     components(schemas(
         Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
         JobState,
-        SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health
+        SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health, OutputFile,
+        OutputFileList
     )),
     modifiers(&BearerAuth),
     tags(
@@ -67,11 +74,85 @@ impl Modify for BearerAuth {
     }
 }
 
-/// The document, with this build's version.
-pub fn openapi_document() -> utoipa::openapi::OpenApi {
+/// The document, with this build's version, the 401 answer of every operation that needs
+/// the token, and the run options as a schema.
+pub fn openapi_document() -> Value {
     let mut doc = ApiDoc::openapi();
     doc.info.version = env!("CARGO_PKG_VERSION").to_string();
+    let mut doc = serde_json::to_value(doc).unwrap_or_else(|e| {
+        json!({"openapi": "3.1.0", "info": {"title": "lungmotion", "description": e.to_string()}})
+    });
+    declare_unauthorized(&mut doc);
+    describe_run_options(&mut doc);
     doc
+}
+
+/// Adds the `401` answer to every operation that declares a security requirement.
+fn declare_unauthorized(doc: &mut Value) {
+    let Some(paths) = doc.get_mut("paths").and_then(Value::as_object_mut) else {
+        return;
+    };
+    for operation in paths
+        .values_mut()
+        .filter_map(Value::as_object_mut)
+        .flat_map(|item| item.values_mut())
+    {
+        let secured = operation
+            .get("security")
+            .and_then(Value::as_array)
+            .is_some_and(|s| !s.is_empty());
+        if let (true, Some(responses)) = (
+            secured,
+            operation
+                .get_mut("responses")
+                .and_then(Value::as_object_mut),
+        ) {
+            responses.entry("401").or_insert_with(|| {
+                json!({
+                    "description": "Missing or wrong bearer token (LUNGMOTION_API_TOKEN)",
+                    "content": {"application/problem+json": {
+                        "schema": {"$ref": "#/components/schemas/Problem"}
+                    }}
+                })
+            });
+        }
+    }
+}
+
+/// Puts the run options' schema in the components and makes the simulation request the
+/// trace and points beside them.
+fn describe_run_options(doc: &mut Value) {
+    let Some(schemas) = doc
+        .pointer_mut("/components/schemas")
+        .and_then(Value::as_object_mut)
+    else {
+        return;
+    };
+    schemas.insert("RunOptions".into(), run_options::schema());
+    schemas.insert(
+        "SimulationRequest".into(),
+        json!({
+            "description": "A simulation request: the breathing trace, points to track, and \
+                any run option (see RunOptions), merged over the server's [run] defaults \
+                (objects key by key; a tagged choice such as motion.instants replaces the \
+                default whole). Unknown keys are refused (422) by name.",
+            "allOf": [
+                {
+                    "type": "object",
+                    "required": ["trace"],
+                    "properties": {
+                        "trace": {"$ref": "#/components/schemas/TraceBody"},
+                        "points": {
+                            "type": "array",
+                            "description": "Points to track (LPS mm, at the scanned state)",
+                            "items": {"$ref": "#/components/schemas/StoredPoint"}
+                        }
+                    }
+                },
+                {"$ref": "#/components/schemas/RunOptions"}
+            ]
+        }),
+    );
 }
 
 #[cfg(test)]
@@ -80,7 +161,7 @@ mod tests {
 
     #[test]
     fn every_route_is_documented() {
-        let doc = serde_json::to_value(openapi_document()).unwrap();
+        let doc = openapi_document();
         let paths = doc["paths"].as_object().unwrap();
         for p in [
             "/v1/scans",

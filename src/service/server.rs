@@ -20,6 +20,7 @@ use tower_http::trace::TraceLayer;
 use super::body_timeout::limit_body_pauses;
 use super::config::ServiceConfig;
 use super::connections::{serve_connections, ConnectionLimits};
+use super::ingest_cache::IngestCache;
 use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
@@ -88,6 +89,8 @@ pub fn router(state: SharedState) -> Router {
             get(routes::frame_displacement),
         )
         .route("/v1/jobs/{id}/trajectories", get(routes::job_trajectories))
+        .route("/v1/jobs/{id}/files", get(routes::job_files))
+        .route("/v1/jobs/{id}/files/{*path}", get(routes::job_file))
         .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     Router::new()
         .merge(v1)
@@ -276,15 +279,19 @@ impl Drop for ServerHandle {
 fn prepare(config: ServiceConfig) -> Result<(SharedState, Workers)> {
     config.validate()?;
     let store = Store::open(&config.data_dir)?;
+    let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
+    let metrics = ServiceMetrics::default();
+    metrics.register_ingest_cache(&ingests);
     let (jobs, workers) = JobManager::start(
         store.clone(),
         config.workers,
         config.queue_capacity,
         config.max_attempts,
+        ingests,
     )?;
     let state = Arc::new(AppState {
         ingest_slots: tokio::sync::Semaphore::new(config.workers),
-        metrics: ServiceMetrics::default(),
+        metrics,
         store,
         jobs,
         config,

@@ -49,6 +49,9 @@ pub enum JobState {
     Queued,
     /// A worker is running it.
     Running,
+    /// A client cancelled it while it ran; it stops at the solver's next check (within a
+    /// Newton or Krylov iteration, a frame or a stage) and becomes `cancelled`.
+    Cancelling,
     /// Finished; its outputs are published.
     Done,
     /// Stopped with an error (see `error`).
@@ -71,6 +74,7 @@ impl JobState {
         match self {
             JobState::Queued => "queued",
             JobState::Running => "running",
+            JobState::Cancelling => "cancelling",
             JobState::Done => "done",
             JobState::Failed => "failed",
             JobState::Cancelled => "cancelled",
@@ -78,9 +82,10 @@ impl JobState {
     }
 
     /// Every state, for metrics.
-    pub const ALL: [JobState; 5] = [
+    pub const ALL: [JobState; 6] = [
         JobState::Queued,
         JobState::Running,
+        JobState::Cancelling,
         JobState::Done,
         JobState::Failed,
         JobState::Cancelled,
@@ -99,8 +104,22 @@ pub struct JobProgress {
     pub fraction: f64,
     /// Frames written so far.
     pub frames_written: usize,
-    /// Frames the run will write, once known.
+    /// Frames the run will write: known when the run starts (the output instants are
+    /// computed from the trace before the CT is read).
     pub frames_total: Option<usize>,
+    /// Equilibria the solver has reached so far (key volumes, load steps, solved frames).
+    #[serde(default)]
+    pub equilibria: usize,
+    /// Lung volume change of the latest equilibrium from the scanned state, mL.
+    #[serde(default)]
+    pub volume_change_ml: Option<f64>,
+    /// Seconds since the run started.
+    #[serde(default)]
+    pub elapsed_s: Option<f64>,
+    /// Estimated seconds left: once frames are being written, the mean time per frame so
+    /// far times the frames left, plus the summary's share; none before.
+    #[serde(default)]
+    pub seconds_left: Option<f64>,
 }
 
 /// A job as stored (`job.json`).
@@ -307,6 +326,12 @@ impl Store {
     /// Removes a job and its outputs; `false` when there was none.
     pub fn delete_job(&self, id: JobId) -> Result<bool> {
         self.remove_dir(&self.job_dir(id))
+    }
+
+    /// Removes a job's published outputs (`out/`), as for a job cancelled after its run
+    /// finished; `false` when there were none.
+    pub fn remove_job_output(&self, id: JobId) -> Result<bool> {
+        self.remove_dir(&self.job_output_dir(id))
     }
 
     /// Every job record, for recovery at start; unreadable ones are reported, not fatal.

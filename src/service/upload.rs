@@ -121,7 +121,7 @@ pub async fn receive_scan(
     if bytes == 0 {
         return Err(ApiError::bad_request(
             "empty-upload",
-            "the upload is empty; send the bytes of a NIfTI file or a zip of a DICOM series",
+            "the upload is empty; send the bytes of a NIfTI or NRRD file or a zip of a DICOM series",
         ));
     }
     let head = read_head(dest).await?;
@@ -130,7 +130,7 @@ pub async fn receive_scan(
             "unknown-scan-format",
             format!(
                 "the upload ({bytes} bytes, starting {:02x?}) is neither a NIfTI file \
-                 (.nii or .nii.gz) nor a zip of a DICOM series",
+                 (.nii or .nii.gz), an NRRD file nor a zip of a DICOM series",
                 &head[..head.len().min(8)]
             ),
         )

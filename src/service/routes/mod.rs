@@ -3,7 +3,7 @@
 //! `/openapi.json` by its `utoipa::path` attribute, so the document cannot drift from the code.
 //!
 //! One file per resource: [`scans`], [`simulations`] (jobs), [`results`] (summary, frames,
-//! fields, trajectories) and [`operations`] (probes, metrics, unknown routes); the router
+//! fields, trajectories), [`files`] (every output file) and [`operations`] (probes, metrics, unknown routes); the router
 //! that puts them on paths is [`super::server::router`]. What they share is here.
 
 use std::sync::Arc;
@@ -20,6 +20,7 @@ use super::metrics::ServiceMetrics;
 use super::problem::{ApiError, ApiResult};
 use super::store::{JobRecord, JobState, ScanRecord, Store};
 
+pub mod files;
 pub mod operations;
 pub mod results;
 pub mod scans;
@@ -28,6 +29,7 @@ pub mod simulations;
 // Globs, so that each handler's `utoipa` path description (`__path_<handler>`) comes along
 // with it for `openapi.rs`.
 pub use super::request::{SimulationRequest, TraceBody};
+pub use files::*;
 pub use operations::*;
 pub use results::*;
 pub use scans::*;

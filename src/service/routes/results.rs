@@ -51,7 +51,7 @@ pub struct FieldFormat {
 }
 
 /// Streams one of the job's files as an attachment.
-async fn file_response(
+pub(super) async fn file_response(
     path: PathBuf,
     content_type: &'static str,
     filename: String,

@@ -66,10 +66,12 @@ pub struct UploadOptions {
         the zip holds several: `uid:<UID>`, `number:<N>`, `description:<text>`, or the bare \
         value (default: the service's `[run] series`, else the only CT series that is not a \
         scout)")),
-    request_body(description = "A NIfTI file (.nii, .nii.gz) or a zip of one DICOM series, raw \
-        or as the part `file` of a multipart form; told apart by content",
+    request_body(description = "A NIfTI-1 or NIfTI-2 file (.nii, .nii.gz), an NRRD file with \
+        attached data (.nrrd, raw or gzip encoding inside) or a zip of one DICOM series, raw or \
+        as the part `file` of a multipart form; told apart by content, whatever the content \
+        type says. MetaImage, a single DICOM file and a zip of NIfTI files are refused (422).",
         content(("application/octet-stream"), ("application/zip"), ("application/gzip"),
-                ("multipart/form-data"))),
+                ("application/x-nrrd"), ("multipart/form-data"))),
     responses(
         (status = 201, description = "Stored and ingested", body = ScanView,
          headers(("location" = String, description = "The scan's URL"))),
@@ -205,6 +207,7 @@ pub async fn delete_scan(
         if !state.store.delete_scan(id).map_err(store_error)? {
             return Err(ApiError::not_found(format!("no scan {id}")));
         }
+        state.jobs.ingest_cache().forget_scan(id);
         tracing::info!(scan = %id, "scan deleted");
         Ok(StatusCode::NO_CONTENT)
     })

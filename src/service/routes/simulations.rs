@@ -29,6 +29,8 @@ pub struct JobLinks {
     pub frames: String,
     /// Tracked points per frame, CSV (when done and points were given).
     pub trajectories: String,
+    /// Every file the run wrote, with its link and content type (when done).
+    pub files: String,
     /// The scan.
     pub scan: String,
 }
@@ -51,6 +53,7 @@ impl From<JobRecord> for JobStatus {
                 summary: format!("{base}/summary"),
                 frames: format!("{base}/frames"),
                 trajectories: format!("{base}/trajectories"),
+                files: format!("{base}/files"),
                 scan: format!("/v1/scans/{}", record.scan_id),
                 self_: base,
             },

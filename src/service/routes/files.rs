@@ -1,0 +1,243 @@
+//! Every file a finished job's run wrote (frames, meshes, quick looks, the lung mask and
+//! groups, `ingest.json`, the summary …): listed with their links and served with their
+//! content types, so nothing `lungmotion run` writes is out of a client's reach.
+
+use std::path::{Component, Path as FsPath, PathBuf};
+
+use axum::extract::{Path, State};
+use axum::response::Response;
+use axum::Json;
+use serde::Serialize;
+use utoipa::ToSchema;
+
+use super::results::file_response;
+use super::{blocking, finished_job, job_id, SharedState};
+use crate::service::problem::{ApiError, ApiResult, Problem};
+
+/// Deepest directory nesting listed (the run writes `frames/<k>/` and `ingest/`).
+const MAX_DEPTH: usize = 4;
+
+/// One output file of a job.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct OutputFile {
+    /// Its path in the run's output directory (`frames/0/displacement.nii.gz`).
+    pub path: String,
+    /// Its size, bytes.
+    pub bytes: u64,
+    /// The content type it is served with.
+    pub content_type: String,
+    /// Where to fetch it.
+    pub href: String,
+}
+
+/// The output files of a finished job.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct OutputFileList {
+    /// Every file, sorted by path.
+    pub files: Vec<OutputFile>,
+}
+
+/// The content type of an output file, from its name.
+pub fn content_type_of(name: &str) -> &'static str {
+    let lower = name.to_ascii_lowercase();
+    let by_suffix = [
+        (".nii.gz", "application/gzip"),
+        (".gz", "application/gzip"),
+        (".json", "application/json"),
+        (".csv", "text/csv"),
+        (".png", "image/png"),
+        // VTK's XML formats (unstructured grid, poly data, image data).
+        (".vtu", "application/xml"),
+        (".vtp", "application/xml"),
+        (".vti", "application/xml"),
+        (".md", "text/markdown"),
+        (".txt", "text/plain"),
+    ];
+    by_suffix
+        .iter()
+        .find(|(suffix, _)| lower.ends_with(suffix))
+        .map_or("application/octet-stream", |(_, t)| t)
+}
+
+/// The files under `out`, as paths relative to it with `/` separators; hidden names, symbolic
+/// links and anything deeper than [`MAX_DEPTH`] are left out (the run writes none of them).
+fn output_files(out: &FsPath) -> std::io::Result<Vec<(String, u64)>> {
+    let mut found = Vec::new();
+    let mut stack = vec![(out.to_path_buf(), 0usize)];
+    while let Some((dir, depth)) = stack.pop() {
+        for entry in std::fs::read_dir(&dir)? {
+            let entry = entry?;
+            if entry.file_name().to_string_lossy().starts_with('.') {
+                continue;
+            }
+            let kind = entry.file_type()?;
+            let path = entry.path();
+            if kind.is_dir() && depth < MAX_DEPTH {
+                stack.push((path, depth + 1));
+            } else if kind.is_file() {
+                let relative = path.strip_prefix(out).unwrap_or(&path);
+                let name: Vec<String> = relative
+                    .components()
+                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                    .collect();
+                found.push((name.join("/"), entry.metadata()?.len()));
+            }
+        }
+    }
+    found.sort();
+    Ok(found)
+}
+
+/// The file `relative` names inside `out`, or 404: plain names only (no `..`, no absolute
+/// path, no hidden file), and it must be a regular file inside `out` once links are resolved.
+fn resolve_output(out: &FsPath, relative: &str) -> ApiResult<PathBuf> {
+    let missing = || ApiError::not_found(format!("the job wrote no file {relative:?}"));
+    let plain = !relative.is_empty()
+        && relative.len() <= 1024
+        && !relative.contains('\\')
+        && !relative.contains('\0')
+        && relative
+            .split('/')
+            .all(|part| !part.is_empty() && !part.starts_with('.'))
+        && FsPath::new(relative)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_)));
+    if !plain {
+        return Err(missing());
+    }
+    let path = out.join(relative);
+    let (Ok(root), Ok(real)) = (out.canonicalize(), path.canonicalize()) else {
+        return Err(missing());
+    };
+    if !real.starts_with(&root) || !real.is_file() {
+        return Err(missing());
+    }
+    Ok(real)
+}
+
+/// Every file of a finished job, with its link and content type.
+#[utoipa::path(
+    get, path = "/v1/jobs/{id}/files", tag = "results",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "Every file the run wrote: the frames' fields (and \
+            MetaImage and meshes when asked for), summary.json, trajectories.csv, the quick \
+            looks, and under ingest/ the lung mask, the groups, the meshes and ingest.json",
+         body = OutputFileList),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn job_files(
+    State(state): State<SharedState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<OutputFileList>> {
+    let id = job_id(&id)?;
+    blocking(move || {
+        finished_job(&state, id)?;
+        let out = state.store.job_output_dir(id);
+        let files = output_files(&out)
+            .map_err(|e| ApiError::internal(format!("job {id}: cannot list its outputs: {e}")))?
+            .into_iter()
+            .map(|(path, bytes)| OutputFile {
+                content_type: content_type_of(&path).to_string(),
+                href: format!("/v1/jobs/{id}/files/{path}"),
+                path,
+                bytes,
+            })
+            .collect();
+        Ok(Json(OutputFileList { files }))
+    })
+    .await
+}
+
+/// One file of a finished job, by its path in the run's output directory.
+#[utoipa::path(
+    get, path = "/v1/jobs/{id}/files/{path}", tag = "results",
+    params(("id" = String, Path, description = "Job id"),
+           ("path" = String, Path, description = "The file's path as the file list gives it \
+            (`ingest/lung-mask.nii.gz`, `frames/3/displacement.nii.gz`, `breathing.png` …)")),
+    responses(
+        (status = 200, description = "The file, with the content type the file list gives \
+            (application/gzip, application/json, text/csv, image/png, application/xml for VTK \
+            XML meshes, else application/octet-stream)",
+         content(("application/gzip"), ("application/json"), ("text/csv"), ("image/png"),
+                 ("application/xml"), ("application/octet-stream"))),
+        (status = 404, description = "No such job or file", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn job_file(
+    State(state): State<SharedState>,
+    Path((id, relative)): Path<(String, String)>,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    let worker_state = state.clone();
+    let shown = relative.clone();
+    let path = blocking(move || {
+        finished_job(&worker_state, id)?;
+        resolve_output(&worker_state.store.job_output_dir(id), &relative)
+    })
+    .await?;
+    let filename = format!("{id}-{}", shown.replace('/', "-"));
+    file_response(path, content_type_of(&shown), filename).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn content_types_follow_the_file_names() {
+        assert_eq!(
+            content_type_of("frames/0/displacement.nii.gz"),
+            "application/gzip"
+        );
+        assert_eq!(content_type_of("ingest/ingest.json"), "application/json");
+        assert_eq!(content_type_of("ingest/mesh.vtu"), "application/xml");
+        assert_eq!(content_type_of("breathing.png"), "image/png");
+        assert_eq!(content_type_of("trajectories.csv"), "text/csv");
+        assert_eq!(
+            content_type_of("frames/0/displacement.mha"),
+            "application/octet-stream"
+        );
+    }
+
+    #[test]
+    fn only_plain_paths_inside_the_outputs_resolve() {
+        let dir = std::env::temp_dir().join(format!("lm-files-{}", std::process::id()));
+        let out = dir.join("out");
+        std::fs::create_dir_all(out.join("ingest")).unwrap();
+        std::fs::write(out.join("ingest/ingest.json"), b"{}").unwrap();
+        std::fs::write(dir.join("job.json"), b"{}").unwrap();
+        std::fs::write(out.join(".hidden"), b"x").unwrap();
+        assert!(resolve_output(&out, "ingest/ingest.json").is_ok());
+        for bad in [
+            "../job.json",
+            "ingest/../../job.json",
+            "/etc/passwd",
+            ".hidden",
+            "ingest//ingest.json",
+            "ingest",
+            "",
+            "ingest\\ingest.json",
+        ] {
+            let e = resolve_output(&out, bad).unwrap_err();
+            assert_eq!(e.status.as_u16(), 404, "{bad}");
+            assert!(e.detail.contains("wrote no file"), "{bad}: {}", e.detail);
+        }
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink(dir.join("job.json"), out.join("link.json")).unwrap();
+            assert!(resolve_output(&out, "link.json").is_err());
+        }
+        let listed = output_files(&out).unwrap();
+        assert_eq!(
+            listed.iter().map(|(p, _)| p.as_str()).collect::<Vec<_>>(),
+            vec!["ingest/ingest.json"]
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
