@@ -50,7 +50,8 @@ use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
 use quicklooks::write_quicklooks;
-use staging::{OutputStaging, SUMMARY_FILE};
+pub use staging::Overwrite;
+use staging::{ct_fingerprint, CtIdentity, OutputStaging, SUMMARY_FILE};
 
 /// The inputs of one run.
 #[derive(Debug, Clone)]
@@ -156,6 +157,18 @@ pub fn run_breathing(
     out_dir: &Path,
     observer: &mut dyn RunObserver,
 ) -> Result<RunSummary> {
+    run_breathing_with(inputs, config, out_dir, Overwrite::SameCtOnly, observer)
+}
+
+/// [`run_breathing`], replacing an earlier run of another CT in `out_dir` only if `overwrite`
+/// says so (the CLI's `--overwrite`).
+pub fn run_breathing_with(
+    inputs: &RunInputs,
+    config: &RunConfig,
+    out_dir: &Path,
+    overwrite: Overwrite,
+    observer: &mut dyn RunObserver,
+) -> Result<RunSummary> {
     let t_total = Instant::now();
     let mut timings = BTreeMap::new();
     let (settings, times) = check_inputs(inputs, config, observer)?;
@@ -164,6 +177,12 @@ pub fn run_breathing(
     observer.stage(RunStage::LoadingScan);
     let t = Instant::now();
     let scan = load_ct_with(&inputs.ct_path, &config.dicom_read_options())?;
+    let ct = CtIdentity {
+        path: inputs.ct_path.display().to_string(),
+        fingerprint: ct_fingerprint(&scan.ct),
+        series_uid: scan.series.as_ref().map(|s| s.series_instance_uid.clone()),
+    };
+    staging.check_replaces(&ct, overwrite)?;
     timings.insert("load_ct".to_string(), t.elapsed().as_secs_f64());
     check_cancel(observer, "ingest")?;
 
@@ -238,6 +257,7 @@ pub fn run_breathing(
         ),
         timings,
     );
+    summary.ct_fingerprint = Some(ct.fingerprint);
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;
