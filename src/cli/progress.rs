@@ -108,10 +108,9 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 /// What solving has reached, in words: "solving: 7 equilibria, +312 mL".
 fn solve_words(p: SolveProgress) -> String {
-    format!(
-        "solving: {} equilibria, {:+.0} mL",
-        p.equilibria, p.volume_change_ml
-    )
+    // Whole millilitres, so a volume just under zero reads "+0", not "-0".
+    let ml = p.volume_change_ml.round() as i64;
+    format!("solving: {} equilibria, {ml:+} mL", p.equilibria)
 }
 
 /// The terminal display: the stage's spinner (or the frames' bar) and the latest solve.
@@ -232,8 +231,8 @@ impl LineLog {
         state.frames = Some((done, total));
         // The first and the last frame always, the ones between at the steady pace.
         if done <= 1 || done == total || state.last_line.elapsed() >= LINE_INTERVAL {
-            self.shared
-                .print(&mut state, &format!("frames: {done}/{total} written"));
+            let status = state.status();
+            self.shared.print(&mut state, &status);
         }
     }
 
@@ -266,7 +265,8 @@ impl LineShared {
         let mut state = lock(&self.state);
         state.solve = Some(p);
         if state.last_line.elapsed() >= LINE_INTERVAL {
-            self.print(&mut state, &solve_words(p));
+            let status = state.status();
+            self.print(&mut state, &status);
         }
     }
 
@@ -276,13 +276,28 @@ impl LineShared {
         if state.last_line.elapsed() < HEARTBEAT_INTERVAL {
             return;
         }
-        let mut text = format!("still {}", state.stage);
-        if let Some(p) = state.solve {
-            text.push_str(&format!(" ({})", solve_words(p)));
-        }
-        if let Some((done, total)) = state.frames {
-            text.push_str(&format!("; frames: {done}/{total} written"));
-        }
+        let status = state.status();
+        let text = if status.is_empty() {
+            format!("still {}", state.stage)
+        } else {
+            format!("still {} ({status})", state.stage)
+        };
         self.print(&mut state, &text);
+    }
+}
+
+impl LineState {
+    /// The solves and the frames so far: "solving: 7 equilibria, +312 mL; frames: 3/10
+    /// written" (either part alone until the other has begun).
+    fn status(&self) -> String {
+        let solve = self.solve.map(solve_words);
+        let frames = self
+            .frames
+            .map(|(done, total)| format!("frames: {done}/{total} written"));
+        [solve, frames]
+            .into_iter()
+            .flatten()
+            .collect::<Vec<_>>()
+            .join("; ")
     }
 }

@@ -328,34 +328,39 @@ mod tests {
         d
     }
 
+    /// A lungmotion summary told apart by `n`.
+    fn summary(n: u32) -> String {
+        format!("{{\"software\": \"lungmotion\", \"n\": {n}}}")
+    }
+
     #[test]
     fn a_failed_run_keeps_the_previous_one_and_a_finished_run_replaces_it() {
         let root = scratch("replace");
         let out = root.join("run");
         let first = OutputStaging::new(&out).unwrap();
-        std::fs::write(first.dir().join(SUMMARY_FILE), "1").unwrap();
+        std::fs::write(first.dir().join(SUMMARY_FILE), summary(1)).unwrap();
         first.publish().unwrap();
         assert_eq!(
             std::fs::read_to_string(out.join(SUMMARY_FILE)).unwrap(),
-            "1"
+            summary(1)
         );
 
         let failed = OutputStaging::new(&out).unwrap();
-        std::fs::write(failed.dir().join(SUMMARY_FILE), "2").unwrap();
+        std::fs::write(failed.dir().join(SUMMARY_FILE), summary(2)).unwrap();
         let staged = failed.dir().to_path_buf();
         drop(failed);
         assert!(!staged.exists());
         assert_eq!(
             std::fs::read_to_string(out.join(SUMMARY_FILE)).unwrap(),
-            "1"
+            summary(1)
         );
 
         let second = OutputStaging::new(&out).unwrap();
-        std::fs::write(second.dir().join(SUMMARY_FILE), "3").unwrap();
+        std::fs::write(second.dir().join(SUMMARY_FILE), summary(3)).unwrap();
         second.publish().unwrap();
         assert_eq!(
             std::fs::read_to_string(out.join(SUMMARY_FILE)).unwrap(),
-            "3"
+            summary(3)
         );
         let leftovers: Vec<_> = std::fs::read_dir(&root).unwrap().collect();
         assert_eq!(leftovers.len(), 1, "{leftovers:?}");
@@ -373,5 +378,58 @@ mod tests {
             "keep"
         );
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_run_of_another_ct_is_replaced_only_when_asked_and_a_lock_marks_a_live_run() {
+        let root = scratch("identity");
+        let out = root.join("run");
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::write(
+            out.join(SUMMARY_FILE),
+            r#"{"software": "lungmotion", "ct": "a.nii.gz", "ct_fingerprint": "fnv1a64:1"}"#,
+        )
+        .unwrap();
+        let ct = |fingerprint: &str| CtIdentity {
+            path: "b.nii.gz".into(),
+            fingerprint: fingerprint.into(),
+            series_uid: None,
+        };
+        let staging = OutputStaging::new(&out).unwrap();
+        // Whatever the CT's name, the fingerprint decides.
+        staging
+            .check_replaces(&ct("fnv1a64:1"), Overwrite::SameCtOnly)
+            .unwrap();
+        let e = staging
+            .check_replaces(&ct("fnv1a64:2"), Overwrite::SameCtOnly)
+            .unwrap_err();
+        assert!(
+            matches!(&e, Error::OutputDir { path, .. } if *path == out)
+                && e.to_string()
+                    .contains("a run of another CT (a.nii.gz, fingerprint fnv1a64:1)"),
+            "{e}"
+        );
+        staging
+            .check_replaces(&ct("fnv1a64:2"), Overwrite::AnyRun)
+            .unwrap();
+        // This run's own staging directory is locked, so it counts as alive.
+        assert!(owner_alive(staging.dir(), u32::MAX));
+        drop(staging);
+        let v = serde_json::json!({"software": "lungmotion", "ct": "b.nii.gz"});
+        assert!(same_ct(&v, &ct("fnv1a64:9")), "an old summary: by path");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn equal_voxels_on_equal_grids_have_one_fingerprint() {
+        let geometry = crate::volume::VolumeGeometry::axis_aligned([2, 2, 1], [1.0; 3], [0.0; 3]);
+        let a = Volume::from_data(geometry, vec![-1000.0f32, 0.0, 40.0, -500.0]).unwrap();
+        let mut moved = a.clone();
+        moved.geometry.origin_lps_mm[2] = 1.0;
+        let mut changed = a.clone();
+        changed.as_slice_mut()[3] = -499.0;
+        assert_eq!(ct_fingerprint(&a), ct_fingerprint(&a.clone()));
+        assert_ne!(ct_fingerprint(&a), ct_fingerprint(&moved));
+        assert_ne!(ct_fingerprint(&a), ct_fingerprint(&changed));
     }
 }
