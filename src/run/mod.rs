@@ -51,7 +51,8 @@ use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
 use quicklooks::write_quicklooks;
-use staging::{OutputStaging, SUMMARY_FILE};
+pub use staging::Overwrite;
+use staging::{ct_fingerprint, CtIdentity, OutputStaging, SUMMARY_FILE};
 
 /// The inputs of one run.
 #[derive(Debug, Clone)]
@@ -207,16 +208,29 @@ pub fn run_breathing(
     out_dir: &Path,
     observer: &mut dyn RunObserver,
 ) -> Result<RunSummary> {
-    run_breathing_on(inputs, config, out_dir, observer, None)
+    run_breathing_with(inputs, config, out_dir, Overwrite::SameCtOnly, observer)
 }
 
-/// [`run_breathing`] on `prepared`: the CT of `inputs.ct_path` already read and ingested with
-/// `config`'s settings (the caller's promise), with the wall times of that reading to report
-/// (none when it was read for an earlier run); or reading and ingesting it when `None`.
+/// [`run_breathing`], replacing an earlier run of another CT in `out_dir` only if `overwrite`
+/// says so (the CLI's `--overwrite`).
+pub fn run_breathing_with(
+    inputs: &RunInputs,
+    config: &RunConfig,
+    out_dir: &Path,
+    overwrite: Overwrite,
+    observer: &mut dyn RunObserver,
+) -> Result<RunSummary> {
+    run_breathing_on(inputs, config, out_dir, overwrite, observer, None)
+}
+
+/// [`run_breathing_with`] on `prepared`: the CT of `inputs.ct_path` already read and ingested
+/// with `config`'s settings (the caller's promise), with the wall times of that reading to
+/// report (none when it was read for an earlier run); or reading and ingesting it when `None`.
 pub fn run_breathing_on(
     inputs: &RunInputs,
     config: &RunConfig,
     out_dir: &Path,
+    overwrite: Overwrite,
     observer: &mut dyn RunObserver,
     prepared: Option<(&IngestedScan, BTreeMap<String, f64>)>,
 ) -> Result<RunSummary> {
@@ -239,6 +253,12 @@ pub fn run_breathing_on(
     };
     let (scan, outcome) = (&ingested.scan, &ingested.outcome);
     let t = Instant::now();
+    let ct = CtIdentity {
+        path: inputs.ct_path.display().to_string(),
+        fingerprint: ct_fingerprint(&scan.ct),
+        series_uid: scan.series.as_ref().map(|s| s.series_instance_uid.clone()),
+    };
+    staging.check_replaces(&ct, overwrite)?;
     let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
     if config.outputs.ingest_files {
         write_ingest_files(staging.dir(), &scan.ct, outcome)?;
@@ -322,6 +342,7 @@ pub fn run_breathing_on(
         ),
         timings,
     );
+    summary.ct_fingerprint = Some(ct.fingerprint);
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;

@@ -26,6 +26,8 @@ pub struct RunSummary {
     pub conventions: BTreeMap<&'static str, &'static str>,
     /// The CT input as given.
     pub ct: String,
+    /// The loaded CT's fingerprint (grid and voxels), telling a rerun on the same CT apart.
+    pub ct_fingerprint: Option<String>,
     /// The breathing trace.
     pub trace: TraceSummary,
     /// The configuration used (file and command line merged).
@@ -418,6 +420,7 @@ impl RunSummary {
             software_version: env!("CARGO_PKG_VERSION"),
             conventions: conventions(),
             ct: inputs.ct_path.display().to_string(),
+            ct_fingerprint: None,
             trace: TraceSummary {
                 source: inputs.trace_source.clone(),
                 samples: trace.time_s.len(),
