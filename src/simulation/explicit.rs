@@ -345,7 +345,11 @@ impl BlowUpGuard {
     /// Returns an error naming the step and the cause if the state has blown up.
     pub fn check(&mut self, scene: &Scene, x: &[V3], ke: f64, step: usize) -> Result<()> {
         scene.check_finite(x, step)?;
-        scene.check_not_inverted(x, step)?;
+        scene.check_not_inverted(
+            x,
+            step,
+            "time step above the stability limit, or a load too large for the mesh",
+        )?;
         if !ke.is_finite() {
             return Err(Error::Diverged {
                 step,

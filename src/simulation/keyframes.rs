@@ -83,6 +83,40 @@ struct Miss {
     node: usize,
 }
 
+/// The first keys, evenly spaced over `lo..=hi` mL, solved outward from the scanned state:
+/// the keys above it ascending and the keys below it descending, each continuing from its
+/// neighbour nearer the scanned state, so every key lies on the gradual path a breath takes
+/// from the scan (a deep key solved straight from rest, or from the far end of the range,
+/// may land on another equilibrium or fail where a gradual path succeeds).
+fn first_sweep(
+    lo: f64,
+    hi: f64,
+    solve: &mut impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
+) -> Result<Vec<DrivenState>> {
+    let volumes: Vec<f64> = (0..FIRST_SWEEP_KEYS)
+        .map(|j| lo + (hi - lo) * j as f64 / (FIRST_SWEEP_KEYS - 1) as f64)
+        .collect();
+    let nearest = (0..volumes.len())
+        .min_by(|&a, &b| volumes[a].abs().total_cmp(&volumes[b].abs()))
+        .unwrap_or(0);
+    let mut solved: Vec<Option<DrivenState>> = vec![None; volumes.len()];
+    solved[nearest] = Some(solve(volumes[nearest], None)?);
+    for j in nearest + 1..volumes.len() {
+        let state = solve(
+            volumes[j],
+            (j == nearest + 1)
+                .then(|| solved[nearest].as_ref())
+                .flatten(),
+        )?;
+        solved[j] = Some(state);
+    }
+    for j in (0..nearest).rev() {
+        let state = solve(volumes[j], solved[j + 1].as_ref())?;
+        solved[j] = Some(state);
+    }
+    Ok(solved.into_iter().flatten().collect())
+}
+
 impl VolumeKeyframes {
     /// Solves key volumes covering `lo_ml..=hi_ml` until interpolation reproduces direct
     /// solves within `tolerance_mm`; each key meets its volume within `volume_tolerance_ml`.
@@ -131,15 +165,7 @@ impl VolumeKeyframes {
         mut solve: impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
     ) -> Result<Self> {
         let mut scratch = vec![V3::zeros(); rest.len()];
-        // One ascending sweep from the lowest key, each solve starting from the states just
-        // below it, so that every key lies on the same gradual-inflation path.
-        let first = solve(lo, None)?;
-        let mut states = vec![first];
-        for j in 1..FIRST_SWEEP_KEYS {
-            let v = lo + (hi - lo) * j as f64 / (FIRST_SWEEP_KEYS - 1) as f64;
-            let state = solve(v, (j == 1).then(|| &states[0]))?;
-            states.push(state);
-        }
+        let mut states = first_sweep(lo, hi, &mut solve)?;
         // The end keys have no keys beyond them to check them against: the checks of their
         // neighbours cover the intervals beside them.
         let mut checked = vec![false; states.len()];
@@ -200,14 +226,23 @@ impl VolumeKeyframes {
             let mut refined = Vec::with_capacity(states.len() + added);
             let mut refined_checked = Vec::with_capacity(states.len() + added);
             let last = states.len() - 1;
-            for (i, state) in states.into_iter().enumerate() {
-                refined.push(state);
-                refined_checked.push(checked[i]);
+            for i in 0..states.len() {
                 if i < last && split[i] {
                     let mid = 0.5 * (volumes[i] + volumes[i + 1]);
-                    let state = solve(mid, refined.last())?;
+                    // From the neighbour nearer the scanned state, along the breath's path.
+                    let from = if volumes[i + 1] <= 0.0 {
+                        &states[i + 1]
+                    } else {
+                        &states[i]
+                    };
+                    let state = solve(mid, Some(from))?;
+                    refined.push(states[i].clone());
+                    refined_checked.push(checked[i]);
                     refined.push(state);
                     refined_checked.push(false);
+                } else {
+                    refined.push(states[i].clone());
+                    refined_checked.push(checked[i]);
                 }
             }
             states = refined;
@@ -479,6 +514,39 @@ mod tests {
             .fold(0.0, f64::max);
         assert!(worst <= 0.1, "worst interpolation error {worst} mm");
         assert!((keys.pressure_at(300.0) + 100.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn keys_are_solved_outward_from_the_scanned_state_each_from_its_neighbour_nearer_it() {
+        // A kink below the scan forces a refinement there too.
+        let x_mm = |v: f64| 0.03 * v + 0.02 * (-250.0 - v).max(0.0);
+        let mut calls: Vec<(f64, Option<f64>)> = Vec::new();
+        let keys = VolumeKeyframes::refine(&rest(), -400.0, 100.0, 0.1, |v, from| {
+            calls.push((v, from.map(|s| s.volume_change_ml)));
+            Ok(synthetic(v, x_mm))
+        })
+        .unwrap();
+        // The first sweep: -400 + 62.5 j; the key nearest the scan (-25) first, from wherever
+        // the driver is (the rest state), then up from it, then down from it.
+        let sweep: Vec<f64> = calls.iter().take(9).map(|c| c.0).collect();
+        assert_eq!(
+            sweep,
+            [-25.0, 37.5, 100.0, -87.5, -150.0, -212.5, -275.0, -337.5, -400.0],
+        );
+        assert_eq!(calls[0].1, None);
+        assert_eq!(calls[1].1, Some(-25.0));
+        assert_eq!(calls[3].1, Some(-25.0));
+        assert_eq!(calls[4].1, Some(-87.5));
+        // Refinement keys below the scan continue from the key above them.
+        let refined = &calls[9..];
+        assert!(!refined.is_empty());
+        for &(v, from) in refined {
+            let from = from.expect("a refinement key starts from a solved neighbour");
+            if v < 0.0 {
+                assert!(from > v, "key {v} started from {from}");
+            }
+        }
+        assert!(keys.report.measured_error_mm <= 0.1);
     }
 
     #[test]

@@ -243,7 +243,11 @@ impl<'s> QuasiStaticSolver<'s> {
             }
         }
         // An equilibrium with an inverted element is not one the tissue can reach.
-        scene.check_not_inverted(&x, report.newton_iterations)?;
+        scene.check_not_inverted(
+            &x,
+            report.newton_iterations,
+            "the mesh gave way under this load step",
+        )?;
         report.wall_time_s = start.elapsed().as_secs_f64();
         Ok((x, report))
     }

@@ -116,13 +116,14 @@ impl Scene {
 
     /// Refuses states with an inverted element: no valid equilibrium or motion has one, and an
     /// unstable run can settle into such a state with a small residual.
-    pub fn check_not_inverted(&self, x: &[V3], step: usize) -> Result<()> {
+    /// `likely_cause` ends the message: what the caller's method makes likely (a time step above
+    /// the stability limit for explicit integration, a load step too large for a static solve).
+    pub fn check_not_inverted(&self, x: &[V3], step: usize, likely_cause: &str) -> Result<()> {
         match self.most_compressed_element(x, 0.0) {
             Some((e, r)) => Err(Error::Diverged {
                 step,
                 cause: format!(
-                    "element {e} is inverted (signed volume {r:.3} × its rest volume): \
-                     time step above the stability limit, or a load too large for the mesh"
+                    "element {e} is inverted (signed volume {r:.3} × its rest volume): {likely_cause}"
                 ),
             }),
             None => Ok(()),
