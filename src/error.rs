@@ -49,6 +49,11 @@ pub enum Error {
         tolerance: f64,
     },
 
+    /// The lungs cannot be brought to a volume the trace asks for: the solves stall or the mesh
+    /// gives way first. Names where the mesh is most compressed and what to try.
+    #[error("{0}")]
+    VolumeUnreachable(Box<UnreachableVolume>),
+
     /// A scan (DICOM series, NIfTI, NRRD, zip) is unreadable, inconsistent or implausible.
     #[error("invalid scan: {}: {reason}", scan.display())]
     InvalidScan {
@@ -325,6 +330,39 @@ impl Error {
 }
 
 /// ` <path>` when there is one, for messages that name an optional file.
+/// Where and why a breathing solve could not reach a volume (see [`Error::VolumeUnreachable`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "the lungs cannot reach {target_ml:+.0} mL: equilibrium was reached up to {reached_ml:+.0} mL \
+     ({cause}); there the most compressed element is {element} at LPS ({:.0}, {:.0}, {:.0}) mm{}, \
+     at {:.0} % of its rest volume. {remedy}",
+    centre_lps_mm[0], centre_lps_mm[1], centre_lps_mm[2], group_suffix(.group), volume_ratio * 100.0
+)]
+pub struct UnreachableVolume {
+    /// Volume change from the scanned state that was asked for, mL.
+    pub target_ml: f64,
+    /// Volume change of the last equilibrium reached on the way, mL.
+    pub reached_ml: f64,
+    /// Index of the most compressed element in that equilibrium.
+    pub element: usize,
+    /// Rest centre of that element, LPS millimetres.
+    pub centre_lps_mm: [f64; 3],
+    /// Its signed volume over its rest volume.
+    pub volume_ratio: f64,
+    /// Anatomical groups of its nodes, when the caller knows them.
+    pub group: Option<String>,
+    /// Why the last solve failed.
+    pub cause: String,
+    /// What to try.
+    pub remedy: String,
+}
+
+fn group_suffix(group: &Option<String>) -> String {
+    group
+        .as_ref()
+        .map_or(String::new(), |g| format!(" (nodes: {g})"))
+}
+
 fn in_file(path: &Option<PathBuf>) -> String {
     path.as_ref()
         .map(|p| format!(" {}", p.display()))

@@ -67,4 +67,4 @@ pub mod simulation;
 pub mod validation;
 pub mod volume;
 
-pub use error::{Error, IoContext, IoOp, Result};
+pub use error::{Error, IoContext, IoOp, Result, UnreachableVolume};

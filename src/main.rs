@@ -32,7 +32,9 @@ enum Command {
     ///
     /// The trace is lung volume over time, CSV with the header `time_s,volume_ml` where
     /// volume_ml is the change from the scanned state in mL (JSON `{"time_s": [...],
-    /// "volume_ml": [...]}` also read; absolute volumes and other units via --config). By
+    /// "volume_ml": [...]}` also read; absolute volumes and other units via --config). An
+    /// airflow column instead (flow_l_per_s or flow_ml_per_s, positive into the lungs) is
+    /// integrated from the first sample, its drift removed, and the run says so. By
     /// default 10 phases of the first breathing cycle are output (phase 0 = end-inhale), like
     /// a 4D-CT; the lung is driven by the surface pressure that gives each frame's volume.
     /// Other instants in the config's [motion] table: instants = { kind = "phases", count =
@@ -45,7 +47,10 @@ enum Command {
     /// summary.json (per-frame time, target and simulated volume, pressure, displacement,
     /// solver effort), trajectories.csv (tracked points), breathing.png and
     /// end-inhale-displacement.png, and ingest/ (lung mask, groups, mesh). The directory is
-    /// replaced only when the run succeeds.
+    /// replaced only when the run succeeds, and an earlier run of another CT only with
+    /// --overwrite. When stderr is not a terminal, progress is logged as lines with the
+    /// elapsed time. Ctrl-C, SIGTERM or SIGHUP stop the run and remove its partial output
+    /// (exit status 130).
     #[command(verbatim_doc_comment)]
     Run(RunArgs),
     /// Run the whole job on the bundled phantom (sample-volumes/) with two generated 500 mL

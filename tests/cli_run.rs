@@ -20,10 +20,15 @@ fn temp_dir(name: &str) -> PathBuf {
 }
 
 fn run(args: &[&str], files: &Path, out: &Path) -> Output {
+    run_on(&sample("phantom-ct.nii.gz"), args, files, out)
+}
+
+/// `lungmotion run --quiet` on `ct`; `{dir}` in `args` stands for `files`.
+fn run_on(ct: &Path, args: &[&str], files: &Path, out: &Path) -> Output {
     bin()
         .arg("run")
         .arg("--ct")
-        .arg(sample("phantom-ct.nii.gz"))
+        .arg(ct)
         .arg("--out")
         .arg(out)
         .arg("--quiet")
@@ -272,5 +277,191 @@ fn exit_status_is_2_for_refused_input_in_every_subcommand_and_1_for_failures_whi
     let o = bin().arg("--help").output().unwrap();
     let help = String::from_utf8_lossy(&o.stdout);
     assert!(help.contains("Exit status"), "{help}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Two sine breaths of 300 mL over 4 s each at 5 Hz: enough for the default 10 phases.
+fn write_two_breaths(path: &Path) {
+    let mut csv = String::from("time_s,volume_ml\n");
+    for i in 0..=40 {
+        let t = i as f64 * 0.2;
+        let v = 300.0 * (std::f64::consts::PI * t / 4.0).sin().powi(2);
+        csv.push_str(&format!("{t:.1},{v:.3}\n"));
+    }
+    std::fs::write(path, csv).unwrap();
+}
+
+#[test]
+fn a_scripted_run_logs_its_stages_and_frames_with_the_elapsed_time() {
+    // Before issue 18 the progress bar printed nothing when stderr was not a terminal.
+    let dir = temp_dir("progress");
+    let out = dir.join("out");
+    write_two_breaths(&dir.join("trace.csv"));
+    let o = bin()
+        .arg("run")
+        .arg("--ct")
+        .arg(sample("phantom-ct.nii.gz"))
+        .arg("--trace")
+        .arg(dir.join("trace.csv"))
+        .arg("--out")
+        .arg(&out)
+        .args(["--element-size", "12"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let lines: Vec<&str> = stderr.lines().collect();
+    let position = |needle: &str| {
+        lines
+            .iter()
+            .position(|l| l.contains(needle) && l.contains(" s] "))
+            .unwrap_or_else(|| panic!("no progress line with {needle:?}:\n{stderr}"))
+    };
+    let stages = [
+        "loading the CT",
+        "segmenting the lungs",
+        "solving the breathing cycle",
+        "writing displacement fields",
+        "writing the summary",
+        "run finished",
+    ];
+    let at: Vec<usize> = stages.iter().map(|s| position(s)).collect();
+    assert!(
+        at.windows(2).all(|w| w[0] < w[1]),
+        "out of order:\n{stderr}"
+    );
+    // The default 10 phases: the first and the last frame are always logged.
+    position("frames: 1/10 written");
+    position("frames: 10/10 written");
+    assert!(
+        stderr.contains("lungmotion: [    0.0 s] loading the CT"),
+        "{stderr}"
+    );
+
+    // --quiet silences them all.
+    let o = run(
+        &["--trace", "{dir}/trace.csv", "--element-size", "12"],
+        &dir,
+        &out,
+    );
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(!stderr.contains(" s] "), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The bundled phantom moved 10 mm up: another CT, as far as any identity goes.
+fn write_another_ct(path: &Path) {
+    let mut ct = nifti::read_nifti(&sample("phantom-ct.nii.gz")).unwrap();
+    ct.geometry.origin_lps_mm[2] += 10.0;
+    nifti::write_nifti_ct(path, &ct).unwrap();
+}
+
+#[test]
+fn an_earlier_run_of_another_ct_is_replaced_only_with_overwrite() {
+    let dir = temp_dir("overwrite");
+    let out = dir.join("out");
+    write_two_breaths(&dir.join("trace.csv"));
+    write_another_ct(&dir.join("other-ct.nii.gz"));
+    let fingerprint = |out: &Path| {
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap())
+                .unwrap();
+        summary["ct_fingerprint"].as_str().unwrap().to_string()
+    };
+    let args = ["--trace", "{dir}/trace.csv", "--element-size", "12"];
+    let o = run(&args, &dir, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let first = fingerprint(&out);
+    assert!(first.starts_with("fnv1a64:"), "{first}");
+
+    // The same CT again replaces it.
+    let o = run(&args, &dir, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(fingerprint(&out), first);
+
+    // Another CT is refused, naming the directory and what it holds, and changes nothing.
+    let other = dir.join("other-ct.nii.gz");
+    let o = run_on(&other, &args, &dir, &out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    for needle in [
+        out.display().to_string(),
+        "a run of another CT".into(),
+        first.clone(),
+        "--overwrite".into(),
+    ] {
+        assert!(stderr.contains(&needle), "lacks {needle:?}: {stderr}");
+    }
+    assert_eq!(fingerprint(&out), first);
+    let siblings: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".out"))
+        .collect();
+    assert!(siblings.is_empty(), "{siblings:?}");
+
+    let mut overwrite = args.to_vec();
+    overwrite.push("--overwrite");
+    let o = run_on(&other, &overwrite, &dir, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_ne!(fingerprint(&out), first);
+
+    // What is not a lungmotion run is never replaced, --overwrite or not.
+    let foreign = dir.join("foreign");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("summary.json"), "{\"software\": \"other\"}").unwrap();
+    let o = run(
+        &["--trace", "{dir}/trace.csv", "--overwrite"],
+        &dir,
+        &foreign,
+    );
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("lungmotion did not write"), "{stderr}");
+    assert_eq!(
+        std::fs::read_to_string(foreign.join("summary.json")).unwrap(),
+        "{\"software\": \"other\"}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn an_airflow_trace_is_integrated_and_the_run_says_what_was_done() {
+    let dir = temp_dir("airflow");
+    let out = dir.join("out");
+    // Four 300 mL breaths over 4 s each as airflow in L/s, the sensor reading 20 mL/s high
+    // (three end-expirations between them: the fewest the drift is estimated from).
+    let w = std::f64::consts::PI / 4.0;
+    let mut csv = String::from("time_s,flow_l_per_s\n");
+    for i in 0..=400 {
+        let t = i as f64 * 0.04;
+        csv.push_str(&format!(
+            "{t:.2},{:.6}\n",
+            0.3 * w * (2.0 * w * t).sin() + 0.02
+        ));
+    }
+    std::fs::write(dir.join("flow.csv"), csv).unwrap();
+    let o = run(
+        &["--trace", "{dir}/flow.csv", "--element-size", "12"],
+        &dir,
+        &out,
+    );
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("lungmotion: trace: airflow column 'flow_l_per_s' integrated"),
+        "{stderr}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let source = summary["trace"]["source"].as_str().unwrap();
+    assert!(
+        source.contains("flow.csv (airflow column 'flow_l_per_s'")
+            && source.contains("mL/s removed"),
+        "{source}"
+    );
+    let [lo, hi] = [0, 1].map(|i| summary["trace"]["volume_range_ml"][i].as_f64().unwrap());
+    assert!(lo.abs() < 3.0 && (hi - 300.0).abs() < 3.0, "{lo} … {hi} mL");
     std::fs::remove_dir_all(&dir).unwrap();
 }

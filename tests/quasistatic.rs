@@ -373,3 +373,27 @@ fn a_cancel_raised_during_one_long_solve_stops_that_solve() {
     raiser.join().unwrap();
     assert!(matches!(r, Err(Error::Cancelled(_))), "{r:?}");
 }
+
+#[test]
+fn an_explicit_relaxation_that_stagnates_gives_up_instead_of_running_to_its_step_limit() {
+    // A tolerance below round-off cannot be met: without the stagnation rule this would take
+    // all ten million steps.
+    let scene = cantilever_under_gravity(
+        [4, 1, 1],
+        0.01,
+        Material::new(1e5, 0.3, 1000.0).unwrap(),
+        1.0,
+    );
+    let mut integrator = ExplicitIntegrator::new(&scene);
+    let report = integrator
+        .run_to_equilibrium(&ExplicitSettings {
+            residual_tolerance: 1e-300,
+            kinetic_energy_fraction: 1.0,
+            max_steps: 10_000_000,
+            stall_steps: Some(20_000),
+            ..ExplicitSettings::default()
+        })
+        .unwrap();
+    assert!(!report.converged);
+    assert!(report.steps < 1_000_000, "{report:?}");
+}

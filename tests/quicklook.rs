@@ -341,3 +341,112 @@ fn overview_of_the_cip_chest_shows_the_right_lung_on_the_image_left() {
         );
     }
 }
+
+/// The font pixels (dark) of the `w` × `h` box at (`left`, `top`).
+fn dark_mask(img: &RgbImage, left: usize, top: usize, w: usize, h: usize) -> Vec<bool> {
+    let mut mask = Vec::with_capacity(w * h);
+    for row in top..top + h {
+        for col in left..left + w {
+            mask.push(img.pixel(col, row).iter().all(|&c| c < 40));
+        }
+    }
+    mask
+}
+
+#[test]
+fn a_labelled_slice_names_its_edges_by_the_lps_convention_and_shows_its_legend() {
+    use lungmotion::outputs::plots::{render_labelled_slice, LabelledSliceInput, LegendEntry};
+    use lungmotion::outputs::raster_text::draw_text;
+    let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let marker = Vector3::from(CENTRE) + Vector3::from(MARKER_OFFSET);
+    let ct = marker_ct(centred_geometry(identity), marker);
+    let legend = [
+        LegendEntry {
+            label: "costal (slides on wall)".into(),
+            colour: [40, 200, 80],
+            outline: false,
+        },
+        LegendEntry {
+            label: "right lung (outline)".into(),
+            colour: [70, 150, 255],
+            outline: true,
+        },
+    ];
+    for (plane, letters) in [
+        (SlicePlane::Axial, ['R', 'L', 'A', 'P']),
+        (SlicePlane::Coronal, ['R', 'L', 'S', 'I']),
+        (SlicePlane::Sagittal, ['A', 'P', 'S', 'I']),
+    ] {
+        let look = render_labelled_slice(&LabelledSliceInput {
+            ct: &ct,
+            overlays: &[],
+            plane,
+            position_lps_mm: marker[plane.normal_axis()],
+            pixel_mm: 2.0,
+            title: "A title",
+            subtitle: "where",
+            legend: &legend,
+        })
+        .unwrap();
+        let img = through_png_file(&look.image, plane.name());
+        // Each edge's letter, pixel for pixel as the font draws it.
+        for ((letter, b), want) in look.orientation.iter().zip(letters) {
+            assert_eq!(*letter, want, "{plane:?}");
+            let mut glyph = RgbImage {
+                width: b.width,
+                height: b.height,
+                pixels: vec![255; 3 * b.width * b.height],
+            };
+            draw_text(&mut glyph, &want.to_string(), 0, 0, 2, [0, 0, 0]);
+            assert_eq!(
+                dark_mask(&img, b.left, b.top, b.width, b.height),
+                dark_mask(&glyph, 0, 0, b.width, b.height),
+                "{plane:?}: letter {want} at {b:?}"
+            );
+        }
+        // The marker (patient right, anterior, superior) sits on the side its letters say.
+        let p = look.panel;
+        let ([col, row], n) = bright_centroid(&crop(&img, p.left, p.top, p.width, p.height));
+        assert!(n > 10, "{plane:?}: marker not drawn");
+        assert!(
+            col < p.width as f64 / 2.0 && row < p.height as f64 / 2.0,
+            "{plane:?}: the marker (right, anterior, superior) is at ({col:.0}, {row:.0}) of \
+             {}×{}, not on the {} and {} sides",
+            p.width,
+            p.height,
+            letters[0],
+            letters[2]
+        );
+        // The legend: a filled swatch, an outlined one, and text beside each.
+        let l = look.legend;
+        let legend_img = crop(&img, l.left, l.top, l.width, l.height);
+        let count = |c: [u8; 3]| legend_img.pixels.chunks(3).filter(|p| **p == c).count();
+        assert!(count([40, 200, 80]) >= 14 * 14, "{plane:?}: filled swatch");
+        let outline = count([70, 150, 255]);
+        assert!(
+            (100..16 * 16).contains(&outline),
+            "{plane:?}: outline swatch {outline}"
+        );
+        assert!(count([0, 0, 0]) > 300, "{plane:?}: legend text");
+    }
+}
+
+fn through_png_file(image: &RgbImage, name: &str) -> RgbImage {
+    let path = scratch_dir().join(format!("labelled-{name}.png"));
+    write_png(&path, image).unwrap();
+    read_png(&path).unwrap()
+}
+
+fn crop(img: &RgbImage, left: usize, top: usize, w: usize, h: usize) -> RgbImage {
+    let mut pixels = Vec::with_capacity(3 * w * h);
+    for row in top..top + h {
+        pixels.extend_from_slice(
+            &img.pixels[3 * (row * img.width + left)..3 * (row * img.width + left + w)],
+        );
+    }
+    RgbImage {
+        width: w,
+        height: h,
+        pixels,
+    }
+}

@@ -48,9 +48,11 @@ fn demo_run() -> &'static (PathBuf, RunSummary) {
 #[test]
 fn inhalation_moves_the_base_down_more_than_the_apex_and_holds_the_hilum() {
     let (_, s) = demo_run();
-    let e = &s.end_inhale;
-    // Phase 0 is end-inhale: the 500 mL peak of the Lujan curve.
+    let e = s.end_inhale.as_ref().expect("the Lujan curve inhales");
+    // Phase 0 is end-inhale: the 500 mL peak of the Lujan curve; it never falls below the
+    // scanned state, so there is no deepest expiration to report.
     assert_eq!(e.frame, 0);
+    assert!(s.deepest_expiration.is_none());
     assert!((s.frames[0].summary.target_volume_ml - 500.0).abs() < 1.0);
     assert!(
         e.mean_base_dz_mm < -5.0,

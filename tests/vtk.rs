@@ -291,3 +291,45 @@ fn lung_sized_mesh_costs_four_thirds_of_its_raw_bytes() {
     );
     assert!(size < raw as f64 * 4.0 / 3.0 + 4096.0, "{size} bytes");
 }
+
+#[test]
+fn lung_meshes_carry_lung_per_cell_and_group_per_node_and_refuse_mismatched_labels() {
+    use lungmotion::outputs::ingest_files::lung_mesh_vtu;
+    let mesh = VoxelGrid::filled_box([2, 1, 1], [0.01; 3], Vector3::zeros())
+        .to_mesh(Material::LUNG)
+        .unwrap()
+        .mesh;
+    let (cells, nodes) = (mesh.element_count(), mesh.node_count());
+    let lung: Vec<u8> = (0..cells).map(|c| 1 + (c % 2) as u8).collect();
+    let group: Vec<u8> = (0..nodes).map(|n| (n % 6) as u8).collect();
+    let vtu = lung_mesh_vtu(&mesh, &mesh.rest_positions_m, &lung, &group).unwrap();
+    let path = scratch("lung-labels.vtu");
+    write_vtu(&path, &vtu).unwrap();
+    let back = read_vtu(&path).unwrap();
+    let find = |data: &[(String, DataArray)], name: &str| {
+        data.iter().find(|(n, _)| n == name).map(|(_, a)| a.clone())
+    };
+    assert_eq!(
+        find(&back.cell_data, "lung"),
+        Some(DataArray::ScalarsU8(lung.clone()))
+    );
+    assert_eq!(
+        find(&back.point_data, "group"),
+        Some(DataArray::ScalarsU8(group.clone()))
+    );
+    assert!(matches!(
+        find(&back.point_data, "displacement_mm"),
+        Some(DataArray::VectorsF32(v)) if v.len() == nodes
+    ));
+    assert!(
+        find(&back.cell_data, "group").is_none(),
+        "group is point data"
+    );
+    let e = lung_mesh_vtu(&mesh, &mesh.rest_positions_m, &lung[1..], &group)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(&format!("{} lung labels for {cells} elements", cells - 1)),
+        "{e}"
+    );
+}

@@ -1,5 +1,5 @@
 //! The exit status of every subcommand: 0 success, 2 the usage or the input was refused,
-//! 1 a failure while working. The one place that decides between 2 and 1.
+//! 1 a failure while working, 130 interrupted. The one place that decides between them.
 
 use std::process::ExitCode;
 
@@ -12,13 +12,19 @@ Exit status (the same for every subcommand):
   2  the usage or the input was refused: an unknown or malformed option; an unreadable or
      unusable configuration, breathing trace, points file, scan, material or output
      directory; no usable lungs in the CT; service settings it cannot serve with (such as
-     an address it cannot listen on)";
+     an address it cannot listen on)
+  130  interrupted: `run` or `demo` stopped by Ctrl-C, SIGTERM or SIGHUP; the output
+     directory is as it was and the partial output was removed";
 
 /// Exit status when the usage or the input was refused (as clap's own usage errors).
 pub const REFUSED: u8 = 2;
 
 /// Exit status of a failure while working.
 pub const FAILED: u8 = 1;
+
+/// Exit status of a run stopped by Ctrl-C, SIGTERM or SIGHUP (128 + SIGINT, as shells report
+/// Ctrl-C), whichever signal it was.
+pub const INTERRUPTED: u8 = 130;
 
 /// Whether the library refused what it was given (exit 2) rather than failing while working
 /// on it (exit 1). Exhaustive, so a new error variant must be placed here; it mirrors the
@@ -45,15 +51,22 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::InvalidModel(_)
         | Error::Diverged { .. }
         | Error::NotConverged { .. }
+        | Error::VolumeUnreachable(_)
         | Error::External(_)
         | Error::Cancelled(_)
         | Error::Store { .. } => false,
     }
 }
 
-/// The exit status of a library error.
+/// The exit status of a library error. Only a signal cancels a command-line run.
 pub fn exit_code(error: &lungmotion::Error) -> ExitCode {
-    ExitCode::from(if is_refusal(error) { REFUSED } else { FAILED })
+    ExitCode::from(if matches!(error, lungmotion::Error::Cancelled(_)) {
+        INTERRUPTED
+    } else if is_refusal(error) {
+        REFUSED
+    } else {
+        FAILED
+    })
 }
 
 /// The exit status of a subcommand's error: decided by the outermost library error in its

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod exit;
 pub mod ingest;
+pub mod interrupt;
 pub mod logging;
 pub mod phantom;
 pub mod progress;

@@ -5,9 +5,19 @@ use std::path::PathBuf;
 
 use lungmotion::breathing::BreathingTrace;
 use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
-use lungmotion::run::{RunConfig, RunInputs};
+use lungmotion::run::{Overwrite, RunConfig, RunInputs};
 
+use super::interrupt::Interrupt;
 use super::progress::ProgressDisplay;
+
+/// The `--overwrite` flag as the library's choice.
+fn overwrite_of(flag: bool) -> Overwrite {
+    if flag {
+        Overwrite::AnyRun
+    } else {
+        Overwrite::SameCtOnly
+    }
+}
 
 /// Options of `lungmotion run`.
 #[derive(clap::Args)]
@@ -19,9 +29,14 @@ pub struct RunArgs {
     /// The breathing trace (CSV or JSON, see above).
     #[arg(long)]
     trace: PathBuf,
-    /// Output directory (new, empty, or an earlier run's, which is replaced on success).
+    /// Output directory: new, empty, or an earlier run of the same CT, which is replaced on
+    /// success (a run of another CT only with --overwrite; a directory that is not a
+    /// lungmotion run never).
     #[arg(long)]
     out: PathBuf,
+    /// Replace an earlier run in --out even if it was made from another CT.
+    #[arg(long)]
+    overwrite: bool,
     /// Edge of the cubic elements in millimetres (2–16; default 6, or the config's).
     #[arg(long)]
     element_size: Option<f64>,
@@ -44,7 +59,7 @@ pub struct RunArgs {
     /// Also write each frame's deformed mesh (mesh.vtu, for ParaView).
     #[arg(long)]
     vtu: bool,
-    /// No progress bar.
+    /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
 }
@@ -58,7 +73,10 @@ pub struct DemoArgs {
     /// Edge of the cubic elements in millimetres (8 keeps the demo to seconds).
     #[arg(long, default_value_t = 8.0)]
     element_size: f64,
-    /// No progress bar.
+    /// Replace an earlier run in --out even if it was made from another CT.
+    #[arg(long)]
+    overwrite: bool,
+    /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
 }
@@ -68,6 +86,7 @@ struct BreathingRun {
     inputs: RunInputs,
     config: RunConfig,
     out: PathBuf,
+    overwrite: Overwrite,
     quiet: bool,
 }
 
@@ -92,11 +111,20 @@ impl RunArgs {
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;
-        let trace = BreathingTrace::read(&self.trace, &config.trace)?;
+        let reading = BreathingTrace::read_with_notes(&self.trace, &config.trace)?;
+        // What was done to the file's columns goes to the console and, with the file's name,
+        // into summary.json's trace source.
+        let mut trace_source = self.trace.display().to_string();
+        for note in &reading.notes {
+            eprintln!("lungmotion: trace: {note}");
+        }
+        if !reading.notes.is_empty() {
+            trace_source = format!("{trace_source} ({})", reading.notes.join("; "));
+        }
         let inputs = RunInputs {
             ct_path: self.ct,
-            trace,
-            trace_source: self.trace.display().to_string(),
+            trace: reading.trace,
+            trace_source,
             points: match &self.points {
                 Some(path) => lungmotion::outputs::trajectories::read_points(path)?,
                 None => Vec::new(),
@@ -106,6 +134,7 @@ impl RunArgs {
             inputs,
             config,
             out: self.out,
+            overwrite: overwrite_of(self.overwrite),
             quiet: self.quiet,
         })
     }
@@ -128,6 +157,7 @@ impl DemoArgs {
             inputs,
             config,
             out: self.out,
+            overwrite: overwrite_of(self.overwrite),
             quiet: self.quiet,
         }
         .execute()
@@ -135,11 +165,29 @@ impl DemoArgs {
 }
 
 impl BreathingRun {
-    /// Runs it with a progress display, then prints the warnings and the summary.
+    /// Runs it with a progress display, stopping cleanly on Ctrl-C, SIGTERM or SIGHUP, then
+    /// prints the warnings and the summary.
     fn execute(self) -> anyhow::Result<()> {
-        let mut progress = ProgressDisplay::new(self.quiet);
-        let summary =
-            lungmotion::run::run_breathing(&self.inputs, &self.config, &self.out, &mut progress)?;
+        let interrupt = Interrupt::install()?;
+        let mut progress = ProgressDisplay::new(self.quiet).with_cancel(interrupt.flag());
+        let result = lungmotion::run::run_breathing_with(
+            &self.inputs,
+            &self.config,
+            &self.out,
+            self.overwrite,
+            &mut progress,
+        );
+        let summary = match (result, interrupt.received()) {
+            (Ok(summary), _) => summary,
+            (Err(e @ lungmotion::Error::Cancelled(_)), Some(signal)) => {
+                return Err(anyhow::Error::new(e).context(format!(
+                    "interrupted by {signal}: the partial output was removed and {} was left \
+                     as it was",
+                    self.out.display()
+                )))
+            }
+            (Err(e), _) => return Err(e.into()),
+        };
         progress.finish();
         for w in &summary.warnings {
             eprintln!("lungmotion: warning: {w}");
@@ -149,7 +197,8 @@ impl BreathingRun {
     }
 }
 
-/// The run's summary on stdout: model, frame table, end-inhale, tracked points, timings.
+/// The run's summary on stdout: model, frame table, the breathing's extremes (end-inhale,
+/// deepest expiration) with the tracked points there, timings.
 fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
     let m = &summary.model;
     println!(
@@ -170,30 +219,27 @@ fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
             s.mean_displacement_mm
         );
     }
-    let e = &summary.end_inhale;
-    println!(
-        "end-inhale (frame {}): max displacement {:.1} mm at LPS ({:.0}, {:.0}, {:.0}) mm \
-         ({} lung, {}); base moves {:+.1} mm, apex {:+.1} mm in z",
-        e.frame,
-        e.max_displacement_mm,
-        e.max_displacement_at_lps_mm[0],
-        e.max_displacement_at_lps_mm[1],
-        e.max_displacement_at_lps_mm[2],
-        e.max_displacement_lung,
-        e.max_displacement_group,
-        e.mean_base_dz_mm,
-        e.mean_apex_dz_mm
-    );
-    for p in &summary.points {
-        let d = p.displacement_mm[e.frame];
+    let extremes: Vec<_> = summary.extremes().collect();
+    if extremes.is_empty() {
         println!(
-            "{}: end-inhale displacement ({:+.1}, {:+.1}, {:+.1}) mm, |d| = {:.1} mm",
-            p.name,
-            d[0],
-            d[1],
-            d[2],
-            (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            "no frame leaves the scanned volume by more than {} mL: no breathing extreme to report",
+            lungmotion::run::SCANNED_STATE_TOLERANCE_ML
         );
+    }
+    for e in &extremes {
+        println!("{}", e.describe());
+        for p in &summary.points {
+            let d = p.displacement_mm[e.frame];
+            println!(
+                "{}: {} displacement ({:+.1}, {:+.1}, {:+.1}) mm, |d| = {:.1} mm",
+                p.name,
+                e.kind.label(),
+                d[0],
+                d[1],
+                d[2],
+                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            );
+        }
     }
     println!(
         "solved in {:.2} s ({} key volumes), {:.2} s in all; wrote {}",

@@ -270,7 +270,7 @@ fn solve_key_volumes(
                 volume_tolerance_ml * 0.2,
             )
             .map_err(|e| match e {
-                Error::Cancelled(_) => e,
+                Error::Cancelled(_) | Error::VolumeUnreachable(_) => e,
                 e => Error::InvalidModel(format!("solving the key volumes: {e}")),
             })?,
         ),

@@ -6,9 +6,9 @@
 //! | `lung-mask.nii.gz` | uint8 on the CT's grid and affine: 0 background, 1 right lung, 2 left lung |
 //! | `groups.nii.gz` | uint8 on the CT's grid: constraint group of each lung-surface voxel (codes in `ingest.json`) |
 //! | `ingest.json` | volumes, element and node counts, group legend and node counts, reports |
-//! | `surface.vtp` | the model's outer surface in LPS mm, cell data `group` (ParaView) |
-//! | `mesh.vtu` | the cubic elements in LPS mm, cell data `lung` (1 right, 2 left), point data `group` |
-//! | `quicklook-{axial,coronal,sagittal}.png` | CT (lung window) with lung outlines and groups |
+//! | `surface.vtp` | the model's outer surface in LPS mm, cell data `group` (each face's group), point data `group`, `node_id`, `displacement_mm` (ParaView) |
+//! | `mesh.vtu` | the cubic elements in LPS mm, point data `group` (each node's group) and `displacement_mm`, cell data `lung` (1 right, 2 left) and `material_class` |
+//! | `quicklook-{axial,coronal,sagittal}.png` | CT (lung window) with lung outlines and groups, titled, with orientation letters and a legend (see [`ingest_quicklooks`](crate::outputs::ingest_quicklooks)) |
 
 use std::path::{Path, PathBuf};
 
@@ -18,7 +18,8 @@ use crate::durable::write_atomic;
 use crate::formats::{nifti, vtk};
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::IngestOutcome;
-use crate::outputs::quicklook::{write_overview, Overlay};
+use crate::model::HexMesh;
+use crate::outputs::ingest_quicklooks::write_ingest_quicklooks;
 use crate::volume::Volume;
 use crate::Result;
 
@@ -61,41 +62,74 @@ pub fn write_ingest_outputs(
     let model = &outcome.model;
     let mesh = &model.mesh.mesh;
     let face_group = face_groups(&mesh.external_faces, &model.node_group);
-    let surface = vtk::surface_from_hex_mesh(mesh, &mesh.rest_positions_m, Some(&face_group))?;
-    vtk::write_vtp_surface(&path("surface.vtp"), &surface)?;
-    let mut volume_mesh = vtk::vtu_from_hex_mesh(mesh, &mesh.rest_positions_m)?;
-    volume_mesh.cell_data.push((
-        "lung".to_string(),
-        vtk::DataArray::ScalarsU8(model.element_lung.clone()),
-    ));
-    volume_mesh.point_data.push((
+    let mut surface = vtk::surface_from_hex_mesh(mesh, &mesh.rest_positions_m, Some(&face_group))?;
+    let surface_node_group = match surface.point_data.iter().find(|(n, _)| n == "node_id") {
+        Some((_, vtk::DataArray::ScalarsI32(ids))) => {
+            ids.iter().map(|&n| model.node_group[n as usize]).collect()
+        }
+        _ => Vec::new(),
+    };
+    surface.point_data.push((
         "group".to_string(),
-        vtk::DataArray::ScalarsU8(model.node_group.clone()),
+        vtk::DataArray::ScalarsU8(surface_node_group),
     ));
+    vtk::write_vtp_surface(&path("surface.vtp"), &surface)?;
+    let volume_mesh = lung_mesh_vtu(
+        mesh,
+        &mesh.rest_positions_m,
+        &model.element_lung,
+        &model.node_group,
+    )?;
     vtk::write_vtu(&path("mesh.vtu"), &volume_mesh)?;
 
     let json = serde_json::to_string_pretty(&outcome.summary)
         .map_err(|e| crate::Error::Ingest(format!("cannot serialise ingest.json: {e}")))?;
     write_atomic(&path("ingest.json"), json.as_bytes())?;
 
-    let palette = group_palette();
-    let overlays = [
-        Overlay {
-            labels: &outcome.segmentation.lungs,
-            palette: &LUNG_PALETTE,
-            opacity: 1.0,
-            outline_only: true,
-        },
-        Overlay {
-            labels: &model.groups_volume,
-            palette: &palette,
-            opacity: 0.9,
-            outline_only: false,
-        },
-    ];
-    let centre = lung_centroid_lps_mm(&outcome.segmentation.lungs);
-    written.extend(write_overview(ct, &overlays, centre, out_dir, "quicklook")?);
+    let looks = write_ingest_quicklooks(
+        out_dir,
+        ct,
+        &outcome.segmentation.lungs,
+        &model.groups_volume,
+    )?;
+    written.extend(looks.into_iter().map(|l| l.path));
     Ok(written)
+}
+
+/// The lung mesh at `positions_m` for ParaView, as the ingest and every frame write it:
+/// point data `displacement_mm` and `group` (the node's constraint group code, 0 interior),
+/// cell data `lung` (1 right, 2 left) and `material_class`.
+pub fn lung_mesh_vtu(
+    mesh: &HexMesh,
+    positions_m: &[Vector3<f64>],
+    element_lung: &[u8],
+    node_group: &[u8],
+) -> Result<vtk::VtuMesh> {
+    if element_lung.len() != mesh.elements.len() || node_group.len() != mesh.node_count() {
+        return Err(crate::Error::argument(
+            "lung mesh labels",
+            format!(
+                "{} lung labels for {} elements and {} group codes for {} nodes",
+                element_lung.len(),
+                mesh.elements.len(),
+                node_group.len(),
+                mesh.node_count()
+            ),
+        ));
+    }
+    let mut vtu = vtk::vtu_from_hex_mesh(mesh, positions_m)?;
+    vtu.point_data.push((
+        "group".to_string(),
+        vtk::DataArray::ScalarsU8(node_group.to_vec()),
+    ));
+    vtu.cell_data.insert(
+        0,
+        (
+            "lung".to_string(),
+            vtk::DataArray::ScalarsU8(element_lung.to_vec()),
+        ),
+    );
+    Ok(vtu)
 }
 
 /// The group of each external face: the most frequent non-zero group of its four nodes
@@ -114,26 +148,6 @@ pub fn face_groups(faces: &[[u32; 4]], node_group: &[u8]) -> Vec<u8> {
                 .unwrap_or(0)
         })
         .collect()
-}
-
-/// Centre of mass of the lung voxels, in LPS mm (the grid centre if there are none).
-pub fn lung_centroid_lps_mm(lungs: &Volume<u8>) -> [f64; 3] {
-    let g = &lungs.geometry;
-    let [nx, ny, _] = g.dims;
-    let (mut sum, mut n) = (Vector3::zeros(), 0usize);
-    for (idx, &v) in lungs.as_slice().iter().enumerate() {
-        if v != 0 {
-            let (i, j, k) = (idx % nx, (idx / nx) % ny, idx / (nx * ny));
-            sum += Vector3::new(i as f64, j as f64, k as f64);
-            n += 1;
-        }
-    }
-    let ijk = if n > 0 {
-        sum / n as f64
-    } else {
-        Vector3::from(g.dims.map(|d| (d as f64 - 1.0) / 2.0))
-    };
-    g.voxel_to_lps_mm(ijk).into()
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 
 pub mod displacement_field;
 pub mod ingest_files;
+pub mod ingest_quicklooks;
 pub mod plots;
 pub mod quicklook;
 pub mod raster_text;

@@ -72,6 +72,26 @@ impl SlicePlane {
         }
     }
 
+    /// Letters of the patient directions at the image's left, right, top and bottom edges
+    /// (radiological convention): R/L right and left, A/P anterior and posterior, S/I
+    /// superior and inferior.
+    pub fn edge_letters(self) -> [char; 4] {
+        match self {
+            SlicePlane::Axial => ['R', 'L', 'A', 'P'],
+            SlicePlane::Coronal => ['R', 'L', 'S', 'I'],
+            SlicePlane::Sagittal => ['A', 'P', 'S', 'I'],
+        }
+    }
+
+    /// Index of the LPS axis the plane's position is measured along (x 0, y 1, z 2).
+    pub fn normal_axis(self) -> usize {
+        match self {
+            SlicePlane::Axial => 2,
+            SlicePlane::Coronal => 1,
+            SlicePlane::Sagittal => 0,
+        }
+    }
+
     /// LPS unit vectors of the image's rightward column axis, downward row axis and the
     /// plane normal (whose coordinate is the slice position).
     fn frame(self) -> [Vector3<f64>; 3] {
@@ -169,31 +189,16 @@ pub fn write_overview(
         ));
     }
     std::fs::create_dir_all(out_dir).at(IoOp::CreateDir, out_dir)?;
-    let spacing = smallest_spacing_mm(&ct.geometry);
-    let extent_px = ct
-        .geometry
-        .dims
-        .iter()
-        .zip(&ct.geometry.spacing_mm)
-        .map(|(&n, &s)| n as f64 * s / spacing)
-        .fold(1.0, f64::max);
-    let refine = (OVERVIEW_MIN_SIDE as f64 / extent_px)
-        .ceil()
-        .clamp(1.0, 8.0);
+    let pixel_mm = overview_pixel_mm(&ct.geometry);
     let mut paths = Vec::with_capacity(3);
     for plane in SlicePlane::ALL {
-        let axis = match plane {
-            SlicePlane::Axial => 2,
-            SlicePlane::Coronal => 1,
-            SlicePlane::Sagittal => 0,
-        };
         let image = render_slice_with_pixel(
             ct,
             overlays,
             plane,
-            centre_lps_mm[axis],
+            centre_lps_mm[plane.normal_axis()],
             HuWindow::LUNG,
-            spacing / refine,
+            pixel_mm,
         )?;
         let path = out_dir.join(format!("{stem}-{}.png", plane.name()));
         write_png(&path, &image)?;
@@ -202,8 +207,30 @@ pub fn write_overview(
     Ok(paths)
 }
 
+/// The pixel of an overview of a scan of `geometry`, mm: its smallest spacing, refined so a
+/// coarse scan's largest extent still spans a few hundred pixels.
+pub fn overview_pixel_mm(geometry: &VolumeGeometry) -> f64 {
+    let spacing = smallest_spacing_mm(geometry);
+    let extent_px = geometry
+        .dims
+        .iter()
+        .zip(&geometry.spacing_mm)
+        .map(|(&n, &s)| n as f64 * s / spacing)
+        .fold(1.0, f64::max);
+    let refine = (OVERVIEW_MIN_SIDE as f64 / extent_px)
+        .ceil()
+        .clamp(1.0, 8.0);
+    spacing / refine
+}
+
 /// Writes an 8-bit RGB PNG atomically.
 pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
+    write_png_with_text(path, image, &[])
+}
+
+/// Writes an 8-bit RGB PNG atomically with `text` as tEXt chunks (keyword, Latin-1 text):
+/// metadata image viewers show and scripts read back with [`read_png_text`].
+pub fn write_png_with_text(path: &Path, image: &RgbImage, text: &[(&str, String)]) -> Result<()> {
     let bad = |m: String| argument("PNG image", m);
     if image.width == 0 || image.height == 0 {
         return Err(bad(format!("empty image {}×{}", image.width, image.height)));
@@ -231,6 +258,11 @@ pub fn write_png(path: &Path, image: &RgbImage) -> Result<()> {
             path: path.to_path_buf(),
             reason: format!("PNG encoding failed: {e}"),
         };
+        for (keyword, value) in text {
+            encoder
+                .add_text_chunk(keyword.to_string(), value.clone())
+                .map_err(failed)?;
+        }
         let mut writer = encoder.write_header().map_err(failed)?;
         writer.write_image_data(&image.pixels).map_err(failed)?;
         writer.finish().map_err(failed)?;
@@ -280,6 +312,23 @@ pub fn read_png(path: &Path) -> Result<RgbImage> {
         height,
         pixels,
     })
+}
+
+/// The tEXt chunks of a PNG as (keyword, text) pairs, in file order.
+pub fn read_png_text(path: &Path) -> Result<Vec<(String, String)>> {
+    let bytes = std::fs::read(path).at(IoOp::Read, path)?;
+    let reader = png::Decoder::new(Cursor::new(bytes))
+        .read_info()
+        .map_err(|e| Error::Format {
+            path: path.to_path_buf(),
+            reason: format!("not a readable PNG: {e}"),
+        })?;
+    Ok(reader
+        .info()
+        .uncompressed_latin1_text
+        .iter()
+        .map(|t| (t.keyword.clone(), t.text.clone()))
+        .collect())
 }
 
 /// The pixel grid of a slice image in LPS mm: square pixels covering the scan's LPS bounding
@@ -459,7 +508,8 @@ fn check_volume<T>(v: &Volume<T>, what: &str) -> Result<()> {
     Ok(())
 }
 
-fn render_slice_with_pixel(
+/// [`render_slice`] with square pixels of `pixel_mm`.
+pub fn render_slice_with_pixel(
     ct: &Volume<f32>,
     overlays: &[Overlay],
     plane: SlicePlane,

@@ -4,15 +4,18 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use super::summary::{BreathExtreme, SCANNED_STATE_TOLERANCE_ML};
 use super::{
     check_cancel, FrameFiles, FrameRecord, LungScene, OutputConfig, PointTrajectory, RunInputs,
     RunObserver, RunStage,
 };
 use crate::breathing::BreathingTrace;
 use crate::formats::{metaimage, nifti, vtk};
+use crate::ingest::lung_model::LungModel;
 use crate::math::V3;
 use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
+use crate::outputs::ingest_files::lung_mesh_vtu;
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
 use crate::{IoContext, IoOp, Result};
@@ -22,6 +25,7 @@ pub(super) struct FrameSink<'a> {
     field: &'a FieldSampler,
     points: &'a PointSampler,
     mesh: &'a crate::model::HexMesh,
+    model: &'a LungModel,
     geometry: VolumeGeometry,
     frames_dir: PathBuf,
     outputs: &'a OutputConfig,
@@ -31,16 +35,19 @@ pub(super) struct FrameSink<'a> {
     trajectories: Vec<PointTrajectory>,
     trajectory_file: Option<TrajectoryFile>,
     point_displacements: Vec<[f64; 3]>,
-    end_inhale_frame: usize,
-    end_inhale: Option<EndInhaleCapture>,
+    extremes: ExtremeFrames,
+    captures: Vec<ExtremeCapture>,
+    pictured_field_mm: Option<Vec<[f32; 3]>>,
     write_s: f64,
 }
 
 impl<'a> FrameSink<'a> {
     /// Prepares `frames/` and, with tracked points, `trajectories.csv` in the staging
-    /// directory for one frame per instant of `times`, the fields on the sampler's grid.
+    /// directory for one frame per instant of `times`, the fields on the sampler's grid;
+    /// `model` gives the frame meshes their lung and group labels.
     pub(super) fn open(
         lung: &'a LungScene,
+        model: &'a LungModel,
         staging_dir: &Path,
         outputs: &'a OutputConfig,
         inputs: &RunInputs,
@@ -53,6 +60,7 @@ impl<'a> FrameSink<'a> {
             field: &lung.field,
             points: &lung.points,
             mesh: &lung.scene.mesh,
+            model,
             geometry,
             frames_dir,
             outputs,
@@ -77,19 +85,28 @@ impl<'a> FrameSink<'a> {
                 )?)
             },
             point_displacements: vec![[0.0f64; 3]; inputs.points.len()],
-            end_inhale_frame: end_inhale_frame(&inputs.trace, times),
-            end_inhale: None,
+            extremes: ExtremeFrames::of(&inputs.trace, times),
+            captures: Vec::with_capacity(2),
+            pictured_field_mm: None,
             write_s: 0.0,
         })
     }
 
-    /// What the frames left for the summary: records, trajectories, the end-inhale capture.
+    /// What the frames left for the summary: records, trajectories, the extremes' captures.
     pub(super) fn finish(self) -> FramesWritten {
+        let pictured = self.extremes.pictured().zip(self.pictured_field_mm).map(
+            |((kind, frame), field_mm)| PicturedExtreme {
+                kind,
+                frame,
+                field_mm,
+            },
+        );
         FramesWritten {
             records: self.records,
             trajectories: self.trajectories,
             trajectory_file: self.trajectory_file,
-            end_inhale: self.end_inhale,
+            extremes: self.captures,
+            pictured,
             write_s: self.write_s,
         }
     }
@@ -101,26 +118,66 @@ pub(super) struct FramesWritten {
     pub(super) trajectories: Vec<PointTrajectory>,
     /// Still open: finished once the run gets through its last frame.
     pub(super) trajectory_file: Option<TrajectoryFile>,
-    pub(super) end_inhale: Option<EndInhaleCapture>,
+    /// Node positions at each breathing extreme the trace reaches, in frame order.
+    pub(super) extremes: Vec<ExtremeCapture>,
+    /// The field of the extreme the quick look shows (end-inhale when there is one).
+    pub(super) pictured: Option<PicturedExtreme>,
     /// Time spent writing frame files, s.
     pub(super) write_s: f64,
 }
 
-/// End-inhale is the frame with the largest trace volume (the first, on a tie); known
-/// before solving, so only that frame's field and positions are kept.
-fn end_inhale_frame(trace: &BreathingTrace, times: &[f64]) -> usize {
-    times
-        .iter()
-        .map(|&t| trace.volume_at(t))
-        .enumerate()
-        .fold((0, f64::NEG_INFINITY), |best, (i, v)| {
-            if v > best.1 {
-                (i, v)
-            } else {
-                best
-            }
-        })
-        .0
+/// The output frames at the breathing's extremes, known from the trace before solving, so
+/// only their positions (and one field, for the quick look) are kept.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct ExtremeFrames {
+    /// The frame with the largest volume, if it lies above the scanned state.
+    pub(super) end_inhale: Option<usize>,
+    /// The frame with the smallest volume, if it lies below the scanned state.
+    pub(super) deepest_expiration: Option<usize>,
+}
+
+impl ExtremeFrames {
+    /// The extremes among the trace's volumes at `times` (the first frame on a tie).
+    pub(super) fn of(trace: &BreathingTrace, times: &[f64]) -> Self {
+        let volumes = || times.iter().map(|&t| trace.volume_at(t)).enumerate();
+        let pick = |better: fn(f64, f64) -> bool| {
+            volumes().fold(None, |best: Option<(usize, f64)>, (i, v)| match best {
+                Some((_, b)) if !better(v, b) => best,
+                _ => Some((i, v)),
+            })
+        };
+        let largest = pick(|v, b| v > b);
+        let smallest = pick(|v, b| v < b);
+        ExtremeFrames {
+            end_inhale: largest
+                .filter(|&(_, v)| v > SCANNED_STATE_TOLERANCE_ML)
+                .map(|(i, _)| i),
+            deepest_expiration: smallest
+                .filter(|&(_, v)| v < -SCANNED_STATE_TOLERANCE_ML)
+                .map(|(i, _)| i),
+        }
+    }
+
+    /// Which extreme frame `index` is, if any (end-inhale first).
+    fn kind_of(&self, index: usize) -> Option<BreathExtreme> {
+        if self.end_inhale == Some(index) {
+            Some(BreathExtreme::EndInhale)
+        } else if self.deepest_expiration == Some(index) {
+            Some(BreathExtreme::DeepestExpiration)
+        } else {
+            None
+        }
+    }
+
+    /// The extreme the quick look shows: end-inhale when the trace rises above the scanned
+    /// state, else the deepest expiration.
+    pub(super) fn pictured(&self) -> Option<(BreathExtreme, usize)> {
+        self.end_inhale
+            .map(|f| (BreathExtreme::EndInhale, f))
+            .or(self
+                .deepest_expiration
+                .map(|f| (BreathExtreme::DeepestExpiration, f)))
+    }
 }
 
 impl FrameSink<'_> {
@@ -165,7 +222,12 @@ impl FrameSink<'_> {
         if self.outputs.mesh_vtu {
             vtk::write_vtu(
                 &dir.join("mesh.vtu"),
-                &vtk::vtu_from_hex_mesh(mesh, positions)?,
+                &lung_mesh_vtu(
+                    mesh,
+                    positions,
+                    &self.model.element_lung,
+                    &self.model.node_group,
+                )?,
             )?;
             files.mesh_vtu = Some(format!("frames/{}/mesh.vtu", frame.index));
         }
@@ -191,13 +253,7 @@ impl FrameSink<'_> {
                 (0, -1.0),
                 |best, (i, d)| if d > best.1 { (i, d) } else { best },
             );
-        if frame.index == self.end_inhale_frame {
-            self.end_inhale = Some(EndInhaleCapture {
-                frame: frame.index,
-                positions_m: positions.to_vec(),
-                field_mm: self.field_mm.clone(),
-            });
-        }
+        self.capture_extreme(frame.index, positions);
         let write_time_s = t.elapsed().as_secs_f64();
         self.records.push(FrameRecord {
             summary: frame.clone(),
@@ -211,9 +267,74 @@ impl FrameSink<'_> {
     }
 }
 
-/// The frame with the largest volume, kept for the quick look and the physical checks.
-pub(super) struct EndInhaleCapture {
+impl FrameSink<'_> {
+    /// Keeps the positions of an extreme frame, and its field if the quick look shows it.
+    fn capture_extreme(&mut self, index: usize, positions: &[V3]) {
+        let Some(kind) = self.extremes.kind_of(index) else {
+            return;
+        };
+        self.captures.push(ExtremeCapture {
+            kind,
+            frame: index,
+            positions_m: positions.to_vec(),
+        });
+        if self.extremes.pictured().map(|p| p.1) == Some(index) {
+            self.pictured_field_mm = Some(self.field_mm.clone());
+        }
+    }
+}
+
+/// Node positions at a breathing extreme, kept for the physical checks.
+pub(super) struct ExtremeCapture {
+    pub(super) kind: BreathExtreme,
     pub(super) frame: usize,
     pub(super) positions_m: Vec<V3>,
+}
+
+/// The displacement field of the extreme the quick look shows.
+pub(super) struct PicturedExtreme {
+    pub(super) kind: BreathExtreme,
+    pub(super) frame: usize,
     pub(super) field_mm: Vec<[f32; 3]>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn extremes_of(volumes_ml: &[f64]) -> ExtremeFrames {
+        let times: Vec<f64> = (0..volumes_ml.len()).map(|i| i as f64).collect();
+        let trace = BreathingTrace::new(times.clone(), volumes_ml.to_vec()).unwrap();
+        ExtremeFrames::of(&trace, &times)
+    }
+
+    #[test]
+    fn a_trace_that_only_deflates_has_no_end_inhale_but_a_deepest_expiration() {
+        let e = extremes_of(&[0.0, -120.0, -436.0, -300.0, 0.0]);
+        assert_eq!(e.end_inhale, None);
+        assert_eq!(e.deepest_expiration, Some(2));
+        assert_eq!(
+            e.pictured(),
+            Some((BreathExtreme::DeepestExpiration, 2)),
+            "the quick look shows the expiration"
+        );
+    }
+
+    #[test]
+    fn a_trace_going_both_ways_reports_both_extremes_and_pictures_the_inhale() {
+        let e = extremes_of(&[0.0, 500.0, 1150.0, 200.0, -436.0, -100.0]);
+        assert_eq!(e.end_inhale, Some(2));
+        assert_eq!(e.deepest_expiration, Some(4));
+        assert_eq!(e.kind_of(4), Some(BreathExtreme::DeepestExpiration));
+        assert_eq!(e.kind_of(3), None);
+        assert_eq!(e.pictured(), Some((BreathExtreme::EndInhale, 2)));
+    }
+
+    #[test]
+    fn a_tidal_trace_above_the_scan_has_only_an_end_inhale() {
+        // The scanned state itself (0 mL, or within 1 mL of it) is no expiration.
+        let e = extremes_of(&[0.0, 250.0, 500.0, 250.0, -0.5]);
+        assert_eq!(e.end_inhale, Some(2));
+        assert_eq!(e.deepest_expiration, None);
+    }
 }

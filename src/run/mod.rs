@@ -13,10 +13,11 @@
 //!   and elastix expect (not RAS, whatever the NIfTI world frame); zero outside the lungs.
 //!   `u(x)` is where the tissue at CT voxel `x` has moved: `x + u(x)` at that instant.
 //!   Optionally `displacement.mha` (MetaImage, same convention) and `mesh.vtu` (the deformed
-//!   mesh, LPS millimetres, point data `displacement_mm`).
+//!   mesh, LPS millimetres, point data `displacement_mm` and `group`, cell data `lung`).
 //! * `trajectories.csv`: tracked points per frame (see [`crate::outputs::trajectories`]).
 //! * `summary.json`: [`RunSummary`].
-//! * `breathing.png`, `end-inhale-displacement.png`: quick looks.
+//! * `breathing.png`, `end-inhale-displacement.png` (or `deepest-expiration-displacement.png`
+//!   for a trace that never rises above the scanned volume): quick looks.
 //! * `ingest/`: the ingest outputs (lung mask, groups, mesh, `ingest.json`).
 
 pub mod config;
@@ -33,8 +34,8 @@ use std::time::Instant;
 pub use crate::outputs::trajectories::TrackedPoint;
 pub use config::{MotionConfig, OutputConfig, RunConfig};
 pub use summary::{
-    EndInhaleSummary, FrameFiles, FrameRecord, ModelSummary, PointTrajectory, RunSummary,
-    TraceSummary,
+    BreathExtreme, BreathExtremeSummary, FrameFiles, FrameRecord, ModelSummary, PointTrajectory,
+    RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM, SCANNED_STATE_TOLERANCE_ML,
 };
 
 use crate::breathing::BreathingTrace;
@@ -50,7 +51,8 @@ use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
 use quicklooks::write_quicklooks;
-use staging::{OutputStaging, SUMMARY_FILE};
+pub use staging::Overwrite;
+use staging::{ct_fingerprint, CtIdentity, OutputStaging, SUMMARY_FILE};
 
 /// The inputs of one run.
 #[derive(Debug, Clone)]
@@ -206,16 +208,29 @@ pub fn run_breathing(
     out_dir: &Path,
     observer: &mut dyn RunObserver,
 ) -> Result<RunSummary> {
-    run_breathing_on(inputs, config, out_dir, observer, None)
+    run_breathing_with(inputs, config, out_dir, Overwrite::SameCtOnly, observer)
 }
 
-/// [`run_breathing`] on `prepared`: the CT of `inputs.ct_path` already read and ingested with
-/// `config`'s settings (the caller's promise), with the wall times of that reading to report
-/// (none when it was read for an earlier run); or reading and ingesting it when `None`.
+/// [`run_breathing`], replacing an earlier run of another CT in `out_dir` only if `overwrite`
+/// says so (the CLI's `--overwrite`).
+pub fn run_breathing_with(
+    inputs: &RunInputs,
+    config: &RunConfig,
+    out_dir: &Path,
+    overwrite: Overwrite,
+    observer: &mut dyn RunObserver,
+) -> Result<RunSummary> {
+    run_breathing_on(inputs, config, out_dir, overwrite, observer, None)
+}
+
+/// [`run_breathing_with`] on `prepared`: the CT of `inputs.ct_path` already read and ingested
+/// with `config`'s settings (the caller's promise), with the wall times of that reading to
+/// report (none when it was read for an earlier run); or reading and ingesting it when `None`.
 pub fn run_breathing_on(
     inputs: &RunInputs,
     config: &RunConfig,
     out_dir: &Path,
+    overwrite: Overwrite,
     observer: &mut dyn RunObserver,
     prepared: Option<(&IngestedScan, BTreeMap<String, f64>)>,
 ) -> Result<RunSummary> {
@@ -238,6 +253,12 @@ pub fn run_breathing_on(
     };
     let (scan, outcome) = (&ingested.scan, &ingested.outcome);
     let t = Instant::now();
+    let ct = CtIdentity {
+        path: inputs.ct_path.display().to_string(),
+        fingerprint: ct_fingerprint(&scan.ct),
+        series_uid: scan.series.as_ref().map(|s| s.series_instance_uid.clone()),
+    };
+    staging.check_replaces(&ct, overwrite)?;
     let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
     if config.outputs.ingest_files {
         write_ingest_files(staging.dir(), &scan.ct, outcome)?;
@@ -246,7 +267,14 @@ pub fn run_breathing_on(
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
-    let mut sink = FrameSink::open(&lung, staging.dir(), &config.outputs, inputs, &times)?;
+    let mut sink = FrameSink::open(
+        &lung,
+        &outcome.model,
+        staging.dir(),
+        &config.outputs,
+        inputs,
+        &times,
+    )?;
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
@@ -255,7 +283,8 @@ pub fn run_breathing_on(
         &times,
         &mut sink,
         observer,
-    )?;
+    )
+    .map_err(|e| name_element_groups(e, &outcome.model))?;
     let written = sink.finish();
     timings.insert(
         "motion_solve".to_string(),
@@ -266,16 +295,23 @@ pub fn run_breathing_on(
     observer.stage(RunStage::Finishing);
     check_cancel(observer, "the summary")?;
     let t = Instant::now();
-    let capture = written
-        .end_inhale
-        .ok_or_else(|| Error::argument("run output", "the run produced no frame"))?;
-    let end_inhale = summary::end_inhale_summary(
-        &outcome.model,
-        &lung.scene,
-        capture.frame,
-        &capture.positions_m,
-        &report,
-    );
+    if written.records.is_empty() {
+        return Err(Error::argument("run output", "the run produced no frame"));
+    }
+    let extremes = written
+        .extremes
+        .iter()
+        .map(|c| {
+            summary::extreme_summary(
+                c.kind,
+                &outcome.model,
+                &lung.scene,
+                c.frame,
+                &c.positions_m,
+                &report,
+            )
+        })
+        .collect();
     if let Some(file) = written.trajectory_file {
         file.finish()?;
     }
@@ -287,7 +323,7 @@ pub fn run_breathing_on(
             &outcome.segmentation.lungs,
             &lung.field,
             &written.records,
-            &capture,
+            written.pictured.as_ref(),
         )?;
     }
     let mut summary = RunSummary::new(
@@ -298,7 +334,7 @@ pub fn run_breathing_on(
         dynamic,
         written.records,
         written.trajectories,
-        end_inhale,
+        extremes,
         summary::FieldGridSummary::of(
             config.outputs.field_grid,
             &lung.field,
@@ -306,6 +342,7 @@ pub fn run_breathing_on(
         ),
         timings,
     );
+    summary.ct_fingerprint = Some(ct.fingerprint);
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;
@@ -384,6 +421,25 @@ fn write_ingest_files(
     std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
     write_ingest_outputs(&dir, ct, outcome)?;
     Ok(())
+}
+
+/// Adds the anatomical groups of the named element's nodes to a [`Error::VolumeUnreachable`],
+/// which the solver, knowing only the mesh, leaves out.
+fn name_element_groups(error: Error, model: &crate::ingest::lung_model::LungModel) -> Error {
+    let Error::VolumeUnreachable(mut unreachable) = error else {
+        return error;
+    };
+    let mut names: Vec<&str> = model.mesh.mesh.elements[unreachable.element]
+        .iter()
+        .map(|&n| {
+            crate::ingest::lung_model::ConstraintGroup::from_code(model.node_group[n as usize])
+                .map_or("interior", |g| g.name())
+        })
+        .collect();
+    names.sort_unstable();
+    names.dedup();
+    unreachable.group = Some(names.join(", "));
+    Error::VolumeUnreachable(unreachable)
 }
 
 /// Drives the scene through the trace, quasi-static or dynamic as configured, handing every

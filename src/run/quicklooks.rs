@@ -1,14 +1,17 @@
-//! The run's quick looks: `breathing.png` and `end-inhale-displacement.png`.
+//! The run's quick looks: `breathing.png` and the displacement at a breathing extreme
+//! (`end-inhale-displacement.png`, or `deepest-expiration-displacement.png` for a trace that
+//! never rises above the scanned volume).
 
 use std::path::Path;
 
-use super::frames::EndInhaleCapture;
+use super::frames::PicturedExtreme;
 use super::{FrameRecord, RunInputs};
 use crate::motion::FrameSummary;
 use crate::Result;
 
-/// `breathing.png` (trace, targets, simulated volumes) and `end-inhale-displacement.png`
-/// (coronal slice through the first tracked point, else the lungs' centroid).
+/// `breathing.png` (trace, targets, simulated volumes) and `<extreme>-displacement.png`
+/// (coronal slice through the first tracked point, else the lungs' centroid), the latter only
+/// when the trace leaves the scanned volume.
 pub(super) fn write_quicklooks(
     dir: &Path,
     inputs: &RunInputs,
@@ -16,7 +19,7 @@ pub(super) fn write_quicklooks(
     lungs: &crate::volume::Volume<u8>,
     field: &crate::outputs::displacement_field::FieldSampler,
     records: &[FrameRecord],
-    end_inhale: &EndInhaleCapture,
+    pictured: Option<&PicturedExtreme>,
 ) -> Result<()> {
     use crate::outputs::plots::{
         lung_centroid_lps_mm, render_breathing_curve, render_displacement_look, BreathingCurve,
@@ -38,6 +41,9 @@ pub(super) fn write_quicklooks(
         title: "Breathing trace (line), frame targets (rings) and simulated volumes (dots)",
     })?;
     write_png(&dir.join("breathing.png"), &plot.image)?;
+    let Some(pictured) = pictured else {
+        return Ok(());
+    };
     let (coronal_y_mm, through) = match inputs.points.first() {
         Some(p) => (p.rest_lps_mm[1], p.name.clone()),
         None => (
@@ -45,11 +51,16 @@ pub(super) fn write_quicklooks(
             "the lungs' centroid".to_string(),
         ),
     };
-    let f = &records[end_inhale.frame].summary;
-    let title = format!(
-        "End-inhale (frame {}, t = {:.2} s, +{:.0} mL): displacement, coronal slice through {}",
-        f.index, f.time_s, f.simulated_volume_ml, through
+    let f = &records[pictured.frame].summary;
+    let mut title = format!(
+        "{} (frame {}, t = {:.2} s, {:+.0} mL): displacement, coronal slice through {}",
+        pictured.kind.label(),
+        f.index,
+        f.time_s,
+        f.simulated_volume_ml,
+        through
     );
+    title[..1].make_ascii_uppercase();
     // The look draws the CT under the field on the field's own grid: the lung box by default.
     let (start, dims) = (field.start(), field.geometry().dims);
     let cropped;
@@ -62,10 +73,11 @@ pub(super) fn write_quicklooks(
     let look = render_displacement_look(&DisplacementLookInput {
         ct,
         lungs,
-        displacement_mm: &end_inhale.field_mm,
+        displacement_mm: &pictured.field_mm,
         coronal_y_mm,
         colour_max_mm: None,
         title: &title,
     })?;
-    write_png(&dir.join("end-inhale-displacement.png"), &look.image)
+    let name = format!("{}-displacement.png", pictured.kind.file_stem());
+    write_png(&dir.join(name), &look.image)
 }

@@ -26,6 +26,8 @@ pub struct RunSummary {
     pub conventions: BTreeMap<&'static str, &'static str>,
     /// The CT input as given.
     pub ct: String,
+    /// The loaded CT's fingerprint (grid and voxels), telling a rerun on the same CT apart.
+    pub ct_fingerprint: Option<String>,
     /// The breathing trace.
     pub trace: TraceSummary,
     /// The configuration used (file and command line merged).
@@ -42,8 +44,12 @@ pub struct RunSummary {
     pub field_grid: FieldGridSummary,
     /// One entry per output frame, in time order.
     pub frames: Vec<FrameRecord>,
-    /// The frame with the largest volume, with physical checks.
-    pub end_inhale: EndInhaleSummary,
+    /// The largest inspiration above the scanned volume, with physical checks; `null` when
+    /// the trace never rises above it.
+    pub end_inhale: Option<BreathExtremeSummary>,
+    /// The largest expiration below the scanned volume, with the same checks; `null` when
+    /// the trace never falls below it.
+    pub deepest_expiration: Option<BreathExtremeSummary>,
     /// Tracked points (also in `trajectories.csv`).
     pub points: Vec<PointTrajectory>,
     /// Stage wall times, s.
@@ -151,13 +157,62 @@ pub struct PointTrajectory {
     pub displacement_mm: Vec<[f64; 3]>,
 }
 
-/// The end-inhale frame and the physical checks made on it.
+/// Costal nodes whose distance to the chest wall changes by more than the element edge, and
+/// at least this, mm, raise a warning: sliding follows the wall's tangent planes, which depart
+/// from a curved wall as a node slides far (21 mm was seen at +1 152 mL on POPI at 8 mm).
+/// Below one element edge the departure is within the mesh's own approximation of the wall
+/// (the phantom's 500 mL breath at 8 mm: at most 7.1 mm).
+pub const COSTAL_WALL_GAP_WARNING_MIN_MM: f64 = 5.0;
+
+/// The costal wall-gap warning bound for elements of `element_size_mm`, mm.
+pub fn costal_wall_gap_warning_mm(element_size_mm: f64) -> f64 {
+    element_size_mm.max(COSTAL_WALL_GAP_WARNING_MIN_MM)
+}
+
+/// Volumes within this of the scanned state, mL, count as the scanned state: a frame must
+/// leave it by more to be reported as an inspiration or an expiration.
+pub const SCANNED_STATE_TOLERANCE_ML: f64 = 1.0;
+
+/// Which extreme of the breathing a [`BreathExtremeSummary`] describes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BreathExtreme {
+    /// The largest inspiration above the scanned volume.
+    EndInhale,
+    /// The largest expiration below the scanned volume.
+    DeepestExpiration,
+}
+
+impl BreathExtreme {
+    /// How the console and the quick looks name it.
+    pub fn label(self) -> &'static str {
+        match self {
+            BreathExtreme::EndInhale => "end-inhale",
+            BreathExtreme::DeepestExpiration => "deepest expiration",
+        }
+    }
+
+    /// File-name stem of its quick look.
+    pub fn file_stem(self) -> &'static str {
+        match self {
+            BreathExtreme::EndInhale => "end-inhale",
+            BreathExtreme::DeepestExpiration => "deepest-expiration",
+        }
+    }
+}
+
+/// A breathing extreme (end-inhale or deepest expiration) and the physical checks made on
+/// it.
 #[derive(Debug, Clone, Serialize)]
-pub struct EndInhaleSummary {
+pub struct BreathExtremeSummary {
+    /// Which extreme this is.
+    pub kind: BreathExtreme,
     /// Frame index.
     pub frame: usize,
     /// Time, s.
     pub time_s: f64,
+    /// The trace's volume change at that frame, mL.
+    pub target_volume_ml: f64,
     /// Simulated volume change, mL.
     pub simulated_volume_ml: f64,
     /// Largest node displacement, mm.
@@ -177,15 +232,74 @@ pub struct EndInhaleSummary {
     /// Costal nodes: median, 95th percentile and largest change of distance to the chest
     /// wall, mm (tangent-plane sliding departs from a curved wall as nodes slide).
     pub costal_wall_gap_change_mm: [f64; 3],
+    /// Costal nodes whose distance to the wall changed by more than
+    /// `costal_wall_gap_warning_mm`.
+    pub costal_nodes_off_wall: usize,
+    /// The bound those nodes exceed, mm: the element edge, at least
+    /// [`COSTAL_WALL_GAP_WARNING_MIN_MM`].
+    pub costal_wall_gap_warning_mm: f64,
+    /// Rest position of the costal node with the largest change, LPS mm.
+    pub costal_wall_gap_max_at_lps_mm: [f64; 3],
 }
 
-pub(super) fn end_inhale_summary(
+impl BreathExtremeSummary {
+    /// One console line: which extreme, its frame and volume, the largest displacement and
+    /// where, and how base and apex move.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} (frame {}, t = {:.2} s, {:+.0} mL): max displacement {:.1} mm at LPS ({:.0}, \
+             {:.0}, {:.0}) mm ({} lung, {}); base moves {:+.1} mm, apex {:+.1} mm in z",
+            self.kind.label(),
+            self.frame,
+            self.time_s,
+            self.simulated_volume_ml,
+            self.max_displacement_mm,
+            self.max_displacement_at_lps_mm[0],
+            self.max_displacement_at_lps_mm[1],
+            self.max_displacement_at_lps_mm[2],
+            self.max_displacement_lung,
+            self.max_displacement_group,
+            self.mean_base_dz_mm,
+            self.mean_apex_dz_mm
+        )
+    }
+
+    /// The warning for costal nodes that left the wall by more than the bound, if any did.
+    pub fn wall_gap_warning(&self) -> Option<String> {
+        if self.costal_nodes_off_wall == 0 {
+            return None;
+        }
+        let p = self.costal_wall_gap_max_at_lps_mm;
+        Some(format!(
+            "{} costal node(s) left the chest wall by more than {} mm at {} (frame {}, \
+             {:+.0} mL): up to {:.1} mm, at rest position LPS ({:.0}, {:.0}, {:.0}) mm. Costal \
+             nodes slide on the wall's tangent planes, which depart from a curved wall as a \
+             node slides far: motion near the chest wall is less trustworthy there. Use a \
+             smaller volume change, finer elements (--element-size), or read the displacement \
+             near the wall with this in mind",
+            self.costal_nodes_off_wall,
+            self.costal_wall_gap_warning_mm,
+            self.kind.label(),
+            self.frame,
+            self.simulated_volume_ml,
+            self.costal_wall_gap_change_mm[2],
+            p[0],
+            p[1],
+            p[2]
+        ))
+    }
+}
+
+/// The physical checks of the frame `frame` (node positions `x`, metres) as the breathing
+/// extreme `kind`.
+pub(super) fn extreme_summary(
+    kind: BreathExtreme,
     model: &LungModel,
     scene: &Scene,
     frame: usize,
     x: &[V3],
     report: &MotionReport,
-) -> EndInhaleSummary {
+) -> BreathExtremeSummary {
     let rest = &scene.mesh.rest_positions_m;
     let u_mm = |n: usize| (x[n] - rest[n]) * 1e3;
     let mean_dz = |g: ConstraintGroup| {
@@ -201,25 +315,14 @@ pub(super) fn end_inhale_summary(
         .iter()
         .map(|&n| u_mm(n as usize).norm())
         .fold(0.0, f64::max);
-    let mut gaps: Vec<f64> = model
-        .group_nodes(ConstraintGroup::Costal)
-        .iter()
-        .filter(|&&n| {
-            matches!(
-                scene.constraints.get(n),
-                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
-            )
-        })
-        .map(|&n| {
-            let n = n as usize;
-            (model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0).abs() * 1e3
-        })
-        .collect();
-    gaps.sort_by(f64::total_cmp);
+    let bound_mm = costal_wall_gap_warning_mm(model.report.element_size_mm);
+    let wall = costal_wall_gaps(model, scene, x, bound_mm);
     let f = &report.frames[frame];
-    EndInhaleSummary {
+    BreathExtremeSummary {
+        kind,
         frame,
         time_s: f.time_s,
+        target_volume_ml: f.target_volume_ml,
         simulated_volume_ml: f.simulated_volume_ml,
         max_displacement_mm: max_mm,
         max_displacement_at_lps_mm: (rest[node] * 1e3).into(),
@@ -232,11 +335,52 @@ pub(super) fn end_inhale_summary(
         mean_base_dz_mm: mean_dz(ConstraintGroup::Diaphragmatic),
         mean_apex_dz_mm: mean_dz(ConstraintGroup::Apex),
         hilum_max_displacement_mm: hilum_max,
-        costal_wall_gap_change_mm: [
-            gaps.get(gaps.len() / 2).copied().unwrap_or(0.0),
-            gaps.get(gaps.len() * 95 / 100).copied().unwrap_or(0.0),
-            gaps.last().copied().unwrap_or(0.0),
+        costal_wall_gap_change_mm: wall.quantiles_mm,
+        costal_nodes_off_wall: wall.beyond_bound,
+        costal_wall_gap_warning_mm: bound_mm,
+        costal_wall_gap_max_at_lps_mm: wall.max_at_lps_mm,
+    }
+}
+
+/// How far the sliding costal nodes moved off (or into) the chest wall.
+struct CostalWallGaps {
+    /// Median, 95th percentile and largest change of distance to the wall, mm.
+    quantiles_mm: [f64; 3],
+    /// Nodes beyond the warning bound.
+    beyond_bound: usize,
+    /// Rest position of the node with the largest change, LPS mm.
+    max_at_lps_mm: [f64; 3],
+}
+
+fn costal_wall_gaps(model: &LungModel, scene: &Scene, x: &[V3], bound_mm: f64) -> CostalWallGaps {
+    let rest = &scene.mesh.rest_positions_m;
+    let mut gaps: Vec<(f64, usize)> = model
+        .group_nodes(ConstraintGroup::Costal)
+        .iter()
+        .filter(|&&n| {
+            matches!(
+                scene.constraints.get(n),
+                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
+            )
+        })
+        .map(|&n| {
+            let n = n as usize;
+            let gap_mm = (model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0).abs() * 1e3;
+            (gap_mm, n)
+        })
+        .collect();
+    gaps.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let at = |i: usize| gaps.get(i).map_or(0.0, |g| g.0);
+    CostalWallGaps {
+        quantiles_mm: [
+            at(gaps.len() / 2),
+            at(gaps.len() * 95 / 100),
+            gaps.last().map_or(0.0, |g| g.0),
         ],
+        beyond_bound: gaps.iter().filter(|g| g.0 > bound_mm).count(),
+        max_at_lps_mm: gaps
+            .last()
+            .map_or([0.0; 3], |&(_, n)| (rest[n] * 1e3).into()),
     }
 }
 
@@ -250,7 +394,7 @@ impl RunSummary {
         mut dynamic: Option<DynamicReport>,
         frames: Vec<FrameRecord>,
         points: Vec<PointTrajectory>,
-        end_inhale: EndInhaleSummary,
+        extremes: Vec<BreathExtremeSummary>,
         field_grid: FieldGridSummary,
         timings_s: BTreeMap<String, f64>,
     ) -> Self {
@@ -264,6 +408,9 @@ impl RunSummary {
             .iter()
             .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
         let model = &outcome.model;
+        let mut warnings = outcome.summary.warnings.clone();
+        warnings.extend(extremes.iter().filter_map(|e| e.wall_gap_warning()));
+        let extreme = |kind| extremes.iter().find(|e| e.kind == kind).cloned();
         let groups = ConstraintGroup::ALL
             .iter()
             .map(|g| (g.name(), g.mechanical_role()))
@@ -273,6 +420,7 @@ impl RunSummary {
             software_version: env!("CARGO_PKG_VERSION"),
             conventions: conventions(),
             ct: inputs.ct_path.display().to_string(),
+            ct_fingerprint: None,
             trace: TraceSummary {
                 source: inputs.trace_source.clone(),
                 samples: trace.time_s.len(),
@@ -298,12 +446,20 @@ impl RunSummary {
             dynamic,
             field_grid,
             frames,
-            end_inhale,
+            end_inhale: extreme(BreathExtreme::EndInhale),
+            deepest_expiration: extreme(BreathExtreme::DeepestExpiration),
             points,
             timings_s,
             peak_memory_mib: None,
-            warnings: outcome.summary.warnings.clone(),
+            warnings,
         }
+    }
+}
+
+impl RunSummary {
+    /// The breathing extremes the trace reaches: end-inhale, then the deepest expiration.
+    pub fn extremes(&self) -> impl Iterator<Item = &BreathExtremeSummary> {
+        self.end_inhale.iter().chain(&self.deepest_expiration)
     }
 }
 
@@ -333,6 +489,12 @@ fn conventions() -> BTreeMap<&'static str, &'static str> {
         (
             "phases",
             "phase 0 is end-inhale; N phases split one cycle into equal time steps",
+        ),
+        (
+            "extremes",
+            "end_inhale is the output frame with the largest volume above the scanned state, \
+             deepest_expiration the one with the largest volume change below it (more than 1 mL \
+             either way); null when the trace never goes that way",
         ),
     ])
 }

@@ -733,6 +733,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         &inputs,
         &config,
         &shared.store.job_output_dir(id),
+        crate::run::Overwrite::SameCtOnly,
         &mut observer,
         Some((&ingested, read_timings)),
     )?;

@@ -185,7 +185,8 @@ impl<'s> BreathingDriver<'s> {
                 return Ok(self.finish(state, &reports));
             }
             let next = self.predict_lambda(target_ml);
-            self.solve_factor(next, &mut reports)?;
+            self.solve_factor(next, &mut reports)
+                .map_err(|e| self.unreachable(target_ml, e))?;
             dv = self.path.last().map_or(0.0, |p| p.dv_ml);
         }
         if (dv - target_ml).abs() <= tolerance_ml {
@@ -197,6 +198,48 @@ impl<'s> BreathingDriver<'s> {
             residual: ((dv - target_ml) / target_ml.abs().max(tolerance_ml)).abs(),
             tolerance: tolerance_ml / target_ml.abs().max(tolerance_ml),
         })
+    }
+
+    /// Turns a solve failure on the way to `target_ml` into [`Error::VolumeUnreachable`], naming
+    /// the most compressed element of the last equilibrium reached (where the mesh gives way).
+    fn unreachable(&self, target_ml: f64, e: Error) -> Error {
+        let (Error::NotConverged { .. } | Error::Diverged { .. }) = e else {
+            return e;
+        };
+        let Some(last) = self.path.last() else {
+            return e;
+        };
+        let Some((element, volume_ratio)) = self
+            .scene
+            .most_compressed_element(&last.positions_m, f64::INFINITY)
+        else {
+            return e;
+        };
+        let rest = &self.scene.mesh.rest_positions_m;
+        let centre = self.scene.mesh.elements[element]
+            .iter()
+            .map(|&n| rest[n as usize])
+            .sum::<V3>()
+            * (1e3 / 8.0);
+        let remedy = if target_ml < last.dv_ml && last.dv_ml <= 0.0 {
+            "Below the scanned volume the lungs are compressed and the linear springs soften until \
+             the mesh buckles where the rising diaphragm squeezes tissue against the walls or the \
+             fixed hilum: a larger element size reaches further (the CIP lungs at 8 mm to about \
+             -400 mL, at 12 mm to about -580 mL), or keep the trace above the reached volume."
+        } else {
+            "A larger element size, or a trace that stays within the reached volume, may help; \
+             the element named is where the mesh is most strained."
+        };
+        Error::VolumeUnreachable(Box::new(crate::error::UnreachableVolume {
+            target_ml,
+            reached_ml: last.dv_ml,
+            element,
+            centre_lps_mm: [centre.x, centre.y, centre.z],
+            volume_ratio,
+            group: None,
+            cause: e.to_string(),
+            remedy: remedy.to_string(),
+        }))
     }
 
     /// Makes `state` the warm start of the next solve, so a sequence can continue from any
@@ -443,6 +486,44 @@ mod tests {
             "{pressures:?}"
         );
         assert!(pressures[5] > 0.0);
+    }
+
+    #[test]
+    fn a_volume_the_solves_cannot_reach_is_named_with_the_most_compressed_element() {
+        let scene = block();
+        let c = linear_compliance_ml_per_pa(&scene);
+        // One Newton iteration and no fallback: every solve beyond the first small step fails.
+        let settings = QuasiStaticSettings {
+            max_newton_iterations: 1,
+            relaxation_max_steps: 0,
+            ..QuasiStaticSettings::default()
+        };
+        let mut driver = BreathingDriver::new(&scene, -1.0, c, settings).unwrap();
+        let v0 = driver.rest_volume_ml();
+        let target = -0.3 * v0;
+        match driver.solve_volume(target, 1e-3 * v0) {
+            Err(Error::VolumeUnreachable(u)) => {
+                let crate::error::UnreachableVolume {
+                    target_ml,
+                    reached_ml,
+                    element,
+                    centre_lps_mm,
+                    volume_ratio,
+                    group,
+                    cause,
+                    remedy,
+                } = *u;
+                assert_eq!(target_ml, target);
+                assert!(reached_ml <= 0.0 && reached_ml > target, "{reached_ml}");
+                assert!(element < scene.mesh.element_count());
+                assert!(volume_ratio > 0.0 && volume_ratio <= 1.0, "{volume_ratio}");
+                assert!(centre_lps_mm.iter().all(|c| c.is_finite()));
+                assert!(group.is_none(), "the solver does not know the anatomy");
+                assert!(cause.contains("did not converge"), "{cause}");
+                assert!(remedy.contains("larger element size"), "{remedy}");
+            }
+            other => panic!("expected VolumeUnreachable, got {other:?}"),
+        }
     }
 
     #[test]

@@ -101,6 +101,9 @@ pub struct ExplicitSettings {
     /// Raised by another thread to stop at the next check with [`Error::Cancelled`].
     #[serde(skip)]
     pub cancel: Option<super::CancelFlag>,
+    /// Give up (not converged) when the best residual has not fallen by a tenth within this
+    /// many steps: a relaxation that stagnates would otherwise run to `max_steps` (minutes).
+    pub stall_steps: Option<usize>,
 }
 
 impl Default for ExplicitSettings {
@@ -113,6 +116,7 @@ impl Default for ExplicitSettings {
             kinetic_energy_fraction: 1e-10,
             check_every: 50,
             cancel: None,
+            stall_steps: None,
         }
     }
 }
@@ -257,6 +261,8 @@ impl<'s> ExplicitIntegrator<'s> {
         let check = settings.check_every.max(1);
         let mut residual = f64::INFINITY;
         let mut ke = 0.0;
+        // The best residual, and the step since which it has not fallen by a tenth.
+        let (mut best, mut best_since) = (f64::INFINITY, self.steps);
         while self.steps < settings.max_steps {
             for _ in 0..check {
                 self.step(h);
@@ -275,6 +281,9 @@ impl<'s> ExplicitIntegrator<'s> {
             }
             let (a, b) = (&mut self.force, &mut self.scratch);
             residual = self.scene.relative_residual(&self.positions, (a, b));
+            if residual < 0.9 * best {
+                (best, best_since) = (residual, self.steps);
+            }
             if residual <= settings.residual_tolerance
                 && ke <= settings.kinetic_energy_fraction * peak_ke.max(f64::MIN_POSITIVE)
             {
@@ -289,6 +298,12 @@ impl<'s> ExplicitIntegrator<'s> {
                 });
             }
             self.update_accelerations(true);
+            if settings
+                .stall_steps
+                .is_some_and(|n| self.steps - best_since > n)
+            {
+                break;
+            }
         }
         Ok(ExplicitReport {
             steps: self.steps,

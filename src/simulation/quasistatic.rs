@@ -270,6 +270,7 @@ impl<'s> QuasiStaticSolver<'s> {
         };
         let mut sigma = 0.0;
         let mut res = residual(scene, constraints, lambda, x, w);
+        let mut stalled = 0;
         for it in 0..self.settings.max_newton_iterations {
             self.check_cancelled()?;
             if !res.is_finite() {
@@ -323,7 +324,24 @@ impl<'s> QuasiStaticSolver<'s> {
                     sigma = 0.0;
                 }
             }
+            // Krylov iterations that cannot reduce the linear residual at all, while Newton
+            // creeps, mean a singular tangent (a limit point: the mesh buckles under this
+            // load). More iterations only burn minutes; the caller bisects or reports.
+            let krylov_stuck = taken.1 >= self.settings.max_linear_iterations && taken.2 > 0.9;
+            stalled = if krylov_stuck && new_res > 0.99 * res {
+                stalled + 1
+            } else {
+                0
+            };
             res = new_res;
+            if stalled >= STALLED_NEWTON_LIMIT {
+                report.residual = res;
+                return Err(Error::NotConverged {
+                    iterations: it + 1,
+                    residual: res,
+                    tolerance: tol,
+                });
+            }
         }
         report.residual = res;
         if res <= tol {
@@ -413,6 +431,7 @@ impl<'s> QuasiStaticSolver<'s> {
             kinetic_energy_fraction: 1.0,
             max_steps: self.settings.relaxation_max_steps,
             cancel: self.settings.cancel.clone(),
+            stall_steps: Some(RELAXATION_STALL_STEPS),
             ..Default::default()
         })?;
         report.relaxation_steps += outcome.steps;
@@ -540,6 +559,14 @@ impl<'s> QuasiStaticSolver<'s> {
         (delta, lin, lin_res)
     }
 }
+
+/// Explicit relaxation steps without a tenth's fall of the residual after which the fallback
+/// gives up: the fallback is for mechanisms Newton cannot cross, not for a buckling mesh.
+const RELAXATION_STALL_STEPS: usize = 50_000;
+
+/// Consecutive Newton iterations with a stuck Krylov solve and under 1 % residual decrease
+/// after which a solve is declared stalled.
+const STALLED_NEWTON_LIMIT: usize = 3;
 
 fn is_raised(flag: &Option<super::CancelFlag>) -> bool {
     flag.as_ref()

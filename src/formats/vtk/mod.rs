@@ -12,7 +12,9 @@
 //! * Arrays carry their unit in their name: `displacement_mm` (point data, 3 components,
 //!   LPS mm, current minus rest position), `material_class` (cell data, index into
 //!   [`HexMesh::classes`]), `node_id` (surface point data: index of the node in the hex
-//!   mesh), `group` (surface cell data, constraint group code of the face).
+//!   mesh), `group` (surface cell data, constraint group code of the face). The lung
+//!   meshes add point data `group` and cell data `lung`
+//!   ([`lung_mesh_vtu`](crate::outputs::ingest_files::lung_mesh_vtu)).
 //! * Encoding: `version="1.0"`, little endian, `header_type="UInt64"`, every DataArray
 //!   `format="binary"`: base64 of an 8-byte length header (the number of data bytes),
 //!   encoded separately, followed by the base64 of the data, uncompressed. Binary costs

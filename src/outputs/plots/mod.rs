@@ -1,6 +1,6 @@
-//! Pictures of a breathing run a medical physicist checks at a glance: the breathing curve
-//! with the frames' targets and simulated volumes, and a coronal quick look of the
-//! displacement field.
+//! Pictures a medical physicist checks at a glance: the breathing curve with the frames'
+//! targets and simulated volumes, a coronal quick look of the displacement field, and a CT
+//! slice labelled with a title, orientation letters and a legend of its overlay colours.
 //!
 //! Conventions. Images are 8-bit RGB ([`RgbImage`], rows top to bottom, written with
 //! [`write_png`](crate::outputs::quicklook::write_png)); text uses the embedded font of
@@ -27,6 +27,7 @@ mod breathing_curve;
 mod displacement_look;
 mod draw;
 mod scale;
+mod slice_look;
 
 pub use breathing_curve::{
     render_breathing_curve, BreathingCurve, BreathingCurvePlot, PlotAxes, CURVE_HEIGHT_PX,
@@ -35,6 +36,9 @@ pub use breathing_curve::{
 pub use displacement_look::{
     lung_centroid_lps_mm, render_displacement_look, viridis, Arrow, DisplacementLook,
     DisplacementLookInput, SlicePanel,
+};
+pub use slice_look::{
+    render_labelled_slice, LabelledSlice, LabelledSliceInput, LegendEntry, PixelRect,
 };
 
 /// Colour of the breathing trace line.
