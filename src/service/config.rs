@@ -18,6 +18,14 @@
 //! ingest_timeout_s = 600      # reading and meshing one uploaded scan
 //! ingest_memory_mib = 8192    # address space of the child reading one upload; 0: no limit
 //! ingest_cache_mib = 1024     # scans kept read and ingested for the next job; 0: none
+//! retention_max_age_days = 30 # finished jobs and unused scans older than this go; 0: kept
+//! retention_max_store_gib = 100 # then oldest first while the store is larger; 0: no bound
+//! retention_interval_s = 600  # how often retention runs (also once at start)
+//! callback_secret_file = "/etc/lungmotion/callback-secret"  # signs completion callbacks
+//! callback_max_attempts = 8   # POSTs of one callback before it is given up
+//! callback_retry_base_s = 2   # wait after the first failed POST, doubling after each
+//! callback_timeout_s = 10     # one POST, connection to answer
+//! callback_allow_plain_http = false  # http:// callbacks beyond loopback
 //! [run]                       # defaults of every simulation, as `lungmotion run --config`
 //! element_size_mm = 6
 //! ```
@@ -42,6 +50,18 @@ pub const DEFAULT_INGEST_MEMORY_MIB: u64 = 8192;
 pub const DEFAULT_INGEST_CACHE_MIB: u64 = 1024;
 /// Smallest ingest child limit accepted, MiB.
 const MIN_INGEST_MEMORY_MIB: u64 = 256;
+/// Default age after which finished jobs and unused scans are removed, days: a month covers
+/// planning, review and the first treatment fractions, after which the planning system holds
+/// the fields it imported.
+pub const DEFAULT_RETENTION_MAX_AGE_DAYS: f64 = 30.0;
+/// Default bound on the store's size, GiB: about 245 POPI-sized jobs with their scans (357 MB
+/// and 81 MB), eight a day for the 30 days kept, so the age bound is what acts on a typical
+/// department's load and this one stops a busy month from filling the disk.
+pub const DEFAULT_RETENTION_MAX_STORE_GIB: f64 = 100.0;
+/// Default time between two retention sweeps, s.
+pub const DEFAULT_RETENTION_INTERVAL_S: f64 = 600.0;
+/// Shortest callback secret accepted, characters.
+const MIN_CALLBACK_SECRET_CHARS: usize = 16;
 
 /// Everything the service can be told.
 #[derive(Debug, Clone)]
@@ -78,8 +98,74 @@ pub struct ServiceConfig {
     pub ingest_cache_mib: u64,
     /// Where an upload's ingest runs (set by the program embedding the service, not by files).
     pub ingest_isolation: IngestIsolation,
+    /// How long finished jobs and unused scans are kept.
+    pub retention: RetentionSettings,
+    /// How completion callbacks are signed and retried.
+    pub callbacks: CallbackSettings,
     /// Defaults of every simulation; a request's options are merged over them.
     pub run: RunConfig,
+}
+
+/// How long finished jobs and unused scans are kept (see [`super::retention`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RetentionSettings {
+    /// Finished jobs and scans no live job uses are removed this long after they finished
+    /// or were last used, days (0: no age limit).
+    pub max_age_days: f64,
+    /// Beyond this size of the store, the oldest of them are removed first, GiB (0: no limit).
+    pub max_store_gib: f64,
+    /// Time between two sweeps, s (the first runs at start).
+    pub interval_s: f64,
+}
+
+impl Default for RetentionSettings {
+    fn default() -> Self {
+        RetentionSettings {
+            max_age_days: DEFAULT_RETENTION_MAX_AGE_DAYS,
+            max_store_gib: DEFAULT_RETENTION_MAX_STORE_GIB,
+            interval_s: DEFAULT_RETENTION_INTERVAL_S,
+        }
+    }
+}
+
+/// How completion callbacks are signed and retried (see [`super::callbacks`]).
+#[derive(Clone, PartialEq)]
+pub struct CallbackSettings {
+    /// The HMAC-SHA256 key of the signature; without one, callbacks are refused.
+    pub secret: Option<String>,
+    /// POSTs of one callback before it is given up.
+    pub max_attempts: u32,
+    /// Wait after the first failed POST, s; doubled after each further one (at most 5 min).
+    pub retry_base_s: f64,
+    /// Longest time for one POST, from connecting to the answer's headers, s.
+    pub timeout_s: f64,
+    /// Whether `http://` callbacks may go beyond loopback (unencrypted on the network).
+    pub allow_plain_http: bool,
+}
+
+impl Default for CallbackSettings {
+    fn default() -> Self {
+        CallbackSettings {
+            secret: None,
+            max_attempts: 8,
+            retry_base_s: 2.0,
+            timeout_s: 10.0,
+            allow_plain_http: false,
+        }
+    }
+}
+
+impl std::fmt::Debug for CallbackSettings {
+    // The secret never reaches a log.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CallbackSettings")
+            .field("secret", &self.secret.as_ref().map(|_| "<set>"))
+            .field("max_attempts", &self.max_attempts)
+            .field("retry_base_s", &self.retry_base_s)
+            .field("timeout_s", &self.timeout_s)
+            .field("allow_plain_http", &self.allow_plain_http)
+            .finish()
+    }
 }
 
 /// Where the ingest of an uploaded scan runs.
@@ -118,6 +204,8 @@ impl Default for ServiceConfig {
             ingest_memory_mib: DEFAULT_INGEST_MEMORY_MIB,
             ingest_cache_mib: DEFAULT_INGEST_CACHE_MIB,
             ingest_isolation: IngestIsolation::default(),
+            retention: RetentionSettings::default(),
+            callbacks: CallbackSettings::default(),
             run: RunConfig::default(),
         }
     }
@@ -142,6 +230,14 @@ struct ServiceFile {
     ingest_timeout_s: Option<f64>,
     ingest_memory_mib: Option<u64>,
     ingest_cache_mib: Option<u64>,
+    retention_max_age_days: Option<f64>,
+    retention_max_store_gib: Option<f64>,
+    retention_interval_s: Option<f64>,
+    callback_secret_file: Option<PathBuf>,
+    callback_max_attempts: Option<u32>,
+    callback_retry_base_s: Option<f64>,
+    callback_timeout_s: Option<f64>,
+    callback_allow_plain_http: Option<bool>,
     run: Option<toml::Value>,
 }
 
@@ -166,7 +262,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 13] = [
+pub const ENV_VARS: [&str; 22] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -180,6 +276,15 @@ pub const ENV_VARS: [&str; 13] = [
     "LUNGMOTION_INGEST_TIMEOUT_S",
     "LUNGMOTION_INGEST_MEMORY_MIB",
     "LUNGMOTION_INGEST_CACHE_MIB",
+    "LUNGMOTION_RETENTION_MAX_AGE_DAYS",
+    "LUNGMOTION_RETENTION_MAX_STORE_GIB",
+    "LUNGMOTION_RETENTION_INTERVAL_S",
+    "LUNGMOTION_CALLBACK_SECRET",
+    "LUNGMOTION_CALLBACK_SECRET_FILE",
+    "LUNGMOTION_CALLBACK_MAX_ATTEMPTS",
+    "LUNGMOTION_CALLBACK_RETRY_BASE_S",
+    "LUNGMOTION_CALLBACK_TIMEOUT_S",
+    "LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP",
 ];
 
 impl ServiceConfig {
@@ -262,6 +367,25 @@ impl ServiceConfig {
         set(&mut self.ingest_timeout_s, file.ingest_timeout_s);
         set(&mut self.ingest_memory_mib, file.ingest_memory_mib);
         set(&mut self.ingest_cache_mib, file.ingest_cache_mib);
+        set(
+            &mut self.retention.max_age_days,
+            file.retention_max_age_days,
+        );
+        set(
+            &mut self.retention.max_store_gib,
+            file.retention_max_store_gib,
+        );
+        set(&mut self.retention.interval_s, file.retention_interval_s);
+        if let Some(secret_file) = file.callback_secret_file {
+            self.callbacks.secret = Some(read_token_file(&secret_file)?);
+        }
+        set(&mut self.callbacks.max_attempts, file.callback_max_attempts);
+        set(&mut self.callbacks.retry_base_s, file.callback_retry_base_s);
+        set(&mut self.callbacks.timeout_s, file.callback_timeout_s);
+        set(
+            &mut self.callbacks.allow_plain_http,
+            file.callback_allow_plain_http,
+        );
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -317,11 +441,67 @@ impl ServiceConfig {
         if let Some(v) = env("LUNGMOTION_INGEST_CACHE_MIB") {
             self.ingest_cache_mib = parsed("LUNGMOTION_INGEST_CACHE_MIB", &v)?;
         }
+        self.apply_retention_and_callback_env(env)?;
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);
         }
         if let Some(v) = env("LUNGMOTION_API_TOKEN") {
             self.api_token = Some(v.trim().to_string());
+        }
+        Ok(())
+    }
+
+    fn apply_retention_and_callback_env(
+        &mut self,
+        env: &dyn Fn(&str) -> Option<String>,
+    ) -> Result<()> {
+        fn parsed<T: std::str::FromStr>(name: &str, value: &str, what: &str) -> Result<T> {
+            value.trim().parse().map_err(|_| {
+                Error::settings(
+                    "service configuration",
+                    format!("environment {name}={value:?} is not {what}"),
+                )
+            })
+        }
+        let number = "a valid number";
+        for (name, slot) in [
+            (
+                "LUNGMOTION_RETENTION_MAX_AGE_DAYS",
+                &mut self.retention.max_age_days,
+            ),
+            (
+                "LUNGMOTION_RETENTION_MAX_STORE_GIB",
+                &mut self.retention.max_store_gib,
+            ),
+            (
+                "LUNGMOTION_RETENTION_INTERVAL_S",
+                &mut self.retention.interval_s,
+            ),
+            (
+                "LUNGMOTION_CALLBACK_RETRY_BASE_S",
+                &mut self.callbacks.retry_base_s,
+            ),
+            (
+                "LUNGMOTION_CALLBACK_TIMEOUT_S",
+                &mut self.callbacks.timeout_s,
+            ),
+        ] {
+            if let Some(v) = env(name) {
+                *slot = parsed(name, &v, number)?;
+            }
+        }
+        if let Some(v) = env("LUNGMOTION_CALLBACK_MAX_ATTEMPTS") {
+            self.callbacks.max_attempts = parsed("LUNGMOTION_CALLBACK_MAX_ATTEMPTS", &v, number)?;
+        }
+        if let Some(v) = env("LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP") {
+            self.callbacks.allow_plain_http =
+                parsed("LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP", &v, "true or false")?;
+        }
+        if let Some(v) = env("LUNGMOTION_CALLBACK_SECRET_FILE") {
+            self.callbacks.secret = Some(read_token_file(Path::new(&v))?);
+        }
+        if let Some(v) = env("LUNGMOTION_CALLBACK_SECRET") {
+            self.callbacks.secret = Some(v.trim().to_string());
         }
         Ok(())
     }
@@ -393,6 +573,7 @@ impl ServiceConfig {
                 self.ingest_memory_mib
             ));
         }
+        self.validate_retention_and_callbacks()?;
         if let Some(token) = &self.api_token {
             if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
                 return bad("the API token must be at least 8 characters without spaces");
@@ -406,6 +587,68 @@ impl ServiceConfig {
             ));
         }
         self.run.validate()
+    }
+}
+
+impl ServiceConfig {
+    /// Refuses retention and callback settings that cannot work, naming the key and value.
+    fn validate_retention_and_callbacks(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::settings("service configuration", m));
+        let RetentionSettings {
+            max_age_days,
+            max_store_gib,
+            interval_s,
+        } = self.retention;
+        if !(max_age_days.is_finite() && (0.0..=36_500.0).contains(&max_age_days)) {
+            return bad(format!(
+                "retention_max_age_days must be 0 (no age limit) or a number of days up to \
+                 36500, not {max_age_days}"
+            ));
+        }
+        if !(max_store_gib.is_finite() && max_store_gib >= 0.0) {
+            return bad(format!(
+                "retention_max_store_gib must be 0 (no size limit) or a positive number of \
+                 GiB, not {max_store_gib}"
+            ));
+        }
+        if !(interval_s.is_finite() && (0.1..=86_400.0).contains(&interval_s)) {
+            return bad(format!(
+                "retention_interval_s must be a number of seconds from 0.1 to 86400, not \
+                 {interval_s}"
+            ));
+        }
+        let c = &self.callbacks;
+        if !(1..=20).contains(&c.max_attempts) {
+            return bad(format!(
+                "callback_max_attempts must be 1–20, not {}",
+                c.max_attempts
+            ));
+        }
+        for (key, seconds, most) in [
+            ("callback_retry_base_s", c.retry_base_s, 3_600.0),
+            ("callback_timeout_s", c.timeout_s, 300.0),
+        ] {
+            if !(seconds.is_finite() && seconds > 0.0 && seconds <= most) {
+                return bad(format!(
+                    "{key} must be a number of seconds above 0 and at most {most}, not {seconds}"
+                ));
+            }
+        }
+        if let Some(secret) = &c.secret {
+            if secret.chars().count() < MIN_CALLBACK_SECRET_CHARS
+                || secret
+                    .chars()
+                    .any(|ch| ch.is_whitespace() || ch.is_control())
+            {
+                return bad(format!(
+                    "the callback secret (callback_secret_file, LUNGMOTION_CALLBACK_SECRET or \
+                     _FILE) must be at least {MIN_CALLBACK_SECRET_CHARS} characters without \
+                     spaces; it has {}",
+                    secret.chars().count()
+                ));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -527,6 +770,121 @@ mod tests {
         let env = |k: &str| (k == "LUNGMOTION_INGEST_TIMEOUT_S").then(|| "soon".to_string());
         let e = ServiceConfig::load(None, &env).unwrap_err();
         assert!(e.to_string().contains("LUNGMOTION_INGEST_TIMEOUT_S"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn retention_and_callback_settings_come_from_file_and_environment_and_are_checked() {
+        let c = ServiceConfig::load(None, &no_env).unwrap();
+        assert_eq!(c.retention, RetentionSettings::default());
+        assert_eq!(
+            (c.retention.max_age_days, c.retention.max_store_gib),
+            (30.0, 100.0)
+        );
+        assert_eq!(
+            (c.callbacks.secret.as_deref(), c.callbacks.max_attempts),
+            (None, 8)
+        );
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-ret-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let secret_path = dir.join("callback-secret");
+        std::fs::write(&secret_path, "from-the-file-0123456789\n").unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "retention_max_age_days = 7\nretention_max_store_gib = 20.5\n\
+                 retention_interval_s = 60\ncallback_secret_file = {:?}\n\
+                 callback_max_attempts = 3\ncallback_allow_plain_http = true\n",
+                secret_path.display().to_string()
+            ),
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        assert_eq!(
+            c.retention,
+            RetentionSettings {
+                max_age_days: 7.0,
+                max_store_gib: 20.5,
+                interval_s: 60.0
+            }
+        );
+        assert_eq!(
+            c.callbacks.secret.as_deref(),
+            Some("from-the-file-0123456789")
+        );
+        assert!(c.callbacks.allow_plain_http);
+        assert_eq!(c.callbacks.max_attempts, 3);
+        // The secret never reaches a log through the settings' debug form.
+        assert!(!format!("{c:?}").contains("from-the-file"), "{c:?}");
+        let env = |k: &str| match k {
+            "LUNGMOTION_RETENTION_MAX_AGE_DAYS" => Some("0.5".to_string()),
+            "LUNGMOTION_CALLBACK_SECRET" => Some("from-the-environment-01".to_string()),
+            "LUNGMOTION_CALLBACK_RETRY_BASE_S" => Some("0.25".to_string()),
+            _ => None,
+        };
+        let c = ServiceConfig::load(Some(&path), &env).unwrap();
+        assert_eq!(c.retention.max_age_days, 0.5);
+        assert_eq!(c.callbacks.retry_base_s, 0.25);
+        assert_eq!(
+            c.callbacks.secret.as_deref(),
+            Some("from-the-environment-01")
+        );
+        for (name, value, named) in [
+            (
+                "LUNGMOTION_RETENTION_MAX_AGE_DAYS",
+                "-1",
+                "retention_max_age_days must",
+            ),
+            (
+                "LUNGMOTION_RETENTION_MAX_AGE_DAYS",
+                "a month",
+                "LUNGMOTION_RETENTION_MAX_AGE_DAYS",
+            ),
+            (
+                "LUNGMOTION_RETENTION_MAX_STORE_GIB",
+                "inf",
+                "retention_max_store_gib",
+            ),
+            (
+                "LUNGMOTION_RETENTION_INTERVAL_S",
+                "0",
+                "retention_interval_s",
+            ),
+            (
+                "LUNGMOTION_CALLBACK_MAX_ATTEMPTS",
+                "0",
+                "callback_max_attempts must be 1–20, not 0",
+            ),
+            ("LUNGMOTION_CALLBACK_TIMEOUT_S", "900", "callback_timeout_s"),
+            (
+                "LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP",
+                "yes",
+                "true or false",
+            ),
+            (
+                "LUNGMOTION_CALLBACK_SECRET",
+                "short",
+                "at least 16 characters",
+            ),
+        ] {
+            let env = |k: &str| (k == name).then(|| value.to_string());
+            let e = ServiceConfig::load(None, &env).unwrap_err().to_string();
+            // A secret is never echoed; every other value is.
+            let secret = name == "LUNGMOTION_CALLBACK_SECRET";
+            assert!(
+                e.contains(named) && e.contains(value) != secret,
+                "{name}={value}: {e}"
+            );
+        }
+        std::fs::write(&path, "retention_max_age_days = -3\n").unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("retention_max_age_days") && e.contains("-3"),
+            "{e}"
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -13,6 +13,7 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use super::callbacks::{CallbackDelivery, CallbackState};
 use super::ids::{JobId, ScanId};
 use super::ingest_cache::{IngestCache, IngestKey};
 use super::progress::JobObserver;
@@ -34,7 +35,23 @@ pub enum SubmitRefusal {
     },
     /// The server is shutting down.
     ShuttingDown,
+    /// The scan was deleted (by a client or retention) since the request was read.
+    ScanMissing,
 }
+
+/// What removing a scan that no live job uses came to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScanRemoval {
+    /// It and its files are gone.
+    Removed,
+    /// A queued, running or cancelling job uses it; nothing was removed.
+    InUse,
+    /// There was no such scan.
+    Missing,
+}
+
+/// Ids of jobs that ended with a completion callback to deliver (see [`super::callbacks`]).
+pub type FinishedJobs = tokio::sync::mpsc::UnboundedSender<JobId>;
 
 /// What a client's cancellation did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -109,6 +126,28 @@ struct Shared {
     queue_capacity: usize,
     workers: usize,
     ingests: Arc<IngestCache>,
+    finished: FinishedJobs,
+}
+
+impl Shared {
+    /// Hands a job whose callback became pending to the deliveries (after its record is saved).
+    fn announce_finished(&self, id: JobId) {
+        if self.finished.send(id).is_err() {
+            tracing::warn!(job = %id, "no callback delivery running; the callback is sent after the next start");
+        }
+    }
+}
+
+/// Moves a job's callback from `waiting` to `pending` as the job ends; whether it did (the
+/// caller then announces it once the record is saved).
+fn begin_callback(record: &mut JobRecord) -> bool {
+    match &mut record.callback {
+        Some(c) if c.state == CallbackState::Waiting && record.state.is_terminal() => {
+            c.state = CallbackState::Pending;
+            true
+        }
+        _ => false,
+    }
 }
 
 /// The job queue and its workers.
@@ -124,13 +163,15 @@ pub struct Workers {
 
 impl JobManager {
     /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads, which
-    /// keep the scans they ingest in `ingests`.
+    /// keep the scans they ingest in `ingests`; jobs with a callback to deliver (ended now or
+    /// left pending by an earlier process) are announced on `finished`.
     pub fn start(
         store: Store,
         workers: usize,
         queue_capacity: usize,
         max_attempts: u32,
         ingests: Arc<IngestCache>,
+        finished: FinishedJobs,
     ) -> Result<(Self, Workers)> {
         let (records, problems) = store.list_jobs()?;
         for p in problems {
@@ -195,6 +236,16 @@ impl JobManager {
                 }
                 _ => {}
             }
+            if begin_callback(&mut record) {
+                store.save_job(&record)?;
+            }
+            if record
+                .callback
+                .as_ref()
+                .is_some_and(|c| c.state == CallbackState::Pending)
+            {
+                let _ = finished.send(record.job_id);
+            }
             board.jobs.insert(record.job_id, LiveJob::new(record));
         }
         if !board.queue.is_empty() {
@@ -207,6 +258,7 @@ impl JobManager {
             queue_capacity,
             workers,
             ingests,
+            finished,
         });
         let threads = (0..workers)
             .map(|i| {
@@ -245,8 +297,16 @@ impl JobManager {
                 retry_after_s: self.retry_after_s(&board),
             }));
         }
+        // Under the board's lock, as scans are removed, so a job never waits for a scan that
+        // is already gone.
+        if self.shared.store.scan(scan_id)?.is_none() {
+            return Ok(Err(SubmitRefusal::ScanMissing));
+        }
         let mut record = JobRecord::queued(scan_id);
         record.progress.frames_total = frames_total(request);
+        if request.callback_url.is_some() {
+            record.callback = Some(CallbackDelivery::waiting());
+        }
         // On disk before it is acknowledged: an accepted job is never lost.
         self.shared.store.put_job(&record, request)?;
         board
@@ -275,14 +335,6 @@ impl JobManager {
         Some(record)
     }
 
-    /// Whether a scan has jobs that are queued or running.
-    pub fn scan_in_use(&self, scan_id: ScanId) -> bool {
-        self.board().jobs.values().any(|j| {
-            let r = lock(&j.record);
-            r.scan_id == scan_id && !r.state.is_terminal()
-        })
-    }
-
     /// Cancels a queued or running job; `None` for an unknown job.
     pub fn cancel(&self, id: JobId) -> Result<Option<CancelOutcome>> {
         let mut board = self.board();
@@ -296,7 +348,11 @@ impl JobManager {
                 record.state = JobState::Cancelled;
                 record.error = Some("cancelled by a client before it ran".into());
                 record.finished_at = Some(now_rfc3339());
+                let announce = begin_callback(&mut record);
                 self.shared.store.save_job(&record)?;
+                if announce {
+                    self.shared.announce_finished(id);
+                }
                 Ok(Some(CancelOutcome::Cancelled))
             }
             JobState::Running => {
@@ -325,6 +381,74 @@ impl JobManager {
         }
         board.jobs.remove(&id);
         self.shared.store.delete_job(id)?;
+        Ok(true)
+    }
+
+    /// Every job's record now, for retention.
+    pub fn records(&self) -> Vec<JobRecord> {
+        let board = self.board();
+        board
+            .jobs
+            .values()
+            .map(|live| lock(&live.record).clone())
+            .collect()
+    }
+
+    /// Removes a finished job for retention, unless a client or its callback still acts on it
+    /// (not finished, or a callback `pending`); whether it was removed.
+    pub fn remove_expired(&self, id: JobId) -> Result<bool> {
+        let mut board = self.board();
+        let removable = board.jobs.get(&id).is_some_and(|j| {
+            let r = lock(&j.record);
+            r.state.is_terminal()
+                && !r
+                    .callback
+                    .as_ref()
+                    .is_some_and(|c| c.state == CallbackState::Pending)
+        });
+        if !removable {
+            return Ok(false);
+        }
+        board.jobs.remove(&id);
+        self.shared.store.delete_job(id)?;
+        Ok(true)
+    }
+
+    /// Removes a scan and its files unless a queued, running or cancelling job uses it,
+    /// decided under the board's lock so no job is submitted for it meanwhile.
+    pub fn remove_unused_scan(&self, scan_id: ScanId) -> Result<ScanRemoval> {
+        let board = self.board();
+        let in_use = board.jobs.values().any(|j| {
+            let r = lock(&j.record);
+            r.scan_id == scan_id && !r.state.is_terminal()
+        });
+        if in_use {
+            return Ok(ScanRemoval::InUse);
+        }
+        if !self.shared.store.delete_scan(scan_id)? {
+            return Ok(ScanRemoval::Missing);
+        }
+        drop(board);
+        self.shared.ingests.forget_scan(scan_id);
+        Ok(ScanRemoval::Removed)
+    }
+
+    /// Changes a job's callback record (on disk too); `false` when the job is gone.
+    pub fn update_callback(
+        &self,
+        id: JobId,
+        change: impl FnOnce(&mut CallbackDelivery),
+    ) -> Result<bool> {
+        let board = self.board();
+        let Some(live) = board.jobs.get(&id).cloned() else {
+            return Ok(false);
+        };
+        let mut record = lock(&live.record);
+        let Some(callback) = record.callback.as_mut() else {
+            return Ok(false);
+        };
+        change(callback);
+        self.shared.store.save_job(&record)?;
         Ok(true)
     }
 
@@ -539,10 +663,14 @@ fn run_job(shared: &Shared, live: &LiveJob) {
     if record.state.is_terminal() {
         record.finished_at = Some(now_rfc3339());
     }
+    let announce = begin_callback(&mut record);
     live.cancel.store(CANCEL_NONE, Ordering::SeqCst);
     live.stop.store(false, Ordering::SeqCst);
     if let Err(e) = shared.store.save_job(&record) {
         tracing::error!(job = %id, "cannot record the end: {e}");
+    }
+    if announce {
+        shared.announce_finished(id);
     }
     tracing::info!(
         job = %id,
@@ -591,6 +719,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         volume_ml,
         trace_source,
         points,
+        callback_url: _,
     } = request;
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),

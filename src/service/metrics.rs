@@ -1,5 +1,6 @@
 //! Prometheus metrics (OpenMetrics text at `/metrics`): requests by route and status, their
-//! latency, jobs by state, the queue and upload volume. Routes are the matched templates
+//! latency, jobs by state, the queue and upload volume, the store's size and what retention
+//! removed, and completion callbacks. Routes are the matched templates
 //! (`/v1/jobs/{id}`), never the ids, so the label set stays bounded.
 
 use std::sync::Mutex;
@@ -14,6 +15,7 @@ use prometheus_client::registry::Registry;
 
 use super::ingest_cache::IngestCache;
 use super::jobs::JobCounts;
+use super::retention::SweepReport;
 use super::store::JobState;
 
 /// Labels of an HTTP request.
@@ -29,6 +31,18 @@ struct RequestLabels {
 struct RouteLabels {
     method: String,
     route: String,
+}
+
+/// Labels of what retention removed: `job` or `scan`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct KindLabels {
+    kind: &'static str,
+}
+
+/// Labels of a callback attempt: `delivered` or `failed`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct OutcomeLabels {
+    outcome: &'static str,
 }
 
 /// Labels of the job gauge.
@@ -54,6 +68,10 @@ pub struct ServiceMetrics {
     running: Gauge,
     upload_bytes: Counter,
     scans_ingested: Counter,
+    store_bytes: Gauge,
+    retention_removed: Family<KindLabels, Counter>,
+    retention_removed_bytes: Family<KindLabels, Counter>,
+    callback_attempts: Family<OutcomeLabels, Counter>,
 }
 
 fn latency_histogram() -> Histogram {
@@ -106,8 +124,36 @@ impl Default for ServiceMetrics {
             "Scans uploaded and ingested",
             scans_ingested.clone(),
         );
+        let store_bytes = Gauge::default();
+        registry.register(
+            "lungmotion_store_bytes",
+            "Bytes the stored scans and jobs hold, as of the latest retention sweep",
+            store_bytes.clone(),
+        );
+        let retention_removed = Family::<KindLabels, Counter>::default();
+        registry.register(
+            "lungmotion_retention_removed",
+            "Finished jobs and unused scans removed by retention, by kind",
+            retention_removed.clone(),
+        );
+        let retention_removed_bytes = Family::<KindLabels, Counter>::default();
+        registry.register(
+            "lungmotion_retention_removed_bytes",
+            "Bytes freed by retention, by kind",
+            retention_removed_bytes.clone(),
+        );
+        let callback_attempts = Family::<OutcomeLabels, Counter>::default();
+        registry.register(
+            "lungmotion_callback_attempts",
+            "Completion callback POSTs, by outcome (delivered: a 2xx answer)",
+            callback_attempts.clone(),
+        );
         ServiceMetrics {
             registry: Mutex::new(registry),
+            store_bytes,
+            retention_removed,
+            retention_removed_bytes,
+            callback_attempts,
             requests,
             latency,
             jobs,
@@ -141,6 +187,30 @@ impl ServiceMetrics {
     pub fn observe_upload(&self, bytes: u64) {
         self.upload_bytes.inc_by(bytes);
         self.scans_ingested.inc();
+    }
+
+    /// Records a retention sweep: the store's size and what it removed.
+    pub fn observe_retention(&self, report: &SweepReport) {
+        self.store_bytes
+            .set(i64::try_from(report.stored_bytes).unwrap_or(i64::MAX));
+        for (kind, items, bytes) in [
+            ("job", report.jobs_removed, report.job_bytes_removed),
+            ("scan", report.scans_removed, report.scan_bytes_removed),
+        ] {
+            let labels = KindLabels { kind };
+            self.retention_removed.get_or_create(&labels).inc_by(items);
+            self.retention_removed_bytes
+                .get_or_create(&labels)
+                .inc_by(bytes);
+        }
+    }
+
+    /// Counts one completion callback POST.
+    pub fn observe_callback_attempt(&self, delivered: bool) {
+        let outcome = if delivered { "delivered" } else { "failed" };
+        self.callback_attempts
+            .get_or_create(&OutcomeLabels { outcome })
+            .inc();
     }
 
     /// Adds the ingest cache's series: jobs that reused an ingest, jobs that ingested, and
@@ -211,6 +281,23 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("lungmotion_queue_depth 2"), "{text}");
+        m.observe_retention(&SweepReport {
+            stored_bytes: 5000,
+            jobs_removed: 2,
+            job_bytes_removed: 700,
+            scans_removed: 1,
+            scan_bytes_removed: 300,
+        });
+        m.observe_callback_attempt(false);
+        let text = m.render(&counts);
+        for series in [
+            "lungmotion_store_bytes 5000",
+            "lungmotion_retention_removed_total{kind=\"job\"} 2",
+            "lungmotion_retention_removed_bytes_total{kind=\"scan\"} 300",
+            "lungmotion_callback_attempts_total{outcome=\"failed\"} 1",
+        ] {
+            assert!(text.contains(series), "{series} missing: {text}");
+        }
         assert!(
             text.contains("lungmotion_http_request_duration_seconds_bucket"),
             "{text}"

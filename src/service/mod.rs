@@ -10,6 +10,8 @@
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
 //! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
 //!   [`problem`]: error bodies;
+//! * [`retention`]: finished jobs and unused scans removed by age and store size;
+//!   [`callbacks`]: signed completion callbacks, retried;
 //! * [`metrics`]: Prometheus series; [`server`]: middleware, listening, graceful shutdown;
 //!   [`connections`]: the connection cap and header timeout; [`body_timeout`]: the body's;
 //! * [`isolation`]: an upload's ingest in a child process, so a crashing reader ends only it.
@@ -17,6 +19,7 @@
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
 
 pub mod body_timeout;
+pub mod callbacks;
 pub mod config;
 pub mod connections;
 pub mod ids;
@@ -28,6 +31,7 @@ pub mod openapi;
 pub mod problem;
 mod progress;
 pub mod request;
+pub mod retention;
 pub mod routes;
 pub mod server;
 pub mod store;

@@ -6,6 +6,10 @@ use serde_json::{json, Value};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
+use super::callbacks::{
+    CallbackBody, CallbackDelivery, CallbackState, MAX_CALLBACK_URL_CHARS, SIGNATURE_HEADER,
+    TIMESTAMP_HEADER,
+};
 use super::problem::Problem;
 use super::routes::{
     self, FrameEntry, FrameList, Health, JobLinks, JobStatus, OutputFile, OutputFileList,
@@ -48,7 +52,7 @@ pub mod run_options;
     ),
     components(schemas(
         Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
-        JobState,
+        JobState, CallbackBody, CallbackDelivery, CallbackState,
         SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health, OutputFile,
         OutputFileList
     )),
@@ -84,7 +88,50 @@ pub fn openapi_document() -> Value {
     });
     declare_unauthorized(&mut doc);
     describe_run_options(&mut doc);
+    describe_callbacks(&mut doc);
     doc
+}
+
+/// Describes the completion callback on the simulation's operation: the POST the server makes
+/// to the request's `callback_url`, its body and its two signature headers.
+fn describe_callbacks(doc: &mut Value) {
+    let Some(operation) = doc.pointer_mut("/paths/~1v1~1scans~1{id}~1simulations/post") else {
+        return;
+    };
+    operation["callbacks"] = json!({
+        "jobFinished": {
+            "{$request.body#/callback_url}": {
+                "post": {
+                    "summary": "The job ended (done, failed or cancelled)",
+                    "description": "Sent once the job ends, at least once: retried with \
+                        exponential backoff (callback_retry_base_s doubled per attempt, at most \
+                        5 min apart, callback_max_attempts POSTs of callback_timeout_s each) \
+                        until a 2xx answer; a 4xx other than 408 and 429 stops the retries. \
+                        Redirects are not followed. Verify the signature over the raw bytes \
+                        `<X-Lungmotion-Timestamp>.<body>` with the server's callback secret \
+                        (HMAC-SHA256, constant-time comparison) and refuse timestamps more than \
+                        a few minutes old. The outcome is in the job's `callback`.",
+                    "parameters": [
+                        {"name": SIGNATURE_HEADER, "in": "header", "required": true,
+                         "description": "`sha256=` and the lowercase hex HMAC-SHA256 of \
+                            `<timestamp>.<body>` keyed by the callback secret",
+                         "schema": {"type": "string", "pattern": "^sha256=[0-9a-f]{64}$"}},
+                        {"name": TIMESTAMP_HEADER, "in": "header", "required": true,
+                         "description": "When the POST was signed, Unix seconds; part of the \
+                            signed bytes",
+                         "schema": {"type": "string", "pattern": "^[0-9]+$"}},
+                    ],
+                    "requestBody": {"required": true, "content": {"application/json": {
+                        "schema": {"$ref": "#/components/schemas/CallbackBody"}}}},
+                    "responses": {
+                        "2XX": {"description": "Delivered; not sent again"},
+                        "4XX": {"description": "Refused; not sent again (except 408 and 429)"},
+                        "5XX": {"description": "Sent again after the backoff"}
+                    }
+                }
+            }
+        }
+    });
 }
 
 /// Adds the `401` answer to every operation that declares a security requirement.
@@ -146,6 +193,16 @@ fn describe_run_options(doc: &mut Value) {
                             "type": "array",
                             "description": "Points to track (LPS mm, at the scanned state)",
                             "items": {"$ref": "#/components/schemas/StoredPoint"}
+                        },
+                        "callback_url": {
+                            "type": "string",
+                            "format": "uri",
+                            "maxLength": MAX_CALLBACK_URL_CHARS,
+                            "description": "Where to POST the job's outcome when it ends \
+                                (see the operation's callbacks). https, or http to loopback \
+                                (beyond it only when the server sets \
+                                callback_allow_plain_http); no user:password@. Refused (422) \
+                                when the server has no callback secret."
                         }
                     }
                 },
@@ -199,5 +256,30 @@ mod tests {
         }
         let description = doc["info"]["description"].as_str().unwrap();
         assert!(description.contains("[A-Za-z0-9._-]"), "{description}");
+        // The completion callback: its field, its POST, its body and both signature headers.
+        let request = &doc["components"]["schemas"]["SimulationRequest"]["allOf"][0];
+        assert_eq!(
+            request["properties"]["callback_url"]["maxLength"], MAX_CALLBACK_URL_CHARS,
+            "{request}"
+        );
+        let callback = &doc["paths"]["/v1/scans/{id}/simulations"]["post"]["callbacks"]
+            ["jobFinished"]["{$request.body#/callback_url}"]["post"];
+        let headers: Vec<&str> = callback["parameters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["name"].as_str().unwrap())
+            .collect();
+        assert_eq!(headers, [SIGNATURE_HEADER, TIMESTAMP_HEADER], "{callback}");
+        assert_eq!(
+            callback["requestBody"]["content"]["application/json"]["schema"]["$ref"],
+            "#/components/schemas/CallbackBody"
+        );
+        let body = &doc["components"]["schemas"]["CallbackBody"]["properties"];
+        for key in ["event", "job_id", "state", "error", "links"] {
+            assert!(body[key].is_object(), "CallbackBody lacks {key}: {body}");
+        }
+        let record = &doc["components"]["schemas"]["JobRecord"]["properties"];
+        assert!(record["callback"].is_object(), "{record}");
     }
 }

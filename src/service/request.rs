@@ -90,6 +90,9 @@ pub struct SimulationRequest {
     /// Points to track (LPS mm, at the scanned state).
     #[serde(default)]
     pub points: Vec<StoredPoint>,
+    /// Where to POST the job's outcome when it ends (http or https; see the README).
+    #[serde(default)]
+    pub callback_url: Option<String>,
     /// Any key of the CLI's configuration (`element_size_mm`, `material`, `diaphragm`,
     /// `trace`, `motion`, `outputs`), merged over the server's defaults.
     #[serde(flatten)]
@@ -103,6 +106,7 @@ struct ParsedRequest {
     trace: BreathingTrace,
     points: Vec<StoredPoint>,
     source: &'static str,
+    callback_url: Option<String>,
 }
 
 /// A 422 with the slug every unusable simulation request gets.
@@ -146,6 +150,7 @@ pub(crate) fn parse_simulation(
         trace,
         points,
         source,
+        callback_url,
     } = parsed;
     Ok(JobRequest {
         config,
@@ -153,6 +158,7 @@ pub(crate) fn parse_simulation(
         volume_ml: trace.volume_change_ml,
         trace_source: source.to_string(),
         points,
+        callback_url,
     })
 }
 
@@ -195,6 +201,7 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
         trace,
         points: request.points,
         source: "HTTP request (JSON)",
+        callback_url: request.callback_url,
     })
 }
 
@@ -209,6 +216,7 @@ fn parse_csv_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedReque
         trace,
         points: Vec::new(),
         source: "HTTP request (CSV)",
+        callback_url: None,
     })
 }
 

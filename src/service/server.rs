@@ -18,6 +18,7 @@ use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetReques
 use tower_http::trace::TraceLayer;
 
 use super::body_timeout::limit_body_pauses;
+use super::callbacks::spawn_deliveries;
 use super::config::ServiceConfig;
 use super::connections::{serve_connections, ConnectionLimits};
 use super::ingest_cache::IngestCache;
@@ -25,6 +26,7 @@ use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
 use super::problem::{ApiError, PROBLEM_JSON};
+use super::retention::spawn_retention;
 use super::routes::{self, AppState, SharedState};
 use super::store::Store;
 use crate::error::{IoContext, IoOp};
@@ -275,19 +277,27 @@ impl Drop for ServerHandle {
     }
 }
 
+/// The background work of a server besides its workers, started with the HTTP runtime.
+struct Background {
+    workers: Workers,
+    finished: tokio::sync::mpsc::UnboundedReceiver<crate::service::ids::JobId>,
+}
+
 /// Opens the store, recovers its jobs, starts the workers and the HTTP state.
-fn prepare(config: ServiceConfig) -> Result<(SharedState, Workers)> {
+fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     config.validate()?;
     let store = Store::open(&config.data_dir)?;
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
     let metrics = ServiceMetrics::default();
     metrics.register_ingest_cache(&ingests);
+    let (finished_tx, finished) = tokio::sync::mpsc::unbounded_channel();
     let (jobs, workers) = JobManager::start(
         store.clone(),
         config.workers,
         config.queue_capacity,
         config.max_attempts,
         ingests,
+        finished_tx,
     )?;
     let state = Arc::new(AppState {
         ingest_slots: tokio::sync::Semaphore::new(config.workers),
@@ -296,16 +306,19 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Workers)> {
         jobs,
         config,
     });
-    Ok((state, workers))
+    Ok((state, Background { workers, finished }))
 }
 
 /// Serves on `listener` until `stop` resolves, then shuts down gracefully.
 async fn serve_on(
     listener: tokio::net::TcpListener,
     state: SharedState,
-    workers: Workers,
+    background: Background,
     stop: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
+    let Background { workers, finished } = background;
+    spawn_retention(state.clone());
+    spawn_deliveries(state.clone(), finished);
     let jobs = state.jobs.clone();
     let grace = Duration::from_secs_f64(state.config.shutdown_grace_s);
     let limits = ConnectionLimits {
@@ -333,7 +346,7 @@ async fn serve_on(
 
 /// Starts a server on its own runtime thread; returns once it listens.
 pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
-    let (state, workers) = prepare(config)?;
+    let (state, background) = prepare(config)?;
     let runtime = http_runtime()?;
     let listener = runtime
         .block_on(tokio::net::TcpListener::bind(state.config.listen))
@@ -346,7 +359,7 @@ pub fn start(config: ServiceConfig) -> Result<ServerHandle> {
     let thread = std::thread::Builder::new()
         .name("lungmotion-server".into())
         .spawn(move || {
-            runtime.block_on(serve_on(listener, state, workers, async move {
+            runtime.block_on(serve_on(listener, state, background, async move {
                 let _ = stop_rx.await;
             }))
         })
@@ -384,7 +397,7 @@ pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
             addr: config.listen,
             cause,
         })?;
-        let (state, workers) = tokio::task::block_in_place(|| prepare(config))?;
+        let (state, background) = tokio::task::block_in_place(|| prepare(config))?;
         tracing::info!(
             %addr,
             data_dir = %state.config.data_dir.display(),
@@ -399,7 +412,7 @@ pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
             let _ = writeln!(out, "lungmotion serve: listening on http://{addr}");
             let _ = out.flush();
         }
-        serve_on(listener, state, workers, termination()).await
+        serve_on(listener, state, background, termination()).await
     })
 }
 

@@ -17,6 +17,7 @@ use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
+use super::callbacks::CallbackDelivery;
 use super::ids::{JobId, ScanId};
 use crate::durable::{sync_dir, write_durable};
 use crate::run::{RunConfig, TrackedPoint};
@@ -40,6 +41,9 @@ pub struct ScanRecord {
     #[schema(value_type = Object)]
     pub ingest: serde_json::Value,
 }
+
+/// A scan record and the bytes its directory holds.
+pub type StoredScan = (ScanRecord, u64);
 
 /// Where a job is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -145,6 +149,10 @@ pub struct JobRecord {
     pub started_at: Option<String>,
     /// It reached a final state.
     pub finished_at: Option<String>,
+    /// Its completion callback, when the request gave a `callback_url`: `waiting` for the
+    /// job to end, then `pending`, `delivered` or `failed`, with the POSTs made.
+    #[serde(default)]
+    pub callback: Option<CallbackDelivery>,
 }
 
 impl JobRecord {
@@ -160,6 +168,7 @@ impl JobRecord {
             created_at: now_rfc3339(),
             started_at: None,
             finished_at: None,
+            callback: None,
         }
     }
 }
@@ -177,6 +186,9 @@ pub struct JobRequest {
     pub trace_source: String,
     /// Points to track.
     pub points: Vec<StoredPoint>,
+    /// Where to POST the job's outcome when it ends (checked when submitted).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub callback_url: Option<String>,
 }
 
 /// A tracked point in `request.json`.
@@ -356,6 +368,36 @@ impl Store {
         Ok((jobs, problems))
     }
 
+    /// Every scan record with the bytes its directory holds, for retention; unreadable ones
+    /// are reported, not fatal (and never removed: what they are is not known).
+    pub fn list_scans(&self) -> Result<(Vec<StoredScan>, Vec<String>)> {
+        let dir = self.root.join("scans");
+        let mut scans = Vec::new();
+        let mut problems = Vec::new();
+        for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
+            let entry = entry.at(IoOp::List, &dir)?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let Some(id) = ScanId::parse(&name) else {
+                problems.push(format!("scans/{name}: not a scan directory, ignored"));
+                continue;
+            };
+            match self.scan(id) {
+                Ok(Some(record)) => {
+                    let bytes = dir_bytes(&entry.path());
+                    scans.push((record, bytes));
+                }
+                Ok(None) => problems.push(format!("scans/{name}: no {SCAN_RECORD}, ignored")),
+                Err(e) => problems.push(format!("scans/{name}: {e}")),
+            }
+        }
+        Ok((scans, problems))
+    }
+
+    /// Bytes held by a job's directory (record, request, outputs and partial outputs).
+    pub fn job_bytes(&self, id: JobId) -> u64 {
+        dir_bytes(&self.job_dir(id))
+    }
+
     /// Removes a stopped run's partial output directories (`.out.partial-<pid>`); how many.
     pub fn clear_partial_outputs(&self, id: JobId) -> Result<usize> {
         let dir = self.job_dir(id);
@@ -409,6 +451,26 @@ impl Store {
                 reason: format!("corrupt record: {e}"),
             })
     }
+}
+
+/// Bytes of the files under `dir`, symbolic links not followed; what cannot be read counts 0
+/// (a directory removed meanwhile is simply gone).
+fn dir_bytes(dir: &Path) -> u64 {
+    let mut total = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            match entry.metadata() {
+                Ok(m) if m.is_dir() => stack.push(entry.path()),
+                Ok(m) => total += m.len(),
+                Err(_) => {}
+            }
+        }
+    }
+    total
 }
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
@@ -466,6 +528,7 @@ mod tests {
             volume_ml: vec![0.0, 100.0],
             trace_source: "test".into(),
             points: vec![],
+            callback_url: None,
         };
         store.put_job(&job, &request).unwrap();
         let mut running = store.job(job.job_id).unwrap().unwrap();

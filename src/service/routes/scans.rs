@@ -14,6 +14,7 @@ use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, S
 use crate::formats::dicom::SeriesChoice;
 use crate::service::ids::ScanId;
 use crate::service::isolation::{ingest_isolated, IngestLimits};
+use crate::service::jobs::ScanRemoval;
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::store::{now_rfc3339, ScanRecord};
 use crate::service::upload::{receive_scan, TempFileGuard};
@@ -197,19 +198,18 @@ pub async fn delete_scan(
     Path(id): Path<String>,
 ) -> ApiResult<StatusCode> {
     let id = scan_id(&id)?;
-    blocking(move || {
-        if state.jobs.scan_in_use(id) {
-            return Err(ApiError::conflict(
+    blocking(
+        move || match state.jobs.remove_unused_scan(id).map_err(store_error)? {
+            ScanRemoval::InUse => Err(ApiError::conflict(
                 "scan-in-use",
                 format!("scan {id} has queued or running jobs; cancel them first"),
-            ));
-        }
-        if !state.store.delete_scan(id).map_err(store_error)? {
-            return Err(ApiError::not_found(format!("no scan {id}")));
-        }
-        state.jobs.ingest_cache().forget_scan(id);
-        tracing::info!(scan = %id, "scan deleted");
-        Ok(StatusCode::NO_CONTENT)
-    })
+            )),
+            ScanRemoval::Missing => Err(ApiError::not_found(format!("no scan {id}"))),
+            ScanRemoval::Removed => {
+                tracing::info!(scan = %id, "scan deleted");
+                Ok(StatusCode::NO_CONTENT)
+            }
+        },
+    )
     .await
 }

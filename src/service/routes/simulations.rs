@@ -12,6 +12,7 @@ use super::{
     blocking, created, job_id, load_job, load_scan, scan_id, shutting_down, store_error,
     SharedState,
 };
+use crate::service::callbacks::check_callback_url;
 use crate::service::jobs::{CancelOutcome, SubmitRefusal};
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::request::{parse_simulation, SimulationRequest};
@@ -73,10 +74,10 @@ impl From<JobRecord> for JobStatus {
         (status = 202, description = "Queued", body = JobStatus,
          headers(("location" = String, description = "The job's URL"))),
         (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
-        (status = 404, description = "No such scan", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Unusable trace or option", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option (invalid-simulation), or a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
@@ -98,6 +99,10 @@ pub async fn create_simulation(
     let record = blocking(move || {
         load_scan(&worker_state, scan)?;
         let request = parse_simulation(&worker_state.config.run, &content_type, &body)?;
+        if let Some(url) = &request.callback_url {
+            check_callback_url(url, &worker_state.config.callbacks)
+                .map_err(|m| ApiError::unprocessable("invalid-callback", m))?;
+        }
         match worker_state
             .jobs
             .submit(scan, &request)
@@ -105,6 +110,7 @@ pub async fn create_simulation(
         {
             Ok(record) => Ok(record),
             Err(SubmitRefusal::ShuttingDown) => Err(shutting_down()),
+            Err(SubmitRefusal::ScanMissing) => Err(ApiError::not_found(format!("no scan {scan}"))),
             Err(SubmitRefusal::QueueFull {
                 queued,
                 retry_after_s,
