@@ -101,6 +101,9 @@ pub struct ExplicitSettings {
     /// Raised by another thread to stop at the next check with [`Error::Cancelled`].
     #[serde(skip)]
     pub cancel: Option<super::CancelFlag>,
+    /// Ends the message of an inverted element (see [`BlowUpGuard::with_inversion_hint`]).
+    #[serde(skip)]
+    pub inversion_hint: Option<&'static str>,
     /// Give up (not converged) when the best residual has not fallen by a tenth within this
     /// many steps: a relaxation that stagnates would otherwise run to `max_steps` (minutes).
     pub stall_steps: Option<usize>,
@@ -116,6 +119,7 @@ impl Default for ExplicitSettings {
             kinetic_energy_fraction: 1e-10,
             check_every: 50,
             cancel: None,
+            inversion_hint: None,
             stall_steps: None,
         }
     }
@@ -257,6 +261,9 @@ impl<'s> ExplicitIntegrator<'s> {
             )));
         }
         let mut guard = BlowUpGuard::new(&self.scene.mesh.rest_positions_m);
+        if let Some(hint) = settings.inversion_hint {
+            guard = guard.with_inversion_hint(hint);
+        }
         let mut peak_ke: f64 = 0.0;
         let check = settings.check_every.max(1);
         let mut residual = f64::INFINITY;
@@ -324,6 +331,8 @@ pub struct BlowUpGuard {
     last_ke: f64,
     growth_streak: usize,
     growth_since: usize,
+    /// Ends the message of an inverted element: what makes it likely in this use.
+    inversion_hint: &'static str,
 }
 
 impl BlowUpGuard {
@@ -339,17 +348,21 @@ impl BlowUpGuard {
             last_ke: 0.0,
             growth_streak: 0,
             growth_since: 0,
+            inversion_hint: "time step above the stability limit, or a load too large for the mesh",
         }
+    }
+
+    /// The same guard, whose message for an inverted element ends with `hint` (the explicit
+    /// relaxation inside a static solve runs at a stable step: there the load is the cause).
+    pub fn with_inversion_hint(mut self, hint: &'static str) -> Self {
+        self.inversion_hint = hint;
+        self
     }
 
     /// Returns an error naming the step and the cause if the state has blown up.
     pub fn check(&mut self, scene: &Scene, x: &[V3], ke: f64, step: usize) -> Result<()> {
         scene.check_finite(x, step)?;
-        scene.check_not_inverted(
-            x,
-            step,
-            "time step above the stability limit, or a load too large for the mesh",
-        )?;
+        scene.check_not_inverted(x, step, self.inversion_hint)?;
         if !ke.is_finite() {
             return Err(Error::Diverged {
                 step,

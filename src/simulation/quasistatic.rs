@@ -436,6 +436,9 @@ impl<'s> QuasiStaticSolver<'s> {
             max_steps: self.settings.relaxation_max_steps,
             cancel: self.settings.cancel.clone(),
             stall_steps: Some(RELAXATION_STALL_STEPS),
+            inversion_hint: Some(
+                "the mesh gave way under this load step (in the damped relaxation fallback)",
+            ),
             ..Default::default()
         })?;
         report.relaxation_steps += outcome.steps;
