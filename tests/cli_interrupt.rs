@@ -23,13 +23,7 @@ fn temp_dir(name: &str) -> PathBuf {
 
 /// Twenty 500 mL breaths, 4 s each, at 10 Hz.
 fn write_long_trace(path: &Path) {
-    let mut csv = String::from("time_s,volume_ml\n");
-    for i in 0..=800 {
-        let t = i as f64 * 0.1;
-        let v = 500.0 * (std::f64::consts::PI * t / 4.0).sin().powi(2);
-        csv.push_str(&format!("{t:.1},{v:.3}\n"));
-    }
-    std::fs::write(path, csv).unwrap();
+    common::write_breaths(path, 500.0, 0.1, 80.0);
 }
 
 /// Entries of `dir` whose names start with `prefix`.

@@ -282,13 +282,7 @@ fn exit_status_is_2_for_refused_input_in_every_subcommand_and_1_for_failures_whi
 
 /// Two sine breaths of 300 mL over 4 s each at 5 Hz: enough for the default 10 phases.
 fn write_two_breaths(path: &Path) {
-    let mut csv = String::from("time_s,volume_ml\n");
-    for i in 0..=40 {
-        let t = i as f64 * 0.2;
-        let v = 300.0 * (std::f64::consts::PI * t / 4.0).sin().powi(2);
-        csv.push_str(&format!("{t:.1},{v:.3}\n"));
-    }
-    std::fs::write(path, csv).unwrap();
+    common::write_breaths(path, 300.0, 0.2, 8.0);
 }
 
 #[test]
