@@ -46,7 +46,8 @@ enum Command {
     /// millimetres as ITK/elastix read them, zero outside the lungs),
     /// summary.json (per-frame time, target and simulated volume, pressure, displacement,
     /// solver effort), trajectories.csv (tracked points), breathing.png and
-    /// end-inhale-displacement.png, and ingest/ (lung mask, groups, mesh). The directory is
+    /// end-inhale-displacement.png (deepest-expiration-displacement.png for a trace that
+    /// never rises above the scan), and ingest/ (lung mask, groups, mesh). The directory is
     /// replaced only when the run succeeds, and an earlier run of another CT only with
     /// --overwrite. When stderr is not a terminal, progress is logged as lines with the
     /// elapsed time. Ctrl-C, SIGTERM or SIGHUP stop the run and remove its partial output

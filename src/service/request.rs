@@ -105,7 +105,7 @@ struct ParsedRequest {
     config: RunConfig,
     trace: BreathingTrace,
     points: Vec<StoredPoint>,
-    source: &'static str,
+    source: String,
     callback_url: Option<String>,
 }
 
@@ -156,10 +156,20 @@ pub(crate) fn parse_simulation(
         config,
         time_s: trace.time_s,
         volume_ml: trace.volume_change_ml,
-        trace_source: source.to_string(),
+        trace_source: source,
         points,
         callback_url,
     })
+}
+
+/// Where the trace came from, with what was done to it (an airflow column integrated, its
+/// drift removed), as the CLI records it in `summary.json` → `trace.source`.
+fn described_source(origin: &str, notes: &[String]) -> String {
+    if notes.is_empty() {
+        origin.to_string()
+    } else {
+        format!("{origin} ({})", notes.join("; "))
+    }
 }
 
 /// A JSON body: the trace, the points, and options merged over the defaults.
@@ -189,7 +199,7 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
         serde_json::from_value(merged).map_err(|e| invalid(format!("options: {e}")))?;
     let (samples, trace_options) = request.trace.split(&defaults.trace)?;
     // The CLI's own reader on the CLI's own file format: units and reference applied alike.
-    let trace = BreathingTrace::parse(&samples, &trace_options)
+    let reading = BreathingTrace::parse_with_notes(&samples, &trace_options)
         .map_err(|e| invalid(format!("breathing trace: {e}")))?;
     // Recorded in request.json and summary.json as the CLI records its [trace] table.
     config.trace = TraceOptions {
@@ -198,9 +208,9 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
     };
     Ok(ParsedRequest {
         config,
-        trace,
+        source: described_source("HTTP request (JSON)", &reading.notes),
+        trace: reading.trace,
         points: request.points,
-        source: "HTTP request (JSON)",
         callback_url: request.callback_url,
     })
 }
@@ -209,13 +219,13 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
 fn parse_csv_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequest> {
     let text = std::str::from_utf8(body)
         .map_err(|_| ApiError::bad_request("malformed-csv", "the CSV body is not UTF-8"))?;
-    let trace = BreathingTrace::parse(text, &defaults.trace)
+    let reading = BreathingTrace::parse_with_notes(text, &defaults.trace)
         .map_err(|e| invalid(format!("breathing trace: {e}")))?;
     Ok(ParsedRequest {
         config: defaults.clone(),
-        trace,
+        source: described_source("HTTP request (CSV)", &reading.notes),
+        trace: reading.trace,
         points: Vec::new(),
-        source: "HTTP request (CSV)",
         callback_url: None,
     })
 }
@@ -283,6 +293,27 @@ mod tests {
             .map(|t| 250.0 * (1.0 - (std::f64::consts::TAU * t / 4.0).cos()))
             .collect();
         (t, v)
+    }
+
+    #[test]
+    fn an_airflow_csv_body_is_integrated_and_the_job_records_what_was_done() {
+        // Ten 4 s breaths of 500 mL as flow in L/s with a 30 mL/s sensor offset, at 10 Hz.
+        let mut csv = String::from("time_s,flow_l_per_s\n");
+        for i in 0..=400 {
+            let t = i as f64 * 0.1;
+            let flow_ml_s =
+                250.0 * std::f64::consts::FRAC_PI_2 * (std::f64::consts::PI * t / 2.0).sin();
+            csv.push_str(&format!("{t:.1},{:.6}\n", (flow_ml_s + 30.0) / 1000.0));
+        }
+        let request = parse_simulation(&RunConfig::default(), "text/csv", csv.as_bytes()).unwrap();
+        assert!(
+            request.trace_source.starts_with("HTTP request (CSV) (")
+                && request.trace_source.contains("flow"),
+            "{}",
+            request.trace_source
+        );
+        let peak = request.volume_ml.iter().cloned().fold(f64::MIN, f64::max);
+        assert!(peak > 400.0 && peak < 600.0, "{peak}");
     }
 
     #[test]
