@@ -42,13 +42,7 @@ fn run_on(ct: &Path, args: &[&str], files: &Path, out: &Path) -> Output {
 
 /// A sine breath of 300 mL over 4 s sampled at 5 Hz, in the documented default CSV.
 fn write_trace(path: &Path) {
-    let mut csv = String::from("time_s,volume_ml\n");
-    for i in 0..=20 {
-        let t = i as f64 * 0.2;
-        let v = 300.0 * (std::f64::consts::PI * t / 4.0).sin().powi(2);
-        csv.push_str(&format!("{t:.1},{v:.3}\n"));
-    }
-    std::fs::write(path, csv).unwrap();
+    common::write_breaths(path, 300.0, 0.2, 4.0);
 }
 
 #[test]

@@ -73,8 +73,6 @@ pub struct BreathingDriver<'s> {
     slope_ml: f64,
     /// Scratch for the predicted starting positions.
     predicted: Vec<V3>,
-    /// Raised by the caller to stop before the next equilibrium solve.
-    cancel: Option<CancelFlag>,
     /// Told of every equilibrium reached.
     progress: Option<SolveProgressSink>,
     equilibria: usize,
@@ -142,7 +140,6 @@ impl<'s> BreathingDriver<'s> {
             // Inflation (ΔV > 0) needs suction: dV/dλ = −C·P_ref.
             slope_ml: -compliance_ml_per_pa * reference_pressure_pa,
             predicted: Vec::new(),
-            cancel: None,
             progress: None,
             equilibria: 0,
         })
@@ -287,12 +284,10 @@ impl<'s> BreathingDriver<'s> {
         }
     }
 
-    /// Solves at load factor `lambda` from the predicted positions, halving the step from the
-    /// last equilibrium when the corrector fails; every equilibrium reached joins the path.
-    /// Stops every later solve with [`Error::Cancelled`] once `flag` is raised.
+    /// Stops the solve under way and every later one with [`Error::Cancelled`] once `flag` is
+    /// raised (the solver holds the flag and checks it inside its iterations).
     pub fn set_cancel(&mut self, flag: CancelFlag) {
-        self.solver.set_cancel(flag.clone());
-        self.cancel = Some(flag);
+        self.solver.set_cancel(flag);
     }
 
     /// Tells `sink` of every equilibrium reached from now on.
@@ -300,12 +295,10 @@ impl<'s> BreathingDriver<'s> {
         self.progress = Some(sink);
     }
 
+    /// Solves at load factor `lambda` from the predicted positions, halving the step from the
+    /// last equilibrium when the corrector fails; every equilibrium reached joins the path.
     fn solve_factor(&mut self, lambda: f64, reports: &mut Vec<SolveReport>) -> Result<Vec<V3>> {
-        if self
-            .cancel
-            .as_ref()
-            .is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed))
-        {
+        if self.solver.cancel_raised() {
             return Err(Error::Cancelled(
                 "stopped between equilibrium solves".into(),
             ));

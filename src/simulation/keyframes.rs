@@ -225,24 +225,23 @@ impl VolumeKeyframes {
             refinements += 1;
             let mut refined = Vec::with_capacity(states.len() + added);
             let mut refined_checked = Vec::with_capacity(states.len() + added);
-            let last = states.len() - 1;
-            for i in 0..states.len() {
-                if i < last && split[i] {
-                    let mid = 0.5 * (volumes[i] + volumes[i + 1]);
-                    // From the neighbour nearer the scanned state, along the breath's path.
-                    let from = if volumes[i + 1] <= 0.0 {
-                        &states[i + 1]
-                    } else {
-                        &states[i]
-                    };
-                    let state = solve(mid, Some(from))?;
-                    refined.push(states[i].clone());
-                    refined_checked.push(checked[i]);
-                    refined.push(state);
+            let mut old = states.into_iter().enumerate().peekable();
+            while let Some((i, state)) = old.next() {
+                let split_after = split.get(i).copied().unwrap_or(false);
+                let solved_mid = match (split_after, old.peek()) {
+                    (true, Some((_, next))) => {
+                        let mid = 0.5 * (volumes[i] + volumes[i + 1]);
+                        // From the neighbour nearer the scanned state, along the breath's path.
+                        let from = if volumes[i + 1] <= 0.0 { next } else { &state };
+                        Some(solve(mid, Some(from))?)
+                    }
+                    _ => None,
+                };
+                refined.push(state);
+                refined_checked.push(checked[i]);
+                if let Some(mid) = solved_mid {
+                    refined.push(mid);
                     refined_checked.push(false);
-                } else {
-                    refined.push(states[i].clone());
-                    refined_checked.push(checked[i]);
                 }
             }
             states = refined;

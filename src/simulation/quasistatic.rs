@@ -460,8 +460,14 @@ impl<'s> QuasiStaticSolver<'s> {
         self.settings.cancel = Some(flag);
     }
 
+    /// Whether the cancel flag given by [`QuasiStaticSolver::set_cancel`] (or the settings) is
+    /// raised.
+    pub fn cancel_raised(&self) -> bool {
+        is_raised(&self.settings.cancel)
+    }
+
     fn check_cancelled(&self) -> Result<()> {
-        if is_raised(&self.settings.cancel) {
+        if self.cancel_raised() {
             return Err(Error::Cancelled(
                 "stopped during an equilibrium solve".into(),
             ));
