@@ -36,11 +36,20 @@ fn solve_ours(scene: &Scene, tolerance: f64) -> Vec<V3> {
 /// three faces through the origin (one plane: slides on it; two: slides along their line;
 /// three: fixed) and a uniform pressure on the faces at local x = 20 mm.
 fn symmetric_block(axes: Matrix3<f64>, pressure_pa: f64) -> Scene {
-    let mut grid = VoxelGrid::filled_box([2, 2, 2], [0.01; 3], V3::zeros());
+    let material = Material::new(1000.0, 0.3, 1.0).unwrap();
+    symmetric_cubes(2, material, axes, pressure_pa)
+}
+
+/// [`symmetric_block`] with `cells`³ cubes of `material`.
+fn symmetric_cubes(
+    cells: usize,
+    material: Material,
+    axes: Matrix3<f64>,
+    pressure_pa: f64,
+) -> Scene {
+    let mut grid = VoxelGrid::filled_box([cells; 3], [0.01; 3], V3::zeros());
     grid.axes = axes;
-    let gm = grid
-        .to_mesh(Material::new(1000.0, 0.3, 1.0).unwrap())
-        .unwrap();
+    let gm = grid.to_mesh(material).unwrap();
     let mesh = gm.mesh;
     let mut cs = ConstraintSet::new(mesh.node_count());
     for (i, l) in gm.node_lattice.iter().enumerate() {
@@ -65,9 +74,12 @@ fn symmetric_block(axes: Matrix3<f64>, pressure_pa: f64) -> Scene {
         .external_faces
         .iter()
         .copied()
-        .filter(|f| f.iter().all(|&n| gm.node_lattice[n as usize][0] == 2))
+        .filter(|f| {
+            f.iter()
+                .all(|&n| gm.node_lattice[n as usize][0] == cells as u32)
+        })
         .collect();
-    assert_eq!(faces.len(), 4);
+    assert_eq!(faces.len(), cells * cells);
     let loads = Loads {
         pressures: vec![SurfacePressure {
             faces,
@@ -316,4 +328,77 @@ fn composite_error_falls_with_refinement() {
             "{case:?}: error did not fall with refinement: {errors:?}"
         );
     }
+}
+
+/// The continuum laws' closed forms (`ContinuumLaw`, which the volumetric correction and the
+/// spring fits are built on) and the CalculiX cards written for them (`material_card`) agree:
+/// one C3D8 cube is exact for a homogeneous state, so CalculiX's stretch under a dead uniaxial
+/// load must be the closed form's, in tension and in compression.
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "slow study (CalculiX): cargo test --features slow-tests"
+)]
+fn continuum_laws_match_calculix_hyperelastic_cards() {
+    use lungmotion::model::ContinuumLaw;
+    require_ccx();
+    let edge = 0.01;
+    for law in [ContinuumLaw::NeoHookean, ContinuumLaw::Hyperfoam] {
+        let material = Material::new(1000.0, 0.3, 1.0)
+            .unwrap()
+            .with_volumetric_law(Some(law));
+        let (g, k) = (material.shear_modulus_pa(), material.bulk_modulus_pa());
+        for nominal_pa in [150.0, -150.0] {
+            // Closed form: lateral faces free, axial nominal stress = the dead load.
+            let lateral = |l: f64| bisect(0.5, 1.5, |m| law.nominal_stress_pa([l, m, m], g, k)[1]);
+            let axial = bisect(0.5, 1.6, |l| {
+                law.nominal_stress_pa([l, lateral(l), lateral(l)], g, k)[0] - nominal_pa
+            });
+            let scene = symmetric_cubes(1, material, Matrix3::identity(), -nominal_pa);
+            let options = CalculixOptions {
+                initial_increment: 0.05,
+                ..CalculixOptions::default()
+            };
+            let ccx = calculix::solve(&scene, &options).unwrap();
+            let ux = ccx
+                .displacements_m
+                .iter()
+                .map(|u| u.x)
+                .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+                .unwrap();
+            let uy = ccx
+                .displacements_m
+                .iter()
+                .map(|u| u.y.abs())
+                .fold(0.0, f64::max);
+            let (want_x, want_y) = ((axial - 1.0) * edge, (lateral(axial) - 1.0).abs() * edge);
+            eprintln!(
+                "{law:?} P = {nominal_pa} Pa: CalculiX stretch {:.6} lateral {:.6}; closed form {axial:.6} {:.6}",
+                1.0 + ux / edge,
+                1.0 - uy / edge,
+                lateral(axial)
+            );
+            assert!(
+                (ux - want_x).abs() < 2e-4 * edge,
+                "{law:?} {nominal_pa}: axial {ux} vs {want_x}"
+            );
+            assert!(
+                (uy - want_y).abs() < 2e-4 * edge,
+                "{law:?} {nominal_pa}: lateral {uy} vs {want_y}"
+            );
+        }
+    }
+}
+
+/// Root of an increasing function on [lo, hi].
+fn bisect(mut lo: f64, mut hi: f64, f: impl Fn(f64) -> f64) -> f64 {
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if f(mid) > 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }

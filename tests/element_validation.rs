@@ -192,3 +192,30 @@ fn error_curves_do_not_depend_on_youngs_modulus() {
     let md = report.to_markdown();
     assert!(md.contains("2.75 %"), "{md}");
 }
+
+/// The cubic springs and the volumetric laws change nothing at small strain: E, ν and K stay
+/// Baudet's (the cubic term is O(d³), the volumetric correction O((J − 1)²)).
+#[test]
+fn cubic_springs_and_volumetric_laws_keep_e_nu_and_k_at_small_strain() {
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
+    for edges in [CUBE, BRICK] {
+        for (spring, vol) in [
+            (SpringLaw::Cubic(5.0), None),
+            (SpringLaw::Linear, Some(ContinuumLaw::Hyperfoam)),
+            (SpringLaw::Cubic(2.0), Some(ContinuumLaw::LungBirzle)),
+            (SpringLaw::Linear, Some(ContinuumLaw::NeoHookean)),
+        ] {
+            let m = material(0.3)
+                .with_spring_law(spring)
+                .unwrap()
+                .with_volumetric_law(vol);
+            let nl = patch_case(edges, m, 1e-7, ForceModel::Nonlinear).unwrap();
+            assert!(
+                nl.max_error_e_nu_k < 1e-5,
+                "{edges:?} {spring:?} {vol:?}: {nl:?}"
+            );
+            let err = kernel_linearisation_error(edges, m).unwrap();
+            assert!(err < 1e-7, "{edges:?} {spring:?} {vol:?}: {err:e}");
+        }
+    }
+}

@@ -291,3 +291,40 @@ fn chunk_schedule_scatters_every_element_once_with_few_barriers() {
         }
     }
 }
+
+#[test]
+fn cubic_springs_and_volumetric_laws_agree_with_the_reference() {
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
+    for (spring, vol) in [
+        (SpringLaw::Cubic(3.0), None),
+        (SpringLaw::Linear, Some(ContinuumLaw::Hyperfoam)),
+        (SpringLaw::Cubic(1.0), Some(ContinuumLaw::LungBirzle)),
+    ] {
+        let material = Material::LUNG
+            .with_spring_law(spring)
+            .unwrap()
+            .with_volumetric_law(vol);
+        let mut mesh = block([20, 18, 17], [5e-3; 3], material);
+        mesh.classes[0] = mesh.classes[0].clone().with_damping_ratio(0.3);
+        check_against_reference(&mesh, 7);
+    }
+}
+
+#[test]
+fn springs_and_volumetric_laws_leave_rest_and_rigid_motion_force_free() {
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
+    let material = Material::LUNG
+        .with_spring_law(SpringLaw::Cubic(2.0))
+        .unwrap()
+        .with_volumetric_law(Some(ContinuumLaw::Hyperfoam));
+    let mesh = block([6, 5, 4], [5e-3; 3], material);
+    let r = Rotation3::from_euler_angles(0.4, -1.1, 2.0);
+    let x: Vec<V3> = mesh
+        .rest_positions_m
+        .iter()
+        .map(|p| r * p + V3::new(0.3, -0.2, 0.1))
+        .collect();
+    let f = evaluate(&mesh, &x, None, 2);
+    let largest = f.iter().map(|v| v.norm()).fold(0.0, f64::max);
+    assert!(largest < 1e-12, "rigid motion gave {largest:e} N");
+}

@@ -1,7 +1,8 @@
-//! Linear elastic material parameters of a tissue.
+//! Material parameters of a tissue: small-strain moduli, density and the springs' law.
 
 use serde::{Deserialize, Serialize};
 
+pub use super::spring_law::{ContinuumLaw, SpringLaw};
 use crate::{Error, Result};
 
 /// Isotropic material: Young's modulus, Poisson's ratio and density, in SI units.
@@ -14,6 +15,11 @@ pub struct Material {
     pub poisson_ratio: f64,
     /// Mass density ρ in kg/m³.
     pub density_kg_per_m3: f64,
+    /// How each spring's tension grows with its elongation beyond the small-strain slope.
+    pub spring_law: SpringLaw,
+    /// A continuum law the elements' hydrostatic response follows through a volumetric
+    /// correction pressure ([`super::volumetric`]); `None`: the springs' own response.
+    pub volumetric_law: Option<ContinuumLaw>,
 }
 
 impl Default for Material {
@@ -30,6 +36,8 @@ impl Material {
         youngs_modulus_pa: 390.0,
         poisson_ratio: 0.3,
         density_kg_per_m3: 700.0,
+        spring_law: SpringLaw::Linear,
+        volumetric_law: None,
     };
 
     /// Builds a material after checking every parameter.
@@ -38,6 +46,8 @@ impl Material {
             youngs_modulus_pa,
             poisson_ratio,
             density_kg_per_m3,
+            spring_law: SpringLaw::Linear,
+            volumetric_law: None,
         };
         m.validate()?;
         Ok(m)
@@ -49,6 +59,8 @@ impl Material {
             youngs_modulus_pa: e,
             poisson_ratio: nu,
             density_kg_per_m3: rho,
+            spring_law,
+            volumetric_law: _,
         } = *self;
         if !e.is_finite() || e <= 0.0 {
             return Err(Error::InvalidMaterial(format!(
@@ -66,7 +78,20 @@ impl Material {
                 "density must be a positive finite number of kg/m³, got {rho}"
             )));
         }
-        Ok(())
+        spring_law.validate()
+    }
+
+    /// The same material with another spring law.
+    pub fn with_spring_law(mut self, law: SpringLaw) -> Result<Self> {
+        self.spring_law = law;
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// The same material with its hydrostatic response following `law` (or the springs').
+    pub fn with_volumetric_law(mut self, law: Option<ContinuumLaw>) -> Self {
+        self.volumetric_law = law;
+        self
     }
 
     /// Shear modulus G = E / (2(1+ν)) in pascals.

@@ -7,6 +7,8 @@ pub mod loads;
 pub mod material;
 pub mod mesh;
 pub mod sdf;
+pub mod spring_law;
+pub mod volumetric;
 
 pub use constraints::{ConstraintSet, NodeConstraint};
 pub use element::{BrickCoefficients, BrickShape};
@@ -15,3 +17,5 @@ pub use loads::{Loads, SurfacePressure};
 pub use material::Material;
 pub use mesh::HexMesh;
 pub use sdf::SignedDistanceField;
+pub use spring_law::{ContinuumLaw, SpringLaw};
+pub use volumetric::VolumetricCorrection;

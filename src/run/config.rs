@@ -11,6 +11,9 @@
 //! youngs_modulus_pa = 390.0
 //! poisson_ratio = 0.3
 //! density_kg_per_m3 = 700.0
+//! spring_law = "linear"               # or { cubic = 3.0 }: Boux de Casson's λ₁/λ₂
+//! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
+//!                                      # hydrostatic response follows that law
 //! [trace]
 //! reference = "change_from_scan"       # or { absolute = { scanned_volume_ml = 2800 } }
 //! [motion]
@@ -354,6 +357,15 @@ mod tests {
                 compliance_ml_per_pa: Some(_)
             }
         ));
+        let c = RunConfig::from_toml(
+            "[material]\nspring_law = { cubic = 2.5 }\nvolumetric_law = \"lung_birzle\"",
+        )
+        .unwrap();
+        assert_eq!(c.material.spring_law, crate::model::SpringLaw::Cubic(2.5));
+        assert_eq!(
+            c.material.volumetric_law,
+            Some(crate::model::ContinuumLaw::LungBirzle)
+        );
     }
 
     #[test]
@@ -362,6 +374,13 @@ mod tests {
         assert!(err("element_size_mm = 40").contains("element_size_mm"));
         assert!(err("elemnt_size_mm = 4").contains("elemnt_size_mm"));
         assert!(err("[material]\npoisson_ratio = 0.5").contains("Poisson"));
+        let cubic = err("[material]\nspring_law = { cubic = -1.0 }");
+        assert!(
+            cubic.contains("cubic ratio") && cubic.contains("-1"),
+            "{cubic}"
+        );
+        let law = err("[material]\nvolumetric_law = \"ogden\"");
+        assert!(law.contains("ogden") && law.contains("hyperfoam"), "{law}");
         assert!(err("[motion]\ninterpolation_tolerance_mm = -1").contains("interpolation"));
         assert!(err("[motion]\ninstants = { kind = \"sometimes\" }").contains("sometimes"));
         assert!(

@@ -22,12 +22,14 @@ use rayon::prelude::*;
 use super::lanes::{add3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
 use crate::math::V3;
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
-use crate::model::HexMesh;
+use crate::model::{HexMesh, VolumetricCorrection};
 
 /// Per-class constants laid out for the force kernel.
 #[derive(Debug, Clone)]
 pub struct ElementKernel {
+    coefficients: BrickCoefficients,
     stiffness: [f64; 16],
+    cubic: [f64; 16],
     rest_length: [f64; 16],
     damping: [f64; 16],
     correction_map: Matrix3<f64>,
@@ -37,58 +39,20 @@ impl ElementKernel {
     /// Packs one coefficient set.
     pub fn new(c: &BrickCoefficients) -> Self {
         ElementKernel {
+            coefficients: c.clone(),
             stiffness: SPRINGS.map(|(_, _, k)| c.spring_stiffness(k)),
+            cubic: SPRINGS.map(|(_, _, k)| c.spring_cubic_n_per_m3(k)),
             rest_length: SPRINGS.map(|(_, _, k)| c.rest_length_m(k)),
             damping: c.spring_damping_n_s_per_m,
             correction_map: c.correction_map,
         }
     }
 
-    /// Forces in newtons on the 8 corners at positions `x` (and velocities `v` for damping).
-    ///
-    /// The corrections act along the element's current axes (edge directions averaged and
-    /// orthonormalised), so they rotate with the element and stay objective under large rotation.
+    /// Forces in newtons on the 8 corners at positions `x` (and velocities `v` for damping):
+    /// [`BrickCoefficients::corner_forces`], the scalar reference of the batched kernel.
     #[inline]
     pub fn forces(&self, x: &[V3; 8], v: Option<&[V3; 8]>) -> [V3; 8] {
-        // Elastic spring forces in `f`, damper forces apart in `fd`: the corrections are derived
-        // for the elastic response (they make E and ν exact), so they act on `f` only. Fed the
-        // damper forces too, they would amplify the damping by up to 1/(2 − 4ν) (25× at
-        // ν = 0.49) and put the automatic time step above the stability limit.
-        let mut f = [V3::zeros(); 8];
-        let mut fd = [V3::zeros(); 8];
-        for (s, &(a, b, _)) in SPRINGS.iter().enumerate() {
-            let d = x[b] - x[a];
-            let len = d.norm();
-            let n = d / len;
-            let fa = n * (self.stiffness[s] * (len - self.rest_length[s]));
-            f[a] += fa;
-            f[b] -= fa;
-            if let Some(v) = v {
-                let fv = n * (self.damping[s] * (v[b] - v[a]).dot(&n));
-                fd[a] += fv;
-                fd[b] -= fv;
-            }
-        }
-        // Current element axes.
-        let ex = (x[1] - x[0]) + (x[2] - x[3]) + (x[5] - x[4]) + (x[6] - x[7]);
-        let ey = (x[3] - x[0]) + (x[2] - x[1]) + (x[7] - x[4]) + (x[6] - x[5]);
-        let e1 = ex.normalize();
-        let e2 = (ey - e1 * ey.dot(&e1)).normalize();
-        let e3 = e1.cross(&e2);
-        let axes = [e1, e2, e3];
-        // Axial resultants a_i = −½ Σ_n s_n,i (f_n · e_i).
-        let mut a = V3::zeros();
-        for (n, signs) in CORNER_SIGNS.iter().enumerate() {
-            for i in 0..3 {
-                a[i] -= 0.5 * signs[i] * f[n].dot(&axes[i]);
-            }
-        }
-        let w = self.correction_map * a;
-        let wa = [axes[0] * w[0], axes[1] * w[1], axes[2] * w[2]];
-        for (n, signs) in CORNER_SIGNS.iter().enumerate() {
-            f[n] += wa[0] * signs[0] + wa[1] * signs[1] + wa[2] * signs[2] + fd[n];
-        }
-        f
+        self.coefficients.corner_forces(x, v)
     }
 }
 
@@ -98,19 +62,24 @@ pub use super::lanes::LANES;
 #[derive(Debug, Clone)]
 struct LaneKernel {
     stiffness: [Lanes; 16],
+    cubic: [Lanes; 16],
     rest_length: [Lanes; 16],
     damping: [Lanes; 16],
     /// Row-major correction map W.
     correction_map: [Lanes; 9],
+    /// 1/(64·V₀): the volume ratio is det(ex, ey, ez) times this.
+    inv_64_rest_volume: Lanes,
 }
 
 impl LaneKernel {
     fn splat(k: &ElementKernel) -> Self {
         LaneKernel {
             stiffness: k.stiffness.map(Lanes::splat),
+            cubic: k.cubic.map(Lanes::splat),
             rest_length: k.rest_length.map(Lanes::splat),
             damping: k.damping.map(Lanes::splat),
             correction_map: std::array::from_fn(|r| Lanes::splat(k.correction_map[(r / 3, r % 3)])),
+            inv_64_rest_volume: Lanes::splat(1.0 / (64.0 * k.coefficients.shape.volume_m3())),
         }
     }
 
@@ -123,9 +92,11 @@ impl LaneKernel {
         };
         LaneKernel {
             stiffness: std::array::from_fn(|s| pick(&|k| k.stiffness[s])),
+            cubic: std::array::from_fn(|s| pick(&|k| k.cubic[s])),
             rest_length: std::array::from_fn(|s| pick(&|k| k.rest_length[s])),
             damping: std::array::from_fn(|s| pick(&|k| k.damping[s])),
             correction_map: std::array::from_fn(|r| pick(&|k| k.correction_map[r])),
+            inv_64_rest_volume: pick(&|k| k.inv_64_rest_volume),
         }
     }
 }
@@ -136,7 +107,12 @@ impl LaneKernel {
 /// before the dot product (Σ_n s_n,i f_n) · e_i, and the direction uses one reciprocal; the
 /// results agree to a few ulps of the spring forces.
 #[inline(always)]
-fn batch_forces<const DAMP: bool>(k: &LaneKernel, x: &[LaneV3; 8], v: &[LaneV3; 8]) -> [LaneV3; 8] {
+fn batch_forces<const DAMP: bool>(
+    k: &LaneKernel,
+    x: &[LaneV3; 8],
+    v: &[LaneV3; 8],
+    volumetric: Option<&[Option<&VolumetricCorrection>; LANES]>,
+) -> [LaneV3; 8] {
     // Damper forces kept apart from the elastic ones: see `ElementKernel::forces`.
     let mut f = [[Lanes::ZERO; 3]; 8];
     let mut fd = [[Lanes::ZERO; 3]; 8];
@@ -144,7 +120,8 @@ fn batch_forces<const DAMP: bool>(k: &LaneKernel, x: &[LaneV3; 8], v: &[LaneV3; 
         let d = sub3(&x[b], &x[a]);
         let len = dot3(&d, &d).sqrt();
         let n = scale3(&d, Lanes::splat(1.0) / len);
-        let fa = scale3(&n, k.stiffness[s] * (len - k.rest_length[s]));
+        let e = len - k.rest_length[s];
+        let fa = scale3(&n, e * (k.stiffness[s] + k.cubic[s] * e * e));
         f[a] = add3(&f[a], &fa);
         f[b] = sub3(&f[b], &fa);
         if DAMP {
@@ -208,7 +185,50 @@ fn batch_forces<const DAMP: bool>(k: &LaneKernel, x: &[LaneV3; 8], v: &[LaneV3; 
             f[n] = add3(&f[n], &fd[n]);
         }
     }
+    if let Some(vols) = volumetric {
+        add_volumetric(k, x, &ex, &ey, vols, &mut f);
+    }
     f
+}
+
+/// Adds the volumetric correction −(p(J)/64)·(s_x·ey×ez + s_y·ez×ex + s_z·ex×ey) of
+/// [`BrickCoefficients::corner_forces`]; lanes whose class has no volumetric law get p = 0.
+#[inline(always)]
+fn add_volumetric(
+    k: &LaneKernel,
+    x: &[LaneV3; 8],
+    ex: &LaneV3,
+    ey: &LaneV3,
+    vols: &[Option<&VolumetricCorrection>; LANES],
+    f: &mut [LaneV3; 8],
+) {
+    let cross = |a: &LaneV3, b: &LaneV3| -> LaneV3 {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    let ez = {
+        let [a, b, c, d] = [(4, 0), (5, 1), (6, 2), (7, 3)].map(|(hi, lo)| sub3(&x[hi], &x[lo]));
+        add3(&add3(&add3(&a, &b), &c), &d)
+    };
+    let c = [cross(ey, &ez), cross(&ez, ex), cross(ex, ey)];
+    let j = dot3(ex, &c[0]) * k.inv_64_rest_volume;
+    let scale = Lanes(std::array::from_fn(|l| {
+        vols[l].map_or(0.0, |v| -v.pressure_pa(j.0[l]) / 64.0)
+    }));
+    for (n, signs) in CORNER_SIGNS.iter().enumerate() {
+        let mut g = [Lanes::ZERO; 3];
+        for (i, ci) in c.iter().enumerate() {
+            g = if signs[i] > 0.0 {
+                add3(&g, ci)
+            } else {
+                sub3(&g, ci)
+            };
+        }
+        f[n] = add3(&f[n], &scale3(&g, scale));
+    }
 }
 
 /// Where element forces are added: a node-index window of the output owned by one chunk, or
@@ -255,6 +275,8 @@ struct Inputs<'a> {
     x: &'a [V3],
     v: Option<&'a [V3]>,
     lane_kernels: &'a [LaneKernel],
+    /// Each class's volumetric correction; `None` for every class: the term is skipped.
+    volumetric: Option<&'a [Option<VolumetricCorrection>]>,
 }
 
 /// Evaluates the elements yielded by `elements` (indices into the mesh) into `sink`.
@@ -293,7 +315,10 @@ fn run_elements<const DAMP: bool, E: ElementSource, S: Sink>(
         } else {
             &*mixed.insert(LaneKernel::gather(inp.lane_kernels, &classes))
         };
-        let f = batch_forces::<DAMP>(kernel, &xs, &vs);
+        let vols = inp
+            .volumetric
+            .map(|per_class| std::array::from_fn(|l| per_class[classes[l] as usize].as_ref()));
+        let f = batch_forces::<DAMP>(kernel, &xs, &vs, vols.as_ref());
         for (l, cs) in corners.iter().enumerate().take(count) {
             for (n, &c) in cs.iter().enumerate() {
                 sink.add(c, V3::new(f[n][0].0[l], f[n][1].0[l], f[n][2].0[l]));
@@ -514,6 +539,8 @@ fn split_windows<'c, 'o, T>(
 pub struct ForceEvaluator {
     kernels: Vec<ElementKernel>,
     lane_kernels: Vec<LaneKernel>,
+    /// Per class; empty when no class has a volumetric law.
+    volumetric: Vec<Option<VolumetricCorrection>>,
     /// `None`: the mesh numbering has no chunk locality; use the mesh's element colours.
     schedule: Option<ChunkSchedule>,
     element_count: usize,
@@ -524,7 +551,14 @@ impl ForceEvaluator {
     /// Packs the kernels of every class of `mesh` and plans the parallel schedule.
     pub fn new(mesh: &HexMesh) -> Self {
         let kernels: Vec<ElementKernel> = mesh.classes.iter().map(ElementKernel::new).collect();
+        let volumetric: Vec<Option<VolumetricCorrection>> =
+            mesh.classes.iter().map(|c| c.volumetric.clone()).collect();
         ForceEvaluator {
+            volumetric: if volumetric.iter().any(Option::is_some) {
+                volumetric
+            } else {
+                Vec::new()
+            },
             lane_kernels: kernels.iter().map(LaneKernel::splat).collect(),
             kernels,
             schedule: ChunkSchedule::new(&mesh.elements, mesh.node_count()),
@@ -576,6 +610,7 @@ impl ForceEvaluator {
             x,
             v,
             lane_kernels: &self.lane_kernels,
+            volumetric: (!self.volumetric.is_empty()).then_some(&self.volumetric[..]),
         };
         let parallel =
             rayon::current_num_threads() > 1 && mesh.element_count() >= PARALLEL_MIN_ELEMENTS;

@@ -19,7 +19,7 @@ use serde::Serialize;
 
 use crate::math::V3;
 use crate::model::mesh::HEX_FACES;
-use crate::model::{HexMesh, Material, NodeConstraint};
+use crate::model::{ContinuumLaw, HexMesh, Material, NodeConstraint};
 use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 
@@ -224,7 +224,7 @@ pub fn write_deck(scene: &Scene, options: &CalculixOptions) -> Result<String> {
     let mut d = String::new();
     d.push_str("** lungmotion: mass-spring scene exported for CalculiX, SI units\n");
     write_nodes(&mut d, mesh);
-    let material_count = write_element_sets(&mut d, mesh, options);
+    let material_count = write_element_sets(&mut d, mesh, options)?;
     let constraints = DeckConstraints::of(scene)?;
     write_transforms(&mut d, &constraints.transforms);
     let loads = DeckLoads::of(scene, options.nlgeom)?;
@@ -242,7 +242,7 @@ fn write_nodes(d: &mut String, mesh: &HexMesh) {
 
 /// One element set per distinct material, in order of first appearance, each with its
 /// `*MATERIAL` and `*SOLID SECTION`; returns how many sets there are.
-fn write_element_sets(d: &mut String, mesh: &HexMesh, options: &CalculixOptions) -> usize {
+fn write_element_sets(d: &mut String, mesh: &HexMesh, options: &CalculixOptions) -> Result<usize> {
     let mut materials: Vec<Material> = Vec::new();
     let mut group_of_class = Vec::with_capacity(mesh.classes.len());
     for c in &mesh.classes {
@@ -274,16 +274,46 @@ fn write_element_sets(d: &mut String, mesh: &HexMesh, options: &CalculixOptions)
             d.push('\n');
         }
         writeln!(d, "*MATERIAL, NAME=M{}", g + 1).unwrap();
-        writeln!(
-            d,
-            "*ELASTIC\n{:.12e}, {:.12e}",
-            m.youngs_modulus_pa, m.poisson_ratio
-        )
-        .unwrap();
+        d.push_str(&material_card(m)?);
         writeln!(d, "*DENSITY\n{:.12e}", m.density_kg_per_m3).unwrap();
         writeln!(d, "*SOLID SECTION, ELSET=E{}, MATERIAL=M{}", g + 1, g + 1).unwrap();
     }
-    materials.len()
+    Ok(materials.len())
+}
+
+/// The constitutive card of `m`: its volumetric law when it names one CalculiX has
+/// (`*HYPERELASTIC, NEO HOOKE` with C₁₀ = G/2, D₁ = 2/K; `*HYPERFOAM, N=1` with μ₁ = G,
+/// α₁ = 2, ν₁ = ν), else `*ELASTIC` (St Venant–Kirchhoff under NLGEOM).
+pub fn material_card(m: &Material) -> Result<String> {
+    let (g, k) = (m.shear_modulus_pa(), m.bulk_modulus_pa());
+    Ok(match m.volumetric_law {
+        None => format!(
+            "*ELASTIC\n{:.12e}, {:.12e}\n",
+            m.youngs_modulus_pa, m.poisson_ratio
+        ),
+        Some(ContinuumLaw::NeoHookean) => {
+            format!(
+                "*HYPERELASTIC, NEO HOOKE\n{:.12e}, {:.12e}\n",
+                g / 2.0,
+                2.0 / k
+            )
+        }
+        Some(ContinuumLaw::Hyperfoam) => {
+            format!(
+                "*HYPERFOAM, N=1\n{:.12e}, 2., {:.12e}\n",
+                g, m.poisson_ratio
+            )
+        }
+        Some(law @ ContinuumLaw::LungBirzle) => {
+            return Err(Error::argument(
+                "CalculiX material",
+                format!(
+                    "{law:?} has no CalculiX card (its (Ī₁ − 3)³ and (J^(2/3) − 1)⁶ terms need a \
+                     user material); compare with hyperfoam, its first two terms"
+                ),
+            ))
+        }
+    })
 }
 
 /// The scene's constraints as CalculiX boundary conditions: per node, the imposed DOFs

@@ -4,6 +4,7 @@
 pub mod calculix;
 pub mod composite;
 pub mod lung_calculix;
+pub mod material_laws;
 pub mod patch;
 pub mod report;
 pub mod stability;

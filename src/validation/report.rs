@@ -6,6 +6,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::composite::{run_composite, CompositeOptions, CompositeReport};
+use super::material_laws::{run_material_law_study, MaterialLawReport};
 use super::patch::{run_patch_tests, PatchConfig, PatchReport};
 use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
 use super::sweep::{run_strain_sweeps, SweepConfig, SweepReport};
@@ -32,6 +33,8 @@ pub struct ValidationReport {
     pub patch: PatchReport,
     /// Strain sweeps 0–20 % and bulk ±15 % against the thesis's error curves.
     pub sweep: SweepReport,
+    /// The spring and volumetric laws against continuum laws on one cube.
+    pub material_laws: MaterialLawReport,
     /// Explicit integrator: automatic time step across materials and sizes, overstep caught.
     pub stability: StabilityReport,
     /// Composite cases against CalculiX (absent when skipped).
@@ -50,6 +53,10 @@ pub fn run_validation(
     let patch = run_patch_tests(&PatchConfig::default())?;
     progress("strain sweeps (traction 0–20 %, bulk ±15 %)");
     let sweep = run_strain_sweeps(&SweepConfig::default())?;
+    progress(
+        "spring and volumetric laws (one cube against neo-Hookean, hyperfoam, Birzle's lung law)",
+    );
+    let material_laws = run_material_law_study()?;
     progress("stability stress test (automatic time step, 1.5× overstep)");
     let stability = run_stability_study(&if options.quick {
         StabilityConfig::quick()
@@ -72,6 +79,7 @@ pub fn run_validation(
         options: options.clone(),
         patch,
         sweep,
+        material_laws,
         stability,
         composite,
         wall_time_s: start.elapsed().as_secs_f64(),
@@ -91,6 +99,7 @@ impl ValidationReport {
         for section in [
             self.patch.to_markdown(),
             self.sweep.to_markdown(),
+            self.material_laws.to_markdown(),
             self.stability.to_markdown(),
         ] {
             s.push_str(&section);

@@ -145,7 +145,20 @@ fn without_defaults() -> Value {
                     "poisson_ratio": {"type": "number", "minimum": 0, "exclusiveMaximum": 0.5,
                         "description": "Poisson's ratio ν"},
                     "density_kg_per_m3": {"type": "number", "exclusiveMinimum": 0,
-                        "description": "Density ρ, kg/m³"}
+                        "description": "Density ρ, kg/m³"},
+                    "spring_law": {
+                        "description": "Each spring's tension T = λ₂·d + λ₁·d³ (d its relative elongation): \"linear\" (λ₁ = 0, Baudet's element) or {\"cubic\": c} with c = λ₁/λ₂ in [−1/3, 100] (Boux de Casson's cubic springs)",
+                        "oneOf": [
+                            {"type": "string", "enum": ["linear"]},
+                            {"type": "object", "additionalProperties": false, "required": ["cubic"],
+                                "properties": {"cubic": {"type": "number", "minimum": -0.3333333333333333, "maximum": 100}}}
+                        ]
+                    },
+                    "volumetric_law": {
+                        "type": ["string", "null"],
+                        "enum": ["neo_hookean", "hyperfoam", "lung_birzle", null],
+                        "description": "A continuum law the elements' hydrostatic response follows (a volumetric correction pressure, zero at small strain): neo_hookean (CalculiX NEO HOOKE), hyperfoam (Storåkers, α = 2: CalculiX HYPERFOAM N=1), lung_birzle (Birzle et al. 2019, lung parenchyma); null: the springs' own"
+                    }
                 }
             },
             "motion": {

@@ -1,0 +1,338 @@
+//! The springs' force law (Baudet's linear springs or Boux de Casson's cubic ones) and the fit
+//! of the cubic term to a named continuum law on one cube.
+//!
+//! A spring of rest length ℓ₀ and Baudet stiffness k pulls with T = λ₂·d + λ₁·d³, d = (ℓ − ℓ₀)/ℓ₀
+//! its relative elongation and λ₂ = k·ℓ₀ (Boux de Casson 2000, §2.5 and §4.5). The cubic term
+//! vanishes at small strain, so E, ν and K stay exactly Baudet's there; c = λ₁/λ₂ sets how the
+//! element departs from linearity at large strain.
+
+use serde::{Deserialize, Serialize};
+
+use super::element::{BrickCoefficients, BrickShape};
+use super::material::Material;
+use crate::{Error, Result};
+
+/// Largest |d| a spring is expected to reach (from collapse to twice its length): the tangent
+/// λ₂·(1 + 3c·d²) must stay positive over it, so c ≥ −1/3.
+pub const ADMISSIBLE_RELATIVE_ELONGATION: f64 = 1.0;
+/// Largest cubic ratio accepted: beyond it the tangent at 25 % elongation exceeds 20× the
+/// small-strain one, which no tissue law fitted here asks for and which shrinks explicit steps.
+pub const MAX_CUBIC_RATIO: f64 = 100.0;
+
+/// How each spring's tension grows with its relative elongation beyond the small-strain slope.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SpringLaw {
+    /// λ₁ = 0: Baudet's element as published.
+    #[default]
+    Linear,
+    /// λ₁ = c·λ₂ with the given dimensionless c (Boux de Casson's cubic springs).
+    Cubic(f64),
+}
+
+impl SpringLaw {
+    /// The ratio c = λ₁/λ₂ of this law.
+    pub fn cubic_ratio(&self) -> f64 {
+        match *self {
+            SpringLaw::Linear => 0.0,
+            SpringLaw::Cubic(c) => c,
+        }
+    }
+
+    /// Refuses a cubic ratio that makes a spring's tangent stiffness non-positive within the
+    /// admissible elongations, or that is not finite or absurdly large.
+    pub fn validate(&self) -> Result<()> {
+        if let SpringLaw::Cubic(c) = *self {
+            let floor = -1.0 / (3.0 * ADMISSIBLE_RELATIVE_ELONGATION.powi(2));
+            if !c.is_finite() || c < floor || c > MAX_CUBIC_RATIO {
+                return Err(Error::InvalidMaterial(format!(
+                    "spring_law cubic ratio λ₁/λ₂ = {c} is outside [{floor:.4}, {MAX_CUBIC_RATIO}]: \
+                     below −1/3 a spring's stiffness λ₂·(1 + 3c·d²) turns negative before it \
+                     doubles or collapses (|d| ≤ {ADMISSIBLE_RELATIVE_ELONGATION})"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Continuum laws the cubic term can be fitted to, each with the small-strain moduli G and K
+/// of the material (from E and ν).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ContinuumLaw {
+    /// W = (G/2)(Ī₁ − 3) + (K/2)(J − 1)²: CalculiX `*HYPERELASTIC, NEO HOOKE`.
+    NeoHookean,
+    /// Storåkers' compressible foam with α = 2: W = (G/2)[I₁ − 3 + (J^(−2β) − 1)/β],
+    /// β = ν/(1 − 2ν): CalculiX `*HYPERFOAM, N=1` (μ₁ = G, α₁ = 2, ν₁ = ν), and the first two
+    /// terms of Birzle's lung law.
+    Hyperfoam,
+    /// Birzle et al. (2019), lung parenchyma from rat lungs (J. Mech. Behav. Biomed. Mater. 94,
+    /// 126–143; FEBio's `lung` material): the hyperfoam plus c₁(Ī₁ − 3)³ + c₃(J^(2/3) − 1)⁶,
+    /// with c₁/c = 278.2/356.7 and c₃/c = 5.766/356.7 kept from the paper (c = G/2), so the
+    /// curve keeps its measured shape while E and ν are the material's.
+    LungBirzle,
+}
+
+impl ContinuumLaw {
+    /// Principal Cauchy stresses (Pa, tension positive) at principal stretches `stretch` for
+    /// shear modulus `g_pa` and bulk modulus `k_pa`.
+    pub fn principal_cauchy_stress_pa(&self, stretch: [f64; 3], g_pa: f64, k_pa: f64) -> [f64; 3] {
+        let j = stretch.iter().product::<f64>();
+        match self {
+            ContinuumLaw::NeoHookean => {
+                let b = stretch.map(|l| (j.powf(-1.0 / 3.0) * l).powi(2));
+                let i1 = b.iter().sum::<f64>();
+                b.map(|bi| g_pa / j * (bi - i1 / 3.0) + k_pa * (j - 1.0))
+            }
+            ContinuumLaw::Hyperfoam | ContinuumLaw::LungBirzle => {
+                // σ_i = (2/J)(λ_i²·∂W/∂I₁ + I₃·∂W/∂I₃) for W(I₁, I₃).
+                let c = g_pa / 2.0;
+                // ν from G and K: β = ν/(1 − 2ν) = (3K − 2G)/(6G)... written through K/G.
+                let beta = (3.0 * k_pa - 2.0 * g_pa) / (6.0 * g_pa);
+                let (c1, c3) = match self {
+                    ContinuumLaw::LungBirzle => (c * 278.2 / 356.7, c * 5.766 / 356.7),
+                    _ => (0.0, 0.0),
+                };
+                let i1 = stretch.iter().map(|l| l * l).sum::<f64>();
+                let i3 = j * j;
+                let i1_bar = i3.powf(-1.0 / 3.0) * i1;
+                let shear = 3.0 * c1 * (i1_bar - 3.0).powi(2);
+                let w1 = c + shear * i3.powf(-1.0 / 3.0);
+                let w3 = -c * i3.powf(-beta - 1.0) - shear * i1 * i3.powf(-4.0 / 3.0) / 3.0
+                    + 2.0 * c3 * (i3.cbrt() - 1.0).powi(5) * i3.powf(-2.0 / 3.0);
+                stretch.map(|l| 2.0 / j * (l * l * w1 + i3 * w3))
+            }
+        }
+    }
+
+    /// Principal nominal (first Piola–Kirchhoff) stresses: the force on each positive face of
+    /// a cube stretched by `stretch`, per m² of rest face, in pascals.
+    pub fn nominal_stress_pa(&self, stretch: [f64; 3], g_pa: f64, k_pa: f64) -> [f64; 3] {
+        let s = self.principal_cauchy_stress_pa(stretch, g_pa, k_pa);
+        std::array::from_fn(|i| s[i] * stretch[(i + 1) % 3] * stretch[(i + 2) % 3])
+    }
+}
+
+/// The strain sweeps the cubic ratio is fitted over.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitSweeps {
+    /// Axial stretches of the uniaxial-stress sweep (lateral faces free).
+    pub uniaxial_stretches: Vec<f64>,
+    /// Volume ratios J of the hydrostatic sweep.
+    pub volume_ratios: Vec<f64>,
+}
+
+impl Default for FitSweeps {
+    fn default() -> Self {
+        FitSweeps {
+            uniaxial_stretches: (1..=10).map(|k| 1.0 + 0.025 * k as f64).collect(),
+            volume_ratios: (1..=10)
+                .flat_map(|k| [1.0 - 0.02 * k as f64, 1.0 + 0.02 * k as f64])
+                .collect(),
+        }
+    }
+}
+
+/// One point of a sweep: the law's and the element's response.
+#[derive(Debug, Clone, Serialize)]
+pub struct ResponsePoint {
+    /// Axial stretch (uniaxial sweep) or volume ratio J (hydrostatic sweep).
+    pub strain_measure: f64,
+    /// The law's nominal axial stress (uniaxial) or Cauchy pressure, tension positive, in Pa.
+    pub law_stress_pa: f64,
+    /// The element's, same measure.
+    pub element_stress_pa: f64,
+    /// The law's lateral stretch (uniaxial sweep; 0 for the hydrostatic one).
+    pub law_lateral_stretch: f64,
+    /// The element's lateral stretch (uniaxial sweep; 0 for the hydrostatic one).
+    pub element_lateral_stretch: f64,
+}
+
+impl ResponsePoint {
+    /// (element − law)/law of the stress.
+    pub fn stress_error(&self) -> f64 {
+        self.element_stress_pa / self.law_stress_pa - 1.0
+    }
+}
+
+/// A cube's response along both sweeps for one material.
+#[derive(Debug, Clone, Serialize)]
+pub struct CubeResponse {
+    /// The law compared with.
+    pub law: ContinuumLaw,
+    /// The element's spring law.
+    pub spring_law: SpringLaw,
+    /// The element's volumetric law, if any.
+    pub volumetric_law: Option<ContinuumLaw>,
+    /// Uniaxial-stress sweep.
+    pub uniaxial: Vec<ResponsePoint>,
+    /// Hydrostatic sweep.
+    pub hydrostatic: Vec<ResponsePoint>,
+}
+
+impl CubeResponse {
+    /// Root mean square of the relative stress errors over both sweeps.
+    pub fn rms_stress_error(&self) -> f64 {
+        let all: Vec<f64> = self
+            .uniaxial
+            .iter()
+            .chain(&self.hydrostatic)
+            .map(ResponsePoint::stress_error)
+            .collect();
+        (all.iter().map(|e| e * e).sum::<f64>() / all.len() as f64).sqrt()
+    }
+
+    /// Largest |relative stress error| over both sweeps.
+    pub fn max_stress_error(&self) -> f64 {
+        self.uniaxial
+            .iter()
+            .chain(&self.hydrostatic)
+            .map(|p| p.stress_error().abs())
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Runs both sweeps on a unit cube of `material` (its springs and volumetric law) against
+/// `law` with the same small-strain moduli; stresses in pascals.
+pub fn cube_response(
+    law: ContinuumLaw,
+    material: Material,
+    sweeps: &FitSweeps,
+) -> Result<CubeResponse> {
+    let (g, k) = (material.shear_modulus_pa(), material.bulk_modulus_pa());
+    let cube = BrickCoefficients::new(BrickShape::cube(1.0), material)?;
+    let uniaxial = sweeps
+        .uniaxial_stretches
+        .iter()
+        .map(|&l| {
+            let element_lateral = free_lateral_stretch(|m| cube.box_face_forces_n([l, m, m])[1]);
+            let law_lateral = free_lateral_stretch(|m| law.nominal_stress_pa([l, m, m], g, k)[1]);
+            ResponsePoint {
+                strain_measure: l,
+                law_stress_pa: law.nominal_stress_pa([l, law_lateral, law_lateral], g, k)[0],
+                element_stress_pa: cube.box_face_forces_n([l, element_lateral, element_lateral])[0],
+                law_lateral_stretch: law_lateral,
+                element_lateral_stretch: element_lateral,
+            }
+        })
+        .collect();
+    let hydrostatic = sweeps
+        .volume_ratios
+        .iter()
+        .map(|&j| {
+            let s = j.cbrt();
+            ResponsePoint {
+                strain_measure: j,
+                law_stress_pa: law.principal_cauchy_stress_pa([s; 3], g, k)[0],
+                element_stress_pa: cube.box_face_forces_n([s; 3])[0] / (s * s),
+                law_lateral_stretch: 0.0,
+                element_lateral_stretch: 0.0,
+            }
+        })
+        .collect();
+    Ok(CubeResponse {
+        law,
+        spring_law: material.spring_law,
+        volumetric_law: material.volumetric_law,
+        uniaxial,
+        hydrostatic,
+    })
+}
+
+/// The lateral stretch at which the lateral face force `lateral(m)` vanishes (bisection: the
+/// force rises with m for any admissible law), within 1e-12.
+fn free_lateral_stretch(lateral: impl Fn(f64) -> f64) -> f64 {
+    let (mut lo, mut hi) = (0.3, 1.5);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if lateral(mid) > 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// The cubic ratio minimising the RMS relative stress error of [`cube_response`] against `law`
+/// over the default sweeps: a scan of [−1/3, 10] followed by golden-section refinement.
+pub fn fit_cubic_ratio(law: ContinuumLaw, poisson_ratio: f64) -> Result<CubeResponse> {
+    let sweeps = FitSweeps::default();
+    let material = |c: f64| -> Result<Material> {
+        Material::new(1.0, poisson_ratio, 1.0)?.with_spring_law(SpringLaw::Cubic(c))
+    };
+    let cost = |c: f64| cube_response(law, material(c)?, &sweeps).map(|r| r.rms_stress_error());
+    let (lo, hi, steps) = (-1.0 / 3.0, 10.0, 62);
+    let h = (hi - lo) / steps as f64;
+    let mut best = (lo, f64::INFINITY);
+    for i in 0..=steps {
+        let c = lo + h * i as f64;
+        let e = cost(c)?;
+        if e < best.1 {
+            best = (c, e);
+        }
+    }
+    let (mut a, mut b) = ((best.0 - h).max(lo), (best.0 + h).min(hi));
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    while b - a > 1e-6 {
+        let (c1, c2) = (b - phi * (b - a), a + phi * (b - a));
+        if cost(c1)? < cost(c2)? {
+            b = c2;
+        } else {
+            a = c1;
+        }
+    }
+    cube_response(law, material(0.5 * (a + b))?, &sweeps)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn linear_springs_match_the_law_at_small_strain() {
+        let sweeps = FitSweeps {
+            uniaxial_stretches: vec![1.0001],
+            volume_ratios: vec![0.9999, 1.0001],
+        };
+        for nu in [0.1, 0.3, 0.45] {
+            let m = Material::new(1.0, nu, 1.0).unwrap();
+            let r = cube_response(ContinuumLaw::NeoHookean, m, &sweeps).unwrap();
+            assert!(r.max_stress_error() < 1e-3, "ν {nu}: {r:?}");
+            let p = &r.uniaxial[0];
+            assert!((p.element_lateral_stretch - p.law_lateral_stretch).abs() < 1e-7);
+        }
+    }
+
+    #[test]
+    fn neo_hookean_cauchy_stress_is_the_closed_form() {
+        // Incompressible-like uniaxial check: pure volumetric state has no deviator.
+        let s = ContinuumLaw::NeoHookean.principal_cauchy_stress_pa([1.1; 3], 2.0, 5.0);
+        let j: f64 = 1.1f64.powi(3);
+        for v in s {
+            assert!((v - 5.0 * (j - 1.0)).abs() < 1e-12);
+        }
+        // Isochoric stretch (λ, λ^-½, λ^-½): σ₁ − σ₂ = G(λ² − 1/λ).
+        let l: f64 = 1.2;
+        let s = ContinuumLaw::NeoHookean.principal_cauchy_stress_pa(
+            [l, l.powf(-0.5), l.powf(-0.5)],
+            2.0,
+            5.0,
+        );
+        assert!((s[0] - s[1] - 2.0 * (l * l - 1.0 / l)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn refuses_cubic_ratios_that_soften_to_negative_stiffness() {
+        for c in [-0.34, -1.0, f64::NAN, 1e3] {
+            let err = SpringLaw::Cubic(c).validate().unwrap_err().to_string();
+            assert!(
+                err.contains("cubic ratio") && err.contains("negative"),
+                "{err}"
+            );
+        }
+        assert!(SpringLaw::Cubic(-0.33).validate().is_ok());
+        assert!(SpringLaw::Cubic(2.0).validate().is_ok());
+    }
+}
