@@ -31,10 +31,7 @@ fn config(field_grid: &str) -> RunConfig {
 /// Runs the phantom through a +300 mL breath with the fields on `field_grid`; returns the
 /// output directory.
 fn run(field_grid: &str) -> PathBuf {
-    let out = std::env::temp_dir().join(format!(
-        "lm-itk-warp-{field_grid}-{}",
-        std::process::id()
-    ));
+    let out = std::env::temp_dir().join(format!("lm-itk-warp-{field_grid}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let inputs = RunInputs {
         ct_path: phantom(),
@@ -67,7 +64,10 @@ fn model_displacements(out: &Path) -> Vec<([usize; 3], [f32; 3])> {
         .zip(&mesh.rest_positions_m)
         .filter(|(x, r)| (*x - *r).norm() > 1e-3)
         .count();
-    assert!(moved > mesh.rest_positions_m.len() / 4, "{moved} nodes moved");
+    assert!(
+        moved > mesh.rest_positions_m.len() / 4,
+        "{moved} nodes moved"
+    );
     let lungs = &outcome.segmentation.lungs;
     let sampler =
         FieldSampler::new(lungs, mesh, &outcome.model.element_lung, FieldGrid::Ct).unwrap();
@@ -88,14 +88,13 @@ fn model_displacements(out: &Path) -> Vec<([usize; 3], [f32; 3])> {
 fn itk_worst_error_mm(field: &Path, ct: &Path, voxels: &Path) -> (f64, String) {
     let script = r#"
 import sys
-import numpy as np
 import SimpleITK as sitk
 field_path, ct_path, voxels_path = sys.argv[1:4]
 ct = sitk.ReadImage(ct_path)
 field = sitk.ReadImage(field_path)
 size = "x".join(map(str, field.GetSize()))
 tx = sitk.DisplacementFieldTransform(sitk.Cast(field, sitk.sitkVectorFloat64))
-rows = np.loadtxt(voxels_path, delimiter=",", ndmin=2)
+rows = [[float(v) for v in line.split(",")] for line in open(voxels_path) if line.strip()]
 worst = 0.0
 for i, j, k, ux, uy, uz in rows:
     p = ct.TransformIndexToPhysicalPoint((int(i), int(j), int(k)))

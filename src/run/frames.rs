@@ -204,7 +204,9 @@ impl FrameSink<'_> {
         }
         let t = Instant::now();
         let mesh = self.mesh;
-        self.field.sample_mm(mesh, positions, &mut self.field_mm);
+        // The buffer starts zeroed and only lung voxels change from frame to frame.
+        self.field
+            .sample_lung_voxels_mm(mesh, positions, &mut self.field_mm);
         self.sample_s += t.elapsed().as_secs_f64();
         let dir = self.frames_dir.join(frame.index.to_string());
         std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;

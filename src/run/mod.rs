@@ -167,7 +167,7 @@ impl IngestedScan {
 
 /// The loaded CT of a run: its own, let go once read, or the caller's (the service's cache).
 enum ScanHold<'a> {
-    Owned(LoadedScan),
+    Owned(Box<LoadedScan>),
     Borrowed(&'a LoadedScan),
 }
 
@@ -274,7 +274,7 @@ pub fn run_breathing_on(
         None => {
             let read = IngestedScan::read(&inputs.ct_path, config, observer, &mut timings)?;
             own_outcome = read.outcome;
-            (ScanHold::Owned(read.scan), &own_outcome)
+            (ScanHold::Owned(Box::new(read.scan)), &own_outcome)
         }
     };
     let t = Instant::now();
@@ -290,6 +290,8 @@ pub fn run_breathing_on(
     staging.check_replaces(&ct, overwrite)?;
     *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
     log_memory("ingested");
+    return_freed_memory();
+    log_memory("ingested, freed memory returned");
     let t = Instant::now();
     let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
     timings.insert("lung_scene".to_string(), t.elapsed().as_secs_f64());
@@ -308,7 +310,7 @@ pub fn run_breathing_on(
     } else {
         None
     };
-    log_memory("lung scene built, ingest files written");
+    log_memory("lung scene built, ingest files written, CT let go");
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
@@ -532,6 +534,16 @@ fn record_final_timings(summary: &mut RunSummary, finishing_start: Instant, run_
         .timings_s
         .insert("total".to_string(), run_start.elapsed().as_secs_f64());
     summary.peak_memory_mib = crate::process::peak_rss_bytes().map(|b| b as f64 / (1 << 20) as f64);
+}
+
+/// Hands the memory the ingest's workers freed back to the system: glibc keeps freed blocks in
+/// each thread's arena, which the run would otherwise carry through its solves.
+fn return_freed_memory() {
+    #[cfg(all(feature = "service", target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks and releases glibc's own free lists.
+    unsafe {
+        libc::malloc_trim(0);
+    }
 }
 
 /// Logs the resident and peak memory at a stage boundary (`LUNGMOTION_LOG=debug`), to see
