@@ -114,6 +114,7 @@ impl<'a> FrameSink<'a> {
             write_s: self.write_s,
             sample_s: self.sample_s,
             nifti_s: self.nifti_s,
+            field_buffer_mm: self.field_mm,
         }
     }
 }
@@ -134,6 +135,24 @@ pub(super) struct FramesWritten {
     pub(super) sample_s: f64,
     /// Of which encoding, compressing and writing the NIfTI fields, s.
     pub(super) nifti_s: f64,
+    /// The frames' field buffer (zero outside the lungs), handed on to the quick look so the
+    /// run never holds two fields.
+    pub(super) field_buffer_mm: Vec<[f32; 3]>,
+}
+
+impl FramesWritten {
+    /// Adds the solves' time (the motion's `motion_wall_s` less the frames') and the frames'
+    /// (`frame_files`, of which `frame_sampling` and `frame_nifti`) to `timings`.
+    pub(super) fn record_timings(
+        &self,
+        motion_wall_s: f64,
+        timings: &mut std::collections::BTreeMap<String, f64>,
+    ) {
+        timings.insert("motion_solve".into(), motion_wall_s - self.write_s);
+        timings.insert("frame_files".into(), self.write_s);
+        timings.insert("frame_sampling".into(), self.sample_s);
+        timings.insert("frame_nifti".into(), self.nifti_s);
+    }
 }
 
 /// The output frames at the breathing's extremes, known from the trace before solving, so

@@ -277,6 +277,119 @@ pub fn run_breathing_on(
             (ScanHold::Owned(Box::new(read.scan)), &own_outcome)
         }
     };
+    let SceneOfScan {
+        ct,
+        lung,
+        ct_dims,
+        backdrop,
+    } = scene_of_scan(
+        scan,
+        outcome,
+        inputs,
+        config,
+        &staging,
+        overwrite,
+        &mut timings,
+    )?;
+    check_cancel(observer, "the solves")?;
+
+    observer.stage(RunStage::Solving);
+    let mut sink = FrameSink::open(
+        &lung,
+        &outcome.model,
+        staging.dir(),
+        &config.outputs,
+        inputs,
+        &times,
+    )?;
+    let (report, dynamic) = run_the_motion(
+        &lung.scene,
+        inputs,
+        config,
+        &settings,
+        &times,
+        &mut sink,
+        observer,
+    )
+    .map_err(|e| name_element_groups(e, &outcome.model))?;
+    let mut written = sink.finish();
+    log_memory("frames written");
+    written.record_timings(report.wall_time_s, &mut timings);
+
+    observer.stage(RunStage::Finishing);
+    check_cancel(observer, "the summary")?;
+    let t = Instant::now();
+    if written.records.is_empty() {
+        return Err(Error::argument("run output", "the run produced no frame"));
+    }
+    let extremes = written
+        .extremes
+        .iter()
+        .map(|c| {
+            summary::extreme_summary(
+                c.kind,
+                &outcome.model,
+                &lung.scene,
+                c.frame,
+                &c.positions_m,
+                &report,
+            )
+        })
+        .collect();
+    if let Some(file) = written.trajectory_file.take() {
+        file.finish()?;
+    }
+    if let Some(backdrop) = &backdrop {
+        write_quicklooks(
+            staging.dir(),
+            inputs,
+            backdrop,
+            &lung.field,
+            &lung.scene.mesh,
+            &mut written,
+        )?;
+    }
+    drop(std::mem::take(&mut written.field_buffer_mm));
+    let mut summary = RunSummary::new(
+        inputs,
+        config,
+        outcome,
+        report,
+        dynamic,
+        written.records,
+        written.trajectories,
+        extremes,
+        summary::FieldGridSummary::of(config.outputs.field_grid, &lung.field, ct_dims),
+        timings,
+    );
+    summary.ct_fingerprint = Some(ct.fingerprint);
+    log_memory("summary and quick looks");
+    record_final_timings(&mut summary, t, t_total);
+    write_summary(staging.dir(), &summary)?;
+    staging.publish()?;
+    Ok(summary)
+}
+
+/// What a run keeps of its CT once the lung scene is built.
+struct SceneOfScan {
+    ct: CtIdentity,
+    lung: LungScene,
+    ct_dims: [usize; 3],
+    backdrop: Option<LookBackdrop>,
+}
+
+/// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
+/// the ingest files and cuts out the quick look's backdrop; the CT is let go on return when
+/// the run owns it. Adds `ingest`, `lung_scene` and `ingest_files` to `timings`.
+fn scene_of_scan(
+    scan: ScanHold,
+    outcome: &IngestOutcome,
+    inputs: &RunInputs,
+    config: &RunConfig,
+    staging: &OutputStaging,
+    overwrite: Overwrite,
+    timings: &mut BTreeMap<String, f64>,
+) -> Result<SceneOfScan> {
     let t = Instant::now();
     let ct = CtIdentity {
         path: inputs.ct_path.display().to_string(),
@@ -311,89 +424,12 @@ pub fn run_breathing_on(
         None
     };
     log_memory("lung scene built, ingest files written, CT let go");
-    check_cancel(observer, "the solves")?;
-
-    observer.stage(RunStage::Solving);
-    let mut sink = FrameSink::open(
-        &lung,
-        &outcome.model,
-        staging.dir(),
-        &config.outputs,
-        inputs,
-        &times,
-    )?;
-    let (report, dynamic) = run_the_motion(
-        &lung.scene,
-        inputs,
-        config,
-        &settings,
-        &times,
-        &mut sink,
-        observer,
-    )
-    .map_err(|e| name_element_groups(e, &outcome.model))?;
-    let written = sink.finish();
-    log_memory("frames written");
-    timings.insert(
-        "motion_solve".to_string(),
-        report.wall_time_s - written.write_s,
-    );
-    timings.insert("frame_files".to_string(), written.write_s);
-    timings.insert("frame_sampling".to_string(), written.sample_s);
-    timings.insert("frame_nifti".to_string(), written.nifti_s);
-
-    observer.stage(RunStage::Finishing);
-    check_cancel(observer, "the summary")?;
-    let t = Instant::now();
-    if written.records.is_empty() {
-        return Err(Error::argument("run output", "the run produced no frame"));
-    }
-    let extremes = written
-        .extremes
-        .iter()
-        .map(|c| {
-            summary::extreme_summary(
-                c.kind,
-                &outcome.model,
-                &lung.scene,
-                c.frame,
-                &c.positions_m,
-                &report,
-            )
-        })
-        .collect();
-    if let Some(file) = written.trajectory_file {
-        file.finish()?;
-    }
-    if let Some(backdrop) = &backdrop {
-        write_quicklooks(
-            staging.dir(),
-            inputs,
-            backdrop,
-            &lung.field,
-            &lung.scene.mesh,
-            &written.records,
-            written.pictured.as_ref(),
-        )?;
-    }
-    let mut summary = RunSummary::new(
-        inputs,
-        config,
-        outcome,
-        report,
-        dynamic,
-        written.records,
-        written.trajectories,
-        extremes,
-        summary::FieldGridSummary::of(config.outputs.field_grid, &lung.field, ct_dims),
-        timings,
-    );
-    summary.ct_fingerprint = Some(ct.fingerprint);
-    log_memory("summary and quick looks");
-    record_final_timings(&mut summary, t, t_total);
-    write_summary(staging.dir(), &summary)?;
-    staging.publish()?;
-    Ok(summary)
+    Ok(SceneOfScan {
+        ct,
+        lung,
+        ct_dims,
+        backdrop,
+    })
 }
 
 /// Checks everything that can be checked without the CT; returns the motion settings (with

@@ -5,8 +5,8 @@
 use std::borrow::Cow;
 use std::path::Path;
 
-use super::frames::PicturedExtreme;
-use super::{FrameRecord, RunInputs};
+use super::frames::FramesWritten;
+use super::RunInputs;
 use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::FieldSampler;
 use crate::volume::Volume;
@@ -21,9 +21,9 @@ pub(super) fn write_quicklooks(
     backdrop: &LookBackdrop,
     field: &FieldSampler,
     mesh: &crate::model::HexMesh,
-    records: &[FrameRecord],
-    pictured: Option<&PicturedExtreme>,
+    written: &mut FramesWritten,
 ) -> Result<()> {
+    let (records, pictured) = (&written.records, written.pictured.as_ref());
     use crate::outputs::plots::{
         lung_centroid_lps_mm, render_breathing_curve, render_displacement_look, BreathingCurve,
         DisplacementLookInput,
@@ -65,12 +65,13 @@ pub(super) fn write_quicklooks(
         through
     );
     title[..1].make_ascii_uppercase();
-    let mut field_mm = vec![[0.0f32; 3]; field.geometry().voxel_count()];
-    field.sample_mm(mesh, &pictured.positions_m, &mut field_mm);
+    // The frames' buffer: zero outside the lungs already.
+    let field_mm = &mut written.field_buffer_mm;
+    field.sample_lung_voxels_mm(mesh, &pictured.positions_m, field_mm);
     let look = render_displacement_look(&DisplacementLookInput {
         ct,
         lungs,
-        displacement_mm: &field_mm,
+        displacement_mm: field_mm,
         coronal_y_mm,
         colour_max_mm: None,
         title: &title,
