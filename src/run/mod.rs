@@ -50,7 +50,7 @@ use crate::outputs::ingest_files::write_ingest_outputs;
 use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
-use quicklooks::write_quicklooks;
+use quicklooks::{write_quicklooks, LookBackdrop};
 pub use staging::Overwrite;
 use staging::{ct_fingerprint, CtIdentity, OutputStaging, SUMMARY_FILE};
 
@@ -165,6 +165,29 @@ impl IngestedScan {
     }
 }
 
+/// The loaded CT of a run: its own, let go once read, or the caller's (the service's cache).
+enum ScanHold<'a> {
+    Owned(Box<LoadedScan>),
+    Borrowed(&'a LoadedScan),
+}
+
+impl<'a> ScanHold<'a> {
+    fn get(&self) -> &LoadedScan {
+        match self {
+            ScanHold::Owned(scan) => scan,
+            ScanHold::Borrowed(scan) => scan,
+        }
+    }
+
+    /// The CT voxels, moved out when the run owns them.
+    fn into_ct(self) -> std::borrow::Cow<'a, crate::volume::Volume<f32>> {
+        match self {
+            ScanHold::Owned(scan) => std::borrow::Cow::Owned(scan.ct),
+            ScanHold::Borrowed(scan) => std::borrow::Cow::Borrowed(&scan.ct),
+        }
+    }
+}
+
 /// An observer that ignores everything.
 pub struct SilentObserver;
 
@@ -239,31 +262,35 @@ pub fn run_breathing_on(
     let (settings, times) = check_inputs(inputs, config, observer)?;
     let staging = OutputStaging::new(out_dir)?;
 
-    let read;
-    let ingested = match prepared {
+    // A CT read here is let go once its last readers are done (fingerprint, ingest files,
+    // the quick look's backdrop): 148 MB of float voxels for a 512 × 512 × 141 CT.
+    let own_outcome;
+    let (scan, outcome) = match prepared {
         Some((ingested, read_timings)) => {
             timings = read_timings;
             observer.stage(RunStage::Ingest);
-            ingested
+            (ScanHold::Borrowed(&ingested.scan), &ingested.outcome)
         }
         None => {
-            read = IngestedScan::read(&inputs.ct_path, config, observer, &mut timings)?;
-            &read
+            let read = IngestedScan::read(&inputs.ct_path, config, observer, &mut timings)?;
+            own_outcome = read.outcome;
+            (ScanHold::Owned(Box::new(read.scan)), &own_outcome)
         }
     };
-    let (scan, outcome) = (&ingested.scan, &ingested.outcome);
-    let t = Instant::now();
-    let ct = CtIdentity {
-        path: inputs.ct_path.display().to_string(),
-        fingerprint: ct_fingerprint(&scan.ct),
-        series_uid: scan.series.as_ref().map(|s| s.series_instance_uid.clone()),
-    };
-    staging.check_replaces(&ct, overwrite)?;
-    let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
-    if config.outputs.ingest_files {
-        write_ingest_files(staging.dir(), &scan.ct, outcome)?;
-    }
-    *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
+    let SceneOfScan {
+        ct,
+        lung,
+        ct_dims,
+        backdrop,
+    } = scene_of_scan(
+        scan,
+        outcome,
+        inputs,
+        config,
+        &staging,
+        overwrite,
+        &mut timings,
+    )?;
     check_cancel(observer, "the solves")?;
 
     observer.stage(RunStage::Solving);
@@ -285,12 +312,9 @@ pub fn run_breathing_on(
         observer,
     )
     .map_err(|e| name_element_groups(e, &outcome.model))?;
-    let written = sink.finish();
-    timings.insert(
-        "motion_solve".to_string(),
-        report.wall_time_s - written.write_s,
-    );
-    timings.insert("frame_files".to_string(), written.write_s);
+    let mut written = sink.finish();
+    log_memory("frames written");
+    written.record_timings(report.wall_time_s, &mut timings);
 
     observer.stage(RunStage::Finishing);
     check_cancel(observer, "the summary")?;
@@ -312,20 +336,20 @@ pub fn run_breathing_on(
             )
         })
         .collect();
-    if let Some(file) = written.trajectory_file {
+    if let Some(file) = written.trajectory_file.take() {
         file.finish()?;
     }
-    if config.outputs.quicklooks {
+    if let Some(backdrop) = &backdrop {
         write_quicklooks(
             staging.dir(),
             inputs,
-            &scan.ct,
-            &outcome.segmentation.lungs,
+            backdrop,
             &lung.field,
-            &written.records,
-            written.pictured.as_ref(),
+            &lung.scene.mesh,
+            &mut written,
         )?;
     }
+    drop(std::mem::take(&mut written.field_buffer_mm));
     let mut summary = RunSummary::new(
         inputs,
         config,
@@ -335,18 +359,77 @@ pub fn run_breathing_on(
         written.records,
         written.trajectories,
         extremes,
-        summary::FieldGridSummary::of(
-            config.outputs.field_grid,
-            &lung.field,
-            scan.ct.geometry.dims,
-        ),
+        summary::FieldGridSummary::of(config.outputs.field_grid, &lung.field, ct_dims),
         timings,
     );
     summary.ct_fingerprint = Some(ct.fingerprint);
+    log_memory("summary and quick looks");
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;
     Ok(summary)
+}
+
+/// What a run keeps of its CT once the lung scene is built.
+struct SceneOfScan {
+    ct: CtIdentity,
+    lung: LungScene,
+    ct_dims: [usize; 3],
+    backdrop: Option<LookBackdrop>,
+}
+
+/// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
+/// the ingest files and cuts out the quick look's backdrop; the CT is let go on return when
+/// the run owns it. Adds `ingest`, `lung_scene` and `ingest_files` to `timings`.
+fn scene_of_scan(
+    scan: ScanHold,
+    outcome: &IngestOutcome,
+    inputs: &RunInputs,
+    config: &RunConfig,
+    staging: &OutputStaging,
+    overwrite: Overwrite,
+    timings: &mut BTreeMap<String, f64>,
+) -> Result<SceneOfScan> {
+    let t = Instant::now();
+    let ct = CtIdentity {
+        path: inputs.ct_path.display().to_string(),
+        fingerprint: ct_fingerprint(&scan.get().ct),
+        series_uid: scan
+            .get()
+            .series
+            .as_ref()
+            .map(|s| s.series_instance_uid.clone()),
+    };
+    staging.check_replaces(&ct, overwrite)?;
+    *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
+    log_memory("ingested");
+    return_freed_memory();
+    log_memory("ingested, freed memory returned");
+    let t = Instant::now();
+    let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
+    timings.insert("lung_scene".to_string(), t.elapsed().as_secs_f64());
+    let t = Instant::now();
+    if config.outputs.ingest_files {
+        write_ingest_files(staging.dir(), &scan.get().ct, outcome)?;
+    }
+    timings.insert("ingest_files".to_string(), t.elapsed().as_secs_f64());
+    let ct_dims = scan.get().ct.geometry.dims;
+    let backdrop = if config.outputs.quicklooks {
+        Some(LookBackdrop::of(
+            scan.into_ct(),
+            &outcome.segmentation.lungs,
+            &lung.field,
+        )?)
+    } else {
+        None
+    };
+    log_memory("lung scene built, ingest files written, CT let go");
+    Ok(SceneOfScan {
+        ct,
+        lung,
+        ct_dims,
+        backdrop,
+    })
 }
 
 /// Checks everything that can be checked without the CT; returns the motion settings (with
@@ -487,6 +570,28 @@ fn record_final_timings(summary: &mut RunSummary, finishing_start: Instant, run_
         .timings_s
         .insert("total".to_string(), run_start.elapsed().as_secs_f64());
     summary.peak_memory_mib = crate::process::peak_rss_bytes().map(|b| b as f64 / (1 << 20) as f64);
+}
+
+/// Hands the memory the ingest's workers freed back to the system: glibc keeps freed blocks in
+/// each thread's arena, which the run would otherwise carry through its solves.
+fn return_freed_memory() {
+    #[cfg(all(feature = "service", target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks and releases glibc's own free lists.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
+/// Logs the resident and peak memory at a stage boundary (`LUNGMOTION_LOG=debug`), to see
+/// which stage holds what.
+fn log_memory(stage: &str) {
+    let mib = |b: Option<u64>| b.map_or(-1.0, |b| b as f64 / f64::from(1 << 20));
+    tracing::debug!(
+        stage,
+        rss_mib = mib(crate::process::current_rss_bytes()),
+        peak_mib = mib(crate::process::peak_rss_bytes()),
+        "run memory"
+    );
 }
 
 /// Writes `summary.json` into the staging directory.

@@ -2,11 +2,14 @@
 //! (`end-inhale-displacement.png`, or `deepest-expiration-displacement.png` for a trace that
 //! never rises above the scanned volume).
 
+use std::borrow::Cow;
 use std::path::Path;
 
-use super::frames::PicturedExtreme;
-use super::{FrameRecord, RunInputs};
+use super::frames::FramesWritten;
+use super::RunInputs;
 use crate::motion::FrameSummary;
+use crate::outputs::displacement_field::FieldSampler;
+use crate::volume::Volume;
 use crate::Result;
 
 /// `breathing.png` (trace, targets, simulated volumes) and `<extreme>-displacement.png`
@@ -15,12 +18,12 @@ use crate::Result;
 pub(super) fn write_quicklooks(
     dir: &Path,
     inputs: &RunInputs,
-    ct: &crate::volume::Volume<f32>,
-    lungs: &crate::volume::Volume<u8>,
-    field: &crate::outputs::displacement_field::FieldSampler,
-    records: &[FrameRecord],
-    pictured: Option<&PicturedExtreme>,
+    backdrop: &LookBackdrop,
+    field: &FieldSampler,
+    mesh: &crate::model::HexMesh,
+    written: &mut FramesWritten,
 ) -> Result<()> {
+    let (records, pictured) = (&written.records, written.pictured.as_ref());
     use crate::outputs::plots::{
         lung_centroid_lps_mm, render_breathing_curve, render_displacement_look, BreathingCurve,
         DisplacementLookInput,
@@ -44,6 +47,7 @@ pub(super) fn write_quicklooks(
     let Some(pictured) = pictured else {
         return Ok(());
     };
+    let (ct, lungs) = (&backdrop.ct, &backdrop.lungs);
     let (coronal_y_mm, through) = match inputs.points.first() {
         Some(p) => (p.rest_lps_mm[1], p.name.clone()),
         None => (
@@ -61,23 +65,45 @@ pub(super) fn write_quicklooks(
         through
     );
     title[..1].make_ascii_uppercase();
-    // The look draws the CT under the field on the field's own grid: the lung box by default.
-    let (start, dims) = (field.start(), field.geometry().dims);
-    let cropped;
-    let (ct, lungs) = if dims == ct.geometry.dims {
-        (ct, lungs)
-    } else {
-        cropped = (ct.crop(start, dims)?, lungs.crop(start, dims)?);
-        (&cropped.0, &cropped.1)
-    };
+    // The frames' buffer: zero outside the lungs already.
+    let field_mm = &mut written.field_buffer_mm;
+    field.sample_lung_voxels_mm(mesh, &pictured.positions_m, field_mm);
     let look = render_displacement_look(&DisplacementLookInput {
         ct,
         lungs,
-        displacement_mm: &pictured.field_mm,
+        displacement_mm: field_mm,
         coronal_y_mm,
         colour_max_mm: None,
         title: &title,
     })?;
     let name = format!("{}-displacement.png", pictured.kind.file_stem());
     write_png(&dir.join(name), &look.image)
+}
+
+/// The CT and lung labels the displacement quick look is drawn over, on the field's own grid
+/// (the lung box by default): cut out once the lung scene is built, so the run can let the
+/// whole CT go before its solves.
+pub(super) struct LookBackdrop {
+    ct: Volume<f32>,
+    lungs: Volume<u8>,
+}
+
+impl LookBackdrop {
+    /// `ct` and `lungs` on the grid of `field`; a CT on that grid already is moved, not copied.
+    pub(super) fn of(
+        ct: Cow<Volume<f32>>,
+        lungs: &Volume<u8>,
+        field: &FieldSampler,
+    ) -> Result<Self> {
+        let (start, dims) = (field.start(), field.geometry().dims);
+        let ct = if dims == ct.geometry.dims {
+            ct.into_owned()
+        } else {
+            ct.crop(start, dims)?
+        };
+        Ok(LookBackdrop {
+            ct,
+            lungs: lungs.crop(start, dims)?,
+        })
+    }
 }

@@ -475,7 +475,8 @@ fn conventions() -> BTreeMap<&'static str, &'static str> {
              elastix convention, not RAS), on the input CT's voxels (spacing and direction; by \
              default only the box around the lungs plus 2 voxels, its origin that box's first \
              voxel: see field_grid), values rounded to 1/64 mm, zero outside the lungs; the tissue at \
-             voxel x is at x + u(x)",
+             voxel x is at x + u(x), as ITK's DisplacementFieldTransform maps it (SimpleITK \
+             lands every lung voxel there, on either grid); one gzip member, level 2",
         ),
         (
             "volumes",

@@ -47,6 +47,7 @@
 //! sit behind a feature built on another nalgebra version and apply no LPS conversion.
 //! The tests use the crate as an independent reader of our files.
 
+mod block_gzip;
 mod extension;
 mod geometry;
 mod header;
@@ -60,7 +61,7 @@ pub use read::{
     read_nifti, read_nifti_bytes, read_nifti_bytes_within, read_nifti_labels,
     read_nifti_labels_bytes, read_nifti_vector_field, read_nifti_vector_field_bytes,
 };
-pub use write::{write_nifti_ct, write_nifti_labels, write_nifti_vector_field};
+pub use write::{write_nifti_ct, write_nifti_labels, write_nifti_vector_field, FIELD_GZIP_LEVEL};
 
 use rayon::prelude::*;
 
