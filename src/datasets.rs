@@ -65,6 +65,14 @@ pub fn cip_expert_lung_masks(
 /// Builds the CIP chest CT's lung model (expert lung labels, airways for the hilum) at
 /// `element_size_mm`; fails naming the directory when the shared data is missing.
 pub fn cip_lung_model(element_size_mm: f64) -> crate::Result<crate::ingest::lung_model::LungModel> {
+    cip_lung_model_of(element_size_mm, crate::model::Material::LUNG)
+}
+
+/// [`cip_lung_model`] with another material.
+pub fn cip_lung_model_of(
+    element_size_mm: f64,
+    material: crate::model::Material,
+) -> crate::Result<crate::ingest::lung_model::LungModel> {
     let (lungs, airways) = cip_expert_lung_masks().ok_or_else(|| crate::Error::MissingData {
         what: "the CIP chest CT (cip-chest-ct64)".into(),
         path: None,
@@ -75,6 +83,7 @@ pub fn cip_lung_model(element_size_mm: f64) -> crate::Result<crate::ingest::lung
         &airways,
         &crate::ingest::lung_model::LungModelSettings {
             element_size_mm,
+            material,
             ..Default::default()
         },
     )

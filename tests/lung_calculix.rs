@@ -111,3 +111,34 @@ fn end_inhale_frame_agrees_with_calculix() {
     );
     assert!(d.mean_relative > 2.0 * s.mean_relative);
 }
+
+/// The same frame with both codes following the compressible neo-Hookean law (ours through the
+/// volumetric correction, CalculiX through `*HYPERELASTIC, NEO HOOKE`), against the linear
+/// springs on the same CalculiX solution: what the volumetric law is worth at end-inhale.
+#[test]
+#[cfg_attr(
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
+)]
+fn end_inhale_frame_with_the_neo_hookean_law() {
+    use lungmotion::model::{ContinuumLaw, Material};
+    if calculix::ccx_path().is_none() {
+        panic!("CalculiX (`ccx`) is required by this test but was not found: {CCX_INSTALL_HINT}");
+    }
+    let law = Some(ContinuumLaw::NeoHookean);
+    let mut means = Vec::new();
+    for ours in [Material::LUNG, Material::LUNG.with_volumetric_law(law)] {
+        let settings = LungCalculixSettings {
+            material: ours,
+            calculix_material: Some(Material::LUNG.with_volumetric_law(law)),
+            element_types: vec![ElementType::C3D8],
+            small_strain_fraction: None,
+            ..LungCalculixSettings::default()
+        };
+        let r = compare_end_inhale_with_calculix(&settings).unwrap();
+        eprintln!("{}", r.to_markdown());
+        means.push(r.calculix[0].ours_vs_calculix.mean_mm);
+    }
+    eprintln!("mean |Δu| against CalculiX neo-Hookean: linear springs {:.3} mm, volumetric neo-Hookean {:.3} mm", means[0], means[1]);
+    assert!(means.iter().all(|m| m.is_finite() && *m < 2.0), "{means:?}");
+}

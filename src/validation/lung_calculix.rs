@@ -33,6 +33,10 @@ use crate::{Error, IoContext, IoOp, Result};
 pub struct LungCalculixSettings {
     /// Edge of the cubic elements, mm.
     pub element_size_mm: f64,
+    /// The lungs' material: CalculiX gets its law's card (`calculix::material_card`).
+    pub material: Material,
+    /// CalculiX's material when it differs from ours (the same moduli, another law).
+    pub calculix_material: Option<Material>,
     /// Inhaled volume of the end-inhale frame, mL (tidal breathing: 500).
     pub target_volume_ml: f64,
     /// Tolerance of our volume driver on that volume, mL.
@@ -52,6 +56,8 @@ impl Default for LungCalculixSettings {
     fn default() -> Self {
         LungCalculixSettings {
             element_size_mm: 8.0,
+            material: Material::LUNG,
+            calculix_material: None,
             target_volume_ml: 500.0,
             volume_tolerance_ml: 2.5,
             element_types: vec![ElementType::C3D8, ElementType::C3D8I],
@@ -204,7 +210,7 @@ pub struct LungCalculixReport {
 pub fn compare_end_inhale_with_calculix(
     settings: &LungCalculixSettings,
 ) -> Result<LungCalculixReport> {
-    let model = crate::datasets::cip_lung_model(settings.element_size_mm)?;
+    let model = crate::datasets::cip_lung_model_of(settings.element_size_mm, settings.material)?;
     compare_model_with_calculix(&model, "CIP chest CT ct-64, expert lung labels", settings)
 }
 
@@ -327,7 +333,12 @@ fn solve_calculix(
     settings: &LungCalculixSettings,
 ) -> Result<(Vec<CalculixRun>, Vec<Vec<V3>>)> {
     let rest = &scene.mesh.rest_positions_m;
-    let ccx_scene = scaled_scene(scene, pressure_pa / REFERENCE_PRESSURE_PA);
+    let mut ccx_scene = scaled_scene(scene, pressure_pa / REFERENCE_PRESSURE_PA);
+    if let Some(m) = settings.calculix_material {
+        for class in &mut ccx_scene.mesh.classes {
+            class.material = m;
+        }
+    }
     let mut calculix = Vec::with_capacity(settings.element_types.len());
     let mut fields = Vec::with_capacity(settings.element_types.len());
     for &element_type in &settings.element_types {
@@ -564,7 +575,7 @@ impl LungCalculixReport {
             "{}: {} elements of {} mm, {} nodes ({} fixed at the hilum, {} sliding on tangent \
              planes, {} on the diaphragm's z lines). Material E = {} Pa, ν = {}. Rest volume \
              {:.0} mL; our volume driver found {:.2} Pa for {} mL, and both codes solve at that \
-             follower pressure from rest (CalculiX: NLGEOM, St Venant–Kirchhoff).\n",
+             follower pressure from rest (CalculiX: NLGEOM, {}).\n",
             self.case,
             self.elements,
             self.settings.element_size_mm,
@@ -576,7 +587,20 @@ impl LungCalculixReport {
             self.material.poisson_ratio,
             self.rest_volume_ml,
             self.pressure_pa,
-            self.settings.target_volume_ml
+            self.settings.target_volume_ml,
+            {
+                let card = |m: &Material| match m.volumetric_law {
+                    None => "St Venant–Kirchhoff".to_string(),
+                    Some(law) => format!("{law:?}"),
+                };
+                let ccx = self.settings.calculix_material.unwrap_or(self.material);
+                format!(
+                    "{}; ours: {:?} springs, volumetric law {}",
+                    card(&ccx),
+                    self.material.spring_law,
+                    card(&self.material)
+                )
+            }
         );
         let mut table = Table::new([
             "Solver",
