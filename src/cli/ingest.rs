@@ -57,8 +57,13 @@ impl IngestArgs {
         for w in s.warnings.iter().skip(scan.warnings.len()) {
             eprintln!("lungmotion: warning: {w}");
         }
+        let writing = std::time::Instant::now();
         let written = write_ingest_outputs(&self.out, &scan.ct, &outcome)
             .with_context(|| format!("writing the ingest outputs into {}", self.out.display()))?;
+        tracing::info!(
+            seconds = writing.elapsed().as_secs_f64(),
+            "ingest outputs written"
+        );
         print_model(s);
         for p in written {
             eprintln!("lungmotion: wrote {}", p.display());

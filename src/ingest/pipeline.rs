@@ -196,6 +196,40 @@ mod tests {
     use super::*;
 
     #[test]
+    fn ingest_gives_the_same_masks_mesh_wall_and_groups_on_one_and_two_threads() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/sample-volumes/phantom-ct.nii.gz"
+        );
+        let scan = super::super::scan::load_ct(std::path::Path::new(path)).unwrap();
+        let mut settings = IngestSettings::default();
+        settings.model.element_size_mm = 8.0;
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| ingest_scan(&scan, &settings).unwrap())
+        };
+        let (one, two) = (on(1), on(2));
+        let (s1, s2) = (&one.segmentation, &two.segmentation);
+        assert_eq!(s1.lungs.as_slice(), s2.lungs.as_slice());
+        assert_eq!(s1.airways.as_slice(), s2.airways.as_slice());
+        assert_eq!(s1.body.as_slice(), s2.body.as_slice());
+        let (m1, m2) = (&one.model, &two.model);
+        assert!(m1.mesh.mesh.element_count() > 1000);
+        assert_eq!(m1.mesh.mesh.elements, m2.mesh.mesh.elements);
+        assert_eq!(m1.mesh.mesh.rest_positions_m, m2.mesh.mesh.rest_positions_m);
+        assert_eq!(m1.node_group, m2.node_group);
+        assert_eq!(m1.wall.values_m, m2.wall.values_m);
+        assert_eq!(m1.groups_volume.as_slice(), m2.groups_volume.as_slice());
+        assert_eq!(
+            serde_json::to_value(&m1.report.group_nodes).unwrap(),
+            serde_json::to_value(&m2.report.group_nodes).unwrap()
+        );
+    }
+
+    #[test]
     fn lung_volumes_outside_adult_lungs_are_refused_naming_the_litres() {
         let g = VolumeGeometry::axis_aligned([10, 10, 10], [4.17, 4.17, 39.87], [0.0; 3]);
         let e = check_lung_volume(24_000.0, 21_900.0, &g)

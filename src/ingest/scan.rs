@@ -107,6 +107,7 @@ pub fn load_ct(path: &Path) -> Result<LoadedScan> {
 
 /// [`load_ct`] with DICOM options (which series of several to read).
 pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Result<LoadedScan> {
+    let start = std::time::Instant::now();
     let format = detect_scan_format(path)?;
     let (ct, series, warnings) = match format {
         ScanFormat::DicomDirectory | ScanFormat::DicomZip | ScanFormat::DicomFile => {
@@ -116,9 +117,16 @@ pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Res
         ScanFormat::Nifti => (nifti::read_nifti(path)?, None, Vec::new()),
         ScanFormat::Nrrd => (nrrd::read_nrrd(path)?, None, Vec::new()),
     };
+    let read_s = start.elapsed().as_secs_f64();
     check_spacing_for_lung_model(&ct.geometry.spacing_mm, path)?;
     let mut warnings = warnings;
     warnings.extend(check_hounsfield(&ct, path)?);
+    tracing::info!(
+        read_s,
+        checks_s = start.elapsed().as_secs_f64() - read_s,
+        dims = ?ct.geometry.dims,
+        "CT loaded"
+    );
     Ok(LoadedScan {
         ct,
         format,

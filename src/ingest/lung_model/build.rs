@@ -8,7 +8,7 @@ use super::groups::{assign_groups, ConstraintGroup};
 use super::lattice::CellLattice;
 use super::mesh::mesh_lungs;
 use super::paint::paint_groups;
-use super::report::{summarise, LungModelReport, MaskVoxels};
+use super::report::{summarise, LungModelReport, MaskVoxels, StepClock};
 use super::settings::{LungModelSettings, LEFT_LUNG};
 use super::wall::build_wall;
 use crate::model::grid::GridMesh;
@@ -33,7 +33,8 @@ pub struct LungModel {
     pub node_group: Vec<u8>,
     /// The thoracic-cavity wall the sliding nodes stay on (metres, negative inside).
     pub wall: SignedDistanceField,
-    /// Hilum fixed, mediastinal/costal/apex sliding ([`SlidingMode`]; `wall` is field 0),
+    /// Hilum fixed, mediastinal/costal/apex sliding ([`SlidingMode`]; with
+    /// [`SlidingMode::WallSurface`] `wall` is field 0, with tangent planes there is no field),
     /// base free.
     pub constraints: ConstraintSet,
     /// Group codes painted on the lung-surface voxels of the CT grid.
@@ -70,30 +71,40 @@ pub fn build_lung_model(
     settings: &LungModelSettings,
 ) -> Result<LungModel> {
     let start = Instant::now();
+    let mut steps = StepClock::new(start);
     settings.validate()?;
     check_inputs(lungs, airways, settings)?;
     let mask = MaskVoxels::count(lungs);
+    steps.mark("checks and voxel counts");
 
     // Cubic lattice over the lungs, and each cell's lung by partial-volume rule.
     let lattice = CellLattice::covering(lungs, settings.element_size_mm)?;
     let cell_lung = lattice.classify_cells(lungs, settings.occupancy_threshold);
+    steps.mark("lattice and cell classes");
     let cells = shape_lung_cells(&cell_lung, lattice.cells);
+    steps.mark("cell shaping");
     let meshes = mesh_lungs(&lattice, &cells, settings.material, mask.per_lung)?;
+    steps.mark("mesh");
 
     // The wall: distance to the CT lung surface; then groups and constraints on it.
-    let wall = build_wall(lungs, &lattice)?;
+    let wall = build_wall(lungs, &lattice, &mut steps)?;
     let groups = assign_groups(lungs, airways, settings, &meshes, &wall.wall);
+    steps.mark("groups and hilum");
     let nodes = constrain_nodes(&meshes, &groups.node_group, &wall.wall, settings)?;
     let fit = wall_rest_fit(&meshes.grid_mesh.mesh, &nodes.sliding, &wall.wall);
+    steps.mark("constraints");
     let groups_volume = paint_groups(lungs, &lattice, &meshes, &groups.node_group)?;
+    steps.mark("groups painted on the CT grid");
 
     let mut report = summarise(settings, &mask, &cells, &meshes, &wall, &groups, &fit);
     report.wall_time_s = start.elapsed().as_secs_f64();
+    report.step_times_s = steps.times;
     tracing::info!(
         elements = report.elements,
         nodes = report.nodes,
         mesh_ml = report.mesh_volume_ml,
         mask_ml = report.mask_volume_ml,
+        seconds = report.wall_time_s,
         "lung model built"
     );
     Ok(LungModel {

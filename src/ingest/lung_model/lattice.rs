@@ -14,6 +14,23 @@ pub(super) const SUPERSAMPLES: usize = 4;
 /// Lattice cells of padding around the lungs' bounding box (keeps the border background).
 const LATTICE_PAD_CELLS: i64 = 1;
 
+/// The voxel index nearest to continuous index `x` on an axis of `n` voxels (halves rounded
+/// away from zero, as `f64::round`), or `None` outside the axis. Bit for bit what
+/// `x.round()` gives, without its library call, which dominated sampling the CT mask.
+pub(super) fn nearest_index(x: f64, n: usize) -> Option<usize> {
+    // Beyond ±2^52 every f64 is an integer; NaN fails both comparisons.
+    if !(x > -0.5 && x < n as f64 - 0.5) {
+        return None;
+    }
+    let whole = x as i64; // towards zero, exact here
+    let rounded = if x - whole as f64 >= 0.5 {
+        whole + 1
+    } else {
+        whole
+    };
+    Some(rounded as usize)
+}
+
 /// The cubic lattice: cells of `h_mm` whose lattice point (0, 0, 0) sits at LPS
 /// `first · h_mm`, so cells are fixed in patient space whatever the CT grid.
 pub(super) struct CellLattice {
@@ -117,6 +134,7 @@ impl CellLattice {
             .collect();
         let needed = (threshold * offsets.len() as f64 - 1e-9).ceil() as usize;
         let dims = g.dims;
+        let labels = lungs.as_slice();
         let mut out = vec![0u8; nx * ny * nz];
         out.par_chunks_mut(nx * ny)
             .enumerate()
@@ -127,10 +145,12 @@ impl CellLattice {
                         let mut count = [0usize; 3];
                         for o in &offsets {
                             let v = corner + o;
-                            let idx: [f64; 3] = [v.x.round(), v.y.round(), v.z.round()];
-                            if (0..3).all(|q| idx[q] >= 0.0 && idx[q] < dims[q] as f64) {
-                                let label =
-                                    lungs.get(idx[0] as usize, idx[1] as usize, idx[2] as usize);
+                            if let (Some(ci), Some(cj), Some(ck)) = (
+                                nearest_index(v.x, dims[0]),
+                                nearest_index(v.y, dims[1]),
+                                nearest_index(v.z, dims[2]),
+                            ) {
+                                let label = labels[ci + dims[0] * (cj + dims[1] * ck)];
                                 count[label.min(2) as usize] += 1;
                             }
                         }
@@ -157,6 +177,41 @@ impl CellLattice {
             origin_m: self.point_mm([0, 0, 0]) * 1e-3,
             axes: Matrix3::identity(),
             active,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::nearest_index;
+
+    #[test]
+    fn nearest_index_is_what_round_gives_inside_the_axis_and_none_outside() {
+        let round = |x: f64, n: usize| {
+            let r = x.round();
+            (r >= 0.0 && r < n as f64).then_some(r as usize)
+        };
+        let special = [
+            -0.5,
+            -0.5000000000000001,
+            -0.49999999999999994,
+            -0.0,
+            0.49999999999999994,
+            0.5,
+            1.5,
+            2.5,
+            9.5,
+            9.499999999999998,
+            10.0,
+            1e300,
+            -1e300,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        let spread = (0..20_000).map(|q| q as f64 * 0.000_631 - 1.3);
+        for x in special.into_iter().chain(spread) {
+            assert_eq!(nearest_index(x, 10), round(x, 10), "{x}");
         }
     }
 }

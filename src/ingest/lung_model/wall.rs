@@ -5,8 +5,12 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::lattice::CellLattice;
-use crate::ingest::segmentation::morphology::{for_each_line, squared_distance_mm2};
+use super::lattice::{nearest_index, CellLattice};
+use super::report::StepClock;
+use ndarray::Zip;
+
+use crate::ingest::segmentation::crop::Crop;
+use crate::ingest::segmentation::morphology::{for_each_line, grid_view, squared_distance_mm2};
 use crate::model::SignedDistanceField;
 use crate::volume::Volume;
 use crate::Result;
@@ -48,34 +52,42 @@ impl WallGrid {
 }
 
 /// Builds the wall over `lattice` from the CT lung mask.
-pub(super) fn build_wall(lungs: &Volume<u8>, lattice: &CellLattice) -> Result<WallBuild> {
+pub(super) fn build_wall(
+    lungs: &Volume<u8>,
+    lattice: &CellLattice,
+    steps: &mut StepClock,
+) -> Result<WallBuild> {
     let g = &lungs.geometry;
     let finest_ct_mm = g.spacing_mm.iter().cloned().fold(f64::INFINITY, f64::min);
     let coarsest_ct_mm = g.spacing_mm.iter().cloned().fold(0.0, f64::max);
     let grid = WallGrid::refining(lattice, finest_ct_mm);
-    let inside = sample_inside(lungs, &grid);
-    let contact_voxels = count_contact_voxels(lungs);
+    let contact = contact_voxels(lungs);
+    let inside = sample_inside(lungs, &contact, &grid);
+    steps.mark("wall: samples inside the lungs");
 
     // One CT voxel of Gaussian smoothing rounds the voxel staircase into continuous normals.
     let s_mm = grid.spacing_mm;
     let s_m = s_mm * 1e-3;
     let ct_sigma = (coarsest_ct_mm / s_mm).clamp(0.5, 4.0);
-    let anatomy_m: Vec<f64> = smoothed_signed_distance(&inside, grid.dims, ct_sigma)
-        .iter()
-        .map(|&v| v as f64 * s_m)
-        .collect();
+    let mut signed = signed_distance(&inside, grid.dims);
     drop(inside);
+    steps.mark("wall: signed distance");
+    gaussian_smooth(&mut signed, grid.dims, ct_sigma);
+    steps.mark("wall: smoothing");
+    let anatomy_m: Vec<f64> = signed.par_iter().map(|&v| v as f64 * s_m).collect();
+    drop(signed);
     let anatomy = SignedDistanceField::new(grid.origin_mm * 1e-3, [s_m; 3], grid.dims, anatomy_m)?;
+    steps.mark("wall: field in metres");
 
     Ok(WallBuild {
         wall: anatomy,
-        contact_voxels,
+        contact_voxels: contact.len(),
     })
 }
 
 /// 1 at each wall sample whose nearest CT voxel is inside: a lung voxel not touching the
 /// other lung (so touching lungs stay two surfaces); 0 elsewhere.
-fn sample_inside(lungs: &Volume<u8>, grid: &WallGrid) -> Vec<u8> {
+fn sample_inside(lungs: &Volume<u8>, contact: &[usize], grid: &WallGrid) -> Vec<u8> {
     let g = &lungs.geometry;
     let [nx, ny, _] = grid.dims;
     let n_samples: usize = grid.dims.iter().product();
@@ -83,7 +95,8 @@ fn sample_inside(lungs: &Volume<u8>, grid: &WallGrid) -> Vec<u8> {
     let a = Matrix3::from_diagonal(&Vector3::from(g.spacing_mm.map(|s| 1.0 / s)))
         * g.direction().transpose();
     let b = -(a * g.origin());
-    let ct_dims = g.dims;
+    let [cnx, cny, cnz] = g.dims;
+    let labels = lungs.as_slice();
     let mut inside = vec![0u8; n_samples];
     inside
         .par_chunks_mut(nx * ny)
@@ -93,83 +106,146 @@ fn sample_inside(lungs: &Volume<u8>, grid: &WallGrid) -> Vec<u8> {
                 for i in 0..nx {
                     let p = origin_mm + Vector3::new(i as f64, j as f64, k as f64) * s_mm;
                     let v = a * p + b;
-                    let idx = [v.x.round(), v.y.round(), v.z.round()];
-                    if (0..3).all(|q| idx[q] >= 0.0 && idx[q] < ct_dims[q] as f64) {
-                        let (ci, cj, ck) = (idx[0] as usize, idx[1] as usize, idx[2] as usize);
-                        let lung = lungs.get(ci, cj, ck);
-                        slab[i + nx * j] =
-                            u8::from(lung != 0 && !touches_other_lung(lungs, ci, cj, ck, lung));
-                    }
+                    let (Some(ci), Some(cj), Some(ck)) = (
+                        nearest_index(v.x, cnx),
+                        nearest_index(v.y, cny),
+                        nearest_index(v.z, cnz),
+                    ) else {
+                        continue;
+                    };
+                    let idx = ci + cnx * (cj + cny * ck);
+                    slab[i + nx * j] =
+                        u8::from(labels[idx] != 0 && contact.binary_search(&idx).is_err());
                 }
             }
         });
     inside
 }
 
-/// Lung voxels of the CT mask with a 26-neighbour in the other lung.
-fn count_contact_voxels(lungs: &Volume<u8>) -> usize {
-    let [cnx, cny, _] = lungs.geometry.dims;
-    lungs
-        .as_slice()
-        .par_chunks(cnx * cny)
-        .enumerate()
-        .map(|(k, slab)| {
-            slab.iter()
-                .enumerate()
-                .filter(|(idx, &v)| v != 0 && touches_other_lung(lungs, idx % cnx, idx / cnx, k, v))
-                .count()
-        })
-        .sum()
+/// Linear indices, ascending, of the lung voxels of the CT mask with a 26-neighbour in the
+/// other lung. Per axial slice, the labels of the slices above and below are gathered into
+/// one bit map and dilated in-plane, so each voxel is tested once instead of 26 times.
+fn contact_voxels(lungs: &Volume<u8>) -> Vec<usize> {
+    let [nx, ny, nz] = lungs.geometry.dims;
+    let plane = nx * ny;
+    let labels = lungs.as_slice();
+    // Bit 0: the right lung (label 1) is near; bit 1: the left lung (label 2) is near.
+    let bit = |label: u8| match label {
+        1 => 1u8,
+        2 => 2,
+        _ => 0,
+    };
+    let per_slice: Vec<Vec<usize>> = (0..nz)
+        .into_par_iter()
+        .map_init(
+            || (vec![0u8; plane], vec![0u8; plane]),
+            |(near, rows), k| {
+                near.fill(0);
+                for kk in k.saturating_sub(1)..(k + 2).min(nz) {
+                    let slice = &labels[kk * plane..(kk + 1) * plane];
+                    near.iter_mut().zip(slice).for_each(|(n, &l)| *n |= bit(l));
+                }
+                dilate_rows(near, rows, nx);
+                dilate_columns(rows, near, nx);
+                let slice = &labels[k * plane..(k + 1) * plane];
+                slice
+                    .iter()
+                    .zip(near.iter())
+                    .enumerate()
+                    .filter(|&(_, (&l, &n))| matches!(l, 1 | 2) && n & bit(3 - l) != 0)
+                    .map(|(idx, _)| idx + k * plane)
+                    .collect()
+            },
+        )
+        .collect();
+    per_slice.concat()
 }
 
-/// Whether CT voxel (i, j, k) of `lung` has a 26-neighbour in the other lung.
-fn touches_other_lung(lungs: &Volume<u8>, i: usize, j: usize, k: usize, lung: u8) -> bool {
-    let ct_dims = lungs.geometry.dims;
-    let other = 3 - lung;
-    for dk in -1i64..=1 {
-        for dj in -1i64..=1 {
-            for di in -1i64..=1 {
-                let (x, y, z) = (i as i64 + di, j as i64 + dj, k as i64 + dk);
-                if x >= 0
-                    && y >= 0
-                    && z >= 0
-                    && (x as usize) < ct_dims[0]
-                    && (y as usize) < ct_dims[1]
-                    && (z as usize) < ct_dims[2]
-                    && lungs.get(x as usize, y as usize, z as usize) == other
-                {
-                    return true;
-                }
-            }
+/// `out[i] = in[i − 1] | in[i] | in[i + 1]` within each row of `nx`.
+fn dilate_rows(input: &[u8], out: &mut [u8], nx: usize) {
+    for (row_in, row_out) in input.chunks(nx).zip(out.chunks_mut(nx)) {
+        for (i, o) in row_out.iter_mut().enumerate() {
+            *o = row_in[i.saturating_sub(1)] | row_in[i] | row_in[(i + 1).min(nx - 1)];
         }
     }
-    false
+}
+
+/// `out[j] = in[j − 1] | in[j] | in[j + 1]` along the columns of a plane of rows of `nx`.
+fn dilate_columns(input: &[u8], out: &mut [u8], nx: usize) {
+    let ny = input.len() / nx;
+    for j in 0..ny {
+        let (lo, hi) = (j.saturating_sub(1), (j + 1).min(ny - 1));
+        let row_out = &mut out[j * nx..(j + 1) * nx];
+        row_out.copy_from_slice(&input[j * nx..(j + 1) * nx]);
+        for r in [lo, hi] {
+            row_out
+                .iter_mut()
+                .zip(&input[r * nx..(r + 1) * nx])
+                .for_each(|(o, &v)| *o |= v);
+        }
+    }
 }
 
 /// Signed Euclidean distance in samples to the boundary of `inside` (negative inside; half
-/// a sample puts the surface between samples), smoothed by a Gaussian of `sigma` samples.
-fn smoothed_signed_distance(inside: &[u8], dims: [usize; 3], sigma: f64) -> Vec<f32> {
+/// a sample puts the surface between samples).
+fn signed_distance(inside: &[u8], dims: [usize; 3]) -> Vec<f32> {
     // Unit spacing measures in samples, where the squared distances are exact integers.
     // Without a sample on one side the distance is capped rather than infinite, so the
     // field stays finite.
     const FAR: f32 = 1e12;
-    let to_inside = squared_distance_mm2(inside, dims, [1.0; 3], true, None);
-    let to_outside = squared_distance_mm2(inside, dims, [1.0; 3], false, None);
-    let mut signed: Vec<f32> = inside
-        .par_iter()
-        .zip(to_inside.par_iter().zip(to_outside.par_iter()))
-        .map(|(&i, (&din, &dout))| {
-            if i != 0 {
-                -(dout.min(FAR).sqrt() - 0.5)
-            } else {
-                din.min(FAR).sqrt() - 0.5
-            }
-        })
-        .collect();
-    drop(to_inside);
-    drop(to_outside);
-    gaussian_smooth(&mut signed, dims, sigma);
+    let mut signed = squared_distance_mm2(inside, dims, [1.0; 3], true, None);
     signed
+        .par_iter_mut()
+        .zip(inside)
+        .filter(|(_, &i)| i == 0)
+        .for_each(|(d, _)| *d = d.min(FAR).sqrt() - 0.5);
+    // An inside sample's nearest outside sample lies in the box of the inside samples grown
+    // by one: that box's border is all outside, and any sample beyond it is farther than its
+    // projection onto the border. So the second transform runs on that box only.
+    let Some((lo, hi)) = bounding_box_of_set(inside, dims) else {
+        return signed;
+    };
+    let crop = Crop::around(lo, hi, [1; 3], dims);
+    let inside_crop = crop.extract(inside, dims, |v| v);
+    let to_outside = squared_distance_mm2(&inside_crop, crop.dims, [1.0; 3], false, None);
+    Zip::from(crop.view_mut(&mut signed, dims))
+        .and(grid_view(&inside_crop, crop.dims))
+        .and(grid_view(&to_outside, crop.dims))
+        .par_for_each(|d, &i, &dout| {
+            if i != 0 {
+                *d = -(dout.min(FAR).sqrt() - 0.5);
+            }
+        });
+    signed
+}
+
+/// Smallest and largest sample indices of the non-zero samples of `mask`, if any.
+fn bounding_box_of_set(mask: &[u8], dims: [usize; 3]) -> Option<([usize; 3], [usize; 3])> {
+    let [nx, ny, _] = dims;
+    mask.par_chunks(nx * ny)
+        .enumerate()
+        .filter_map(|(k, slab)| {
+            let mut b: Option<([usize; 3], [usize; 3])> = None;
+            for (j, row) in slab.chunks(nx).enumerate() {
+                let (Some(i0), Some(i1)) = (
+                    row.iter().position(|&v| v != 0),
+                    row.iter().rposition(|&v| v != 0),
+                ) else {
+                    continue;
+                };
+                b = Some(match b {
+                    None => ([i0, j, k], [i1, j, k]),
+                    Some((lo, hi)) => ([lo[0].min(i0), lo[1], k], [hi[0].max(i1), j, k]),
+                });
+            }
+            b
+        })
+        .reduce_with(|a, b| {
+            (
+                std::array::from_fn(|x| a.0[x].min(b.0[x])),
+                std::array::from_fn(|x| a.1[x].max(b.1[x])),
+            )
+        })
 }
 
 /// Separable Gaussian blur of `sigma` samples, edges clamped.
@@ -180,21 +256,130 @@ fn gaussian_smooth(values: &mut [f32], dims: [usize; 3], sigma: f64) {
         .collect();
     let total: f32 = weights[0] + 2.0 * weights[1..].iter().sum::<f32>();
     let weights: Vec<f32> = weights.iter().map(|w| w / total).collect();
-    let blur_line = |line: &mut [f32], input: &mut Vec<f32>| {
-        input.clear();
-        input.extend_from_slice(line);
-        let n = input.len();
-        for (q, out) in line.iter_mut().enumerate() {
-            let mut acc = weights[0] * input[q];
-            for (r, &w) in weights.iter().enumerate().skip(1) {
-                let lo = q.saturating_sub(r);
-                let hi = (q + r).min(n - 1);
-                acc += w * (input[lo] + input[hi]);
-            }
-            *out = acc;
-        }
-    };
     for axis in 0..3 {
-        for_each_line(values, dims, axis, Vec::new, blur_line);
+        for_each_line(values, dims, axis, Vec::new, |line, input| {
+            blur_line(line, input, &weights)
+        });
+    }
+}
+
+/// One line of the blur: `out[q] = w0·in[q] + Σ_r w_r·(in[q − r] + in[q + r])`, indices
+/// clamped to the line, summed in order of r. Tap by tap over the whole line, so the
+/// unclamped middle is a plain vectorisable loop; each sample sees the same operations in the
+/// same order as a sample-by-sample sum.
+fn blur_line(line: &mut [f32], input: &mut Vec<f32>, weights: &[f32]) {
+    input.clear();
+    input.extend_from_slice(line);
+    let n = input.len();
+    line.iter_mut()
+        .zip(input.iter())
+        .for_each(|(o, &x)| *o = weights[0] * x);
+    for (r, &w) in weights.iter().enumerate().skip(1) {
+        // q < r reaches below 0, q ≥ n − r beyond n − 1: those are clamped.
+        let middle_start = r.min(n);
+        let middle_end = n.saturating_sub(r).max(middle_start);
+        for q in (0..middle_start).chain(middle_end..n) {
+            let lo = q.saturating_sub(r);
+            let hi = (q + r).min(n - 1);
+            line[q] += w * (input[lo] + input[hi]);
+        }
+        let below = &input[middle_start - r.min(middle_start)..];
+        let above = &input[(middle_start + r).min(n)..];
+        line[middle_start..middle_end]
+            .iter_mut()
+            .zip(below.iter().zip(above))
+            .for_each(|(o, (&a, &b))| *o += w * (a + b));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::VolumeGeometry;
+
+    /// A pseudo-random mask: a ball with holes and specks, so both sides have near and far
+    /// samples and the set does not fill its box.
+    fn speckled_ball(dims: [usize; 3]) -> Vec<u8> {
+        let n: usize = dims.iter().product();
+        let c = dims.map(|d| d as i64 / 2);
+        (0..n)
+            .map(|x| {
+                let (i, j, k) = (x % dims[0], x / dims[0] % dims[1], x / (dims[0] * dims[1]));
+                let r2 = (i as i64 - c[0]).pow(2)
+                    + (j as i64 - c[1]).pow(2) * 2
+                    + (k as i64 - c[2]).pow(2);
+                let hash = x.wrapping_mul(2_654_435_761) % 29;
+                u8::from((r2 <= 30 && hash != 0) || hash == 7)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn signed_distance_on_the_inside_box_equals_two_full_transforms() {
+        for dims in [[17, 13, 11], [9, 20, 7]] {
+            let inside = speckled_ball(dims);
+            let to_inside = squared_distance_mm2(&inside, dims, [1.0; 3], true, None);
+            let to_outside = squared_distance_mm2(&inside, dims, [1.0; 3], false, None);
+            let full: Vec<f32> = inside
+                .iter()
+                .zip(to_inside.iter().zip(&to_outside))
+                .map(|(&i, (&din, &dout))| {
+                    if i != 0 {
+                        -(dout.min(1e12).sqrt() - 0.5)
+                    } else {
+                        din.min(1e12).sqrt() - 0.5
+                    }
+                })
+                .collect();
+            assert_eq!(signed_distance(&inside, dims), full, "{dims:?}");
+        }
+        // Without any inside sample the field is the capped distance everywhere.
+        let empty = signed_distance(&[0u8; 8], [2, 2, 2]);
+        assert!(empty.iter().all(|&d| d == 1e6 - 0.5), "{empty:?}");
+    }
+
+    #[test]
+    fn tap_by_tap_blur_equals_the_sample_by_sample_sum_bit_for_bit() {
+        let weights = [0.4f32, 0.2, 0.07, 0.03];
+        for n in [1usize, 2, 3, 5, 6, 7, 8, 13, 40] {
+            let data: Vec<f32> = (0..n).map(|q| ((q * 37 % 11) as f32 - 4.3) * 1.7).collect();
+            let mut line = data.clone();
+            blur_line(&mut line, &mut Vec::new(), &weights);
+            let reference: Vec<f32> = (0..n)
+                .map(|q| {
+                    let mut acc = weights[0] * data[q];
+                    for (r, &w) in weights.iter().enumerate().skip(1) {
+                        acc += w * (data[q.saturating_sub(r)] + data[(q + r).min(n - 1)]);
+                    }
+                    acc
+                })
+                .collect();
+            assert_eq!(line, reference, "n = {n}");
+        }
+    }
+
+    #[test]
+    fn contact_voxels_are_the_lung_voxels_with_a_26_neighbour_in_the_other_lung() {
+        let dims = [7, 6, 5];
+        let g = VolumeGeometry::axis_aligned(dims, [1.0; 3], [0.0; 3]);
+        let n: usize = dims.iter().product();
+        let labels: Vec<u8> = (0..n)
+            .map(|x| ((x * 7919 + x / 3 * 31) % 5).min(3) as u8 % 3)
+            .collect();
+        let lungs = Volume::from_data(g, labels.clone()).unwrap();
+        let brute: Vec<usize> = (0..n)
+            .filter(|&x| {
+                let l = labels[x];
+                let (i, j, k) = (x % 7, x / 7 % 6, x / 42);
+                l != 0
+                    && (0..27).any(|o| {
+                        let q = [i + o % 3, j + o / 3 % 3, k + o / 9];
+                        (0..3).all(|a| q[a] >= 1 && q[a] <= dims[a])
+                            && labels[q[0] - 1 + 7 * (q[1] - 1 + 6 * (q[2] - 1))] == 3 - l
+                    })
+            })
+            .collect();
+        assert!(!brute.is_empty() && brute.len() < n / 2, "{}", brute.len());
+        assert_eq!(contact_voxels(&lungs), brute);
     }
 }

@@ -6,7 +6,7 @@ use super::morphology::{grid_view, grid_view_mut};
 
 /// A sub-box of the grid: first voxel and size.
 #[derive(Debug, Clone, Copy)]
-pub(super) struct Crop {
+pub(crate) struct Crop {
     pub lo: [usize; 3],
     pub dims: [usize; 3],
 }

@@ -54,7 +54,7 @@
 
 mod airways;
 mod components;
-mod crop;
+pub(crate) mod crop;
 mod left_right;
 pub(crate) mod morphology;
 mod refine;
