@@ -19,7 +19,7 @@
 use nalgebra::Matrix3;
 use rayon::prelude::*;
 
-use super::lanes::{add3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
+use super::lanes::{add3, cross3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
 use crate::math::V3;
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
 use crate::model::{HexMesh, VolumetricCorrection};
@@ -130,19 +130,11 @@ fn batch_forces<const DAMP: bool>(
             fd[b] = sub3(&fd[b], &fv);
         }
     }
-    let edge_sum = |p: [(usize, usize); 4]| -> LaneV3 {
-        let [a, b, c, d] = p.map(|(hi, lo)| sub3(&x[hi], &x[lo]));
-        add3(&add3(&add3(&a, &b), &c), &d)
-    };
-    let ex = edge_sum([(1, 0), (2, 3), (5, 4), (6, 7)]);
-    let ey = edge_sum([(3, 0), (2, 1), (7, 4), (6, 5)]);
+    let ex = edge_sum(x, [(1, 0), (2, 3), (5, 4), (6, 7)]);
+    let ey = edge_sum(x, [(3, 0), (2, 1), (7, 4), (6, 5)]);
     let e1 = normalize3(&ex);
     let e2 = normalize3(&sub3(&ey, &scale3(&e1, dot3(&ey, &e1))));
-    let e3 = [
-        e1[1] * e2[2] - e1[2] * e2[1],
-        e1[2] * e2[0] - e1[0] * e2[2],
-        e1[0] * e2[1] - e1[1] * e2[0],
-    ];
+    let e3 = cross3(&e1, &e2);
     let axes = [e1, e2, e3];
     // a_i = −½ (Σ_n s_n,i f_n) · e_i.
     let mut a = [Lanes::ZERO; 3];
@@ -191,6 +183,14 @@ fn batch_forces<const DAMP: bool>(
     f
 }
 
+/// Σ (x[hi] − x[lo]) over the four parallel edges `pairs`: four times the element's mean
+/// edge vector along one axis.
+#[inline(always)]
+fn edge_sum(x: &[LaneV3; 8], pairs: [(usize, usize); 4]) -> LaneV3 {
+    let [a, b, c, d] = pairs.map(|(hi, lo)| sub3(&x[hi], &x[lo]));
+    add3(&add3(&add3(&a, &b), &c), &d)
+}
+
 /// Adds the volumetric correction −(p(J)/64)·(s_x·ey×ez + s_y·ez×ex + s_z·ex×ey) of
 /// [`BrickCoefficients::corner_forces`]; lanes whose class has no volumetric law get p = 0.
 #[inline(always)]
@@ -202,18 +202,8 @@ fn add_volumetric(
     vols: &[Option<&VolumetricCorrection>; LANES],
     f: &mut [LaneV3; 8],
 ) {
-    let cross = |a: &LaneV3, b: &LaneV3| -> LaneV3 {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let ez = {
-        let [a, b, c, d] = [(4, 0), (5, 1), (6, 2), (7, 3)].map(|(hi, lo)| sub3(&x[hi], &x[lo]));
-        add3(&add3(&add3(&a, &b), &c), &d)
-    };
-    let c = [cross(ey, &ez), cross(&ez, ex), cross(ex, ey)];
+    let ez = edge_sum(x, [(4, 0), (5, 1), (6, 2), (7, 3)]);
+    let c = [cross3(ey, &ez), cross3(&ez, ex), cross3(ex, ey)];
     let j = dot3(ex, &c[0]) * k.inv_64_rest_volume;
     let scale = Lanes(std::array::from_fn(|l| {
         vols[l].map_or(0.0, |v| -v.pressure_pa(j.0[l]) / 64.0)

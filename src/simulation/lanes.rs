@@ -84,6 +84,16 @@ pub(crate) fn dot3(a: &LaneV3, b: &LaneV3) -> Lanes {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// `a × b`, component by component as nalgebra's `cross` computes it.
+#[inline(always)]
+pub(crate) fn cross3(a: &LaneV3, b: &LaneV3) -> LaneV3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
 /// `a / |a|` as nalgebra's `normalize` computes it (norm, then one division per component).
 #[inline(always)]
 pub(crate) fn normalize3(a: &LaneV3) -> LaneV3 {
