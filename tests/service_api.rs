@@ -548,15 +548,7 @@ fn every_bad_input_is_refused_with_its_status_and_reason() {
     ] {
         check(server.get(&format!("/v1/scans/{malformed}")), 404, &[]);
         check(server.get(&format!("/v1/jobs/{malformed}")), 404, &[]);
-        check(
-            server
-                .client()
-                .delete(server.url(&format!("/v1/jobs/{malformed}")))
-                .send()
-                .unwrap(),
-            404,
-            &[],
-        );
+        check(server.delete(&format!("/v1/jobs/{malformed}")), 404, &[]);
     }
 
     // Results of an unfinished job, and of a finished one that lacks the frame.

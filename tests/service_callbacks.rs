@@ -148,13 +148,7 @@ fn wait_for_callback(server: &ServerProcess, job: &str) -> Value {
 }
 
 fn delete(server: &ServerProcess, job: &str) -> u16 {
-    server
-        .client()
-        .delete(server.url(&format!("/v1/jobs/{job}")))
-        .send()
-        .unwrap()
-        .status()
-        .as_u16()
+    server.delete(&format!("/v1/jobs/{job}")).status().as_u16()
 }
 
 /// `request` with a `callback_url`.

@@ -214,7 +214,6 @@ fn cancelling_and_deleting_jobs_and_scans() {
     let scratch = Scratch::new("delete");
     let data = scratch.join("data");
     let server = ServerProcess::start(&data, &["--workers", "1"]);
-    let c = server.client();
     let scan_id = server.upload_scan(&sample("phantom-ct.nii.gz"));
     let long = server.submit(&scan_id, &long_request());
     let queued = server.submit(&scan_id, &tiny_request(2));
@@ -222,10 +221,7 @@ fn cancelling_and_deleting_jobs_and_scans() {
     wait_for_stage(&server, &long, "solving");
 
     // A queued job is cancelled at once.
-    let resp = c
-        .delete(server.url(&format!("/v1/jobs/{queued}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/jobs/{queued}"));
     assert_eq!(resp.status(), 202);
     let body: Value = resp.json().unwrap();
     assert_eq!(body["state"], "cancelled", "{body}");
@@ -240,19 +236,13 @@ fn cancelling_and_deleting_jobs_and_scans() {
     );
 
     // The scan cannot go while its job runs.
-    let resp = c
-        .delete(server.url(&format!("/v1/scans/{scan_id}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/scans/{scan_id}"));
     assert_problem(resp, 409, &[&scan_id]);
     server.get_json(&format!("/v1/scans/{scan_id}"));
 
     // A running job stops within a frame or stage, leaving no outputs.
     let asked = Instant::now();
-    let resp = c
-        .delete(server.url(&format!("/v1/jobs/{long}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/jobs/{long}"));
     assert_eq!(resp.status(), 202);
     let status = server.wait_for_state(&long, &["cancelled"], Duration::from_secs(120));
     println!(
@@ -282,38 +272,23 @@ fn cancelling_and_deleting_jobs_and_scans() {
         .join(&done)
         .join("out/summary.json")
         .is_file());
-    let resp = c
-        .delete(server.url(&format!("/v1/jobs/{done}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/jobs/{done}"));
     assert_eq!(resp.status(), 204);
     assert!(!data.join("jobs").join(&done).exists());
     assert_problem(server.get(&format!("/v1/jobs/{done}")), 404, &[]);
     assert_problem(server.get(&format!("/v1/jobs/{done}/summary")), 404, &[]);
-    assert_problem(
-        c.delete(server.url(&format!("/v1/jobs/{done}")))
-            .send()
-            .unwrap(),
-        404,
-        &[],
-    );
+    assert_problem(server.delete(&format!("/v1/jobs/{done}")), 404, &[]);
 
     // Cancelled jobs are finished too: DELETE removes them.
     for id in [&long, &queued] {
-        let resp = c
-            .delete(server.url(&format!("/v1/jobs/{id}")))
-            .send()
-            .unwrap();
+        let resp = server.delete(&format!("/v1/jobs/{id}"));
         assert_eq!(resp.status(), 204, "{id}");
         assert!(!data.join("jobs").join(id).exists());
     }
     assert_eq!(entries(&data.join("jobs")), Vec::<String>::new());
 
     // With nothing queued or running, the scan goes.
-    let resp = c
-        .delete(server.url(&format!("/v1/scans/{scan_id}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/scans/{scan_id}"));
     assert_eq!(resp.status(), 204);
     assert_problem(server.get(&format!("/v1/scans/{scan_id}")), 404, &[]);
     assert_eq!(entries(&data.join("scans")), Vec::<String>::new());
@@ -412,11 +387,7 @@ fn a_job_killed_on_every_attempt_fails_and_leaves_no_partial_outputs() {
     assert!(!data.join("jobs").join(&job_id).join("out").exists());
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
     // Deleting the failed job leaves the store as clean as it was.
-    let resp = server
-        .client()
-        .delete(server.url(&format!("/v1/jobs/{job_id}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/jobs/{job_id}"));
     assert_eq!(resp.status(), 204);
     assert_eq!(entries(&data.join("jobs")), Vec::<String>::new());
     assert_eq!(entries(&data.join("scans")), vec![scan_id]);

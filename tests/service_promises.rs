@@ -42,11 +42,7 @@ fn cancel_while_solving(server: &ServerProcess, job: &str) -> f64 {
         s["progress"]["stage"] == "solving" && s["progress"]["equilibria"].as_u64() >= Some(1)
     });
     let asked = Instant::now();
-    let resp = server
-        .client()
-        .delete(server.url(&format!("/v1/jobs/{job}")))
-        .send()
-        .unwrap();
+    let resp = server.delete(&format!("/v1/jobs/{job}"));
     assert_eq!(resp.status(), 202);
     let answer: Value = resp.json().unwrap();
     assert_eq!(answer["state"], "cancelling", "{answer}");

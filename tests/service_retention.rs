@@ -146,11 +146,7 @@ fn finished_jobs_and_unused_scans_past_the_age_bound_go_while_live_ones_stay() {
 
     // Cancelled, they are finished too, and go with their scan.
     for job in [&queued, &running] {
-        let resp = server
-            .client()
-            .delete(server.url(&format!("/v1/jobs/{job}")))
-            .send()
-            .unwrap();
+        let resp = server.delete(&format!("/v1/jobs/{job}"));
         assert_eq!(resp.status(), 202);
     }
     wait_gone(&server, &format!("/v1/jobs/{running}"));

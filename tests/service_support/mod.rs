@@ -244,6 +244,11 @@ impl ServerProcess {
         self.client.get(self.url(path)).send().unwrap()
     }
 
+    /// DELETE `path`.
+    pub fn delete(&self, path: &str) -> Response {
+        self.client.delete(self.url(path)).send().unwrap()
+    }
+
     /// GET `path`, expecting 200 and JSON.
     pub fn get_json(&self, path: &str) -> Value {
         let resp = self.get(path);
