@@ -54,11 +54,15 @@ impl VolumetricCorrection {
         let table_q_pa = (0..TABLE_POINTS)
             .map(|i| {
                 let j = TABLE_J_MIN + step * i as f64;
-                if (j - 1.0).abs() < near {
+                let q = if (j - 1.0).abs() < near {
                     q_lo + (q_hi - q_lo) * (j - 1.0 + near) / (2.0 * near)
                 } else {
                     q(j)
-                }
+                };
+                // Near ν = 0.5 the foam barrier J^(−2β) overflows at the most compressed
+                // samples; kept finite, it still stops any solver there, and the table never
+                // interpolates infinities into NaN forces.
+                q.clamp(-1e300, 1e300)
             })
             .collect();
         Some(VolumetricCorrection {
@@ -135,6 +139,18 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_table_stays_finite_near_incompressibility() {
+        let mut m = Material::new(390.0, 0.499, 700.0).unwrap();
+        m.volumetric_law = Some(ContinuumLaw::Hyperfoam);
+        let table = VolumetricCorrection::new(&m).unwrap();
+        for j in [0.001, 0.02, 0.05, 0.5, 1.0, 2.0, 5.0] {
+            assert!(table.pressure_pa(j).is_finite(), "J {j}");
+        }
+        // Stiffer than anything the springs give, in compression.
+        assert!(table.pressure_pa(0.05) < -1e6 * m.bulk_modulus_pa());
     }
 
     #[test]
