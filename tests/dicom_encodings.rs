@@ -439,3 +439,49 @@ fn compressed_enhanced_ct_decodes_frame_by_frame() {
         );
     }
 }
+
+/// The study context names, for every volume slice k, the instance it was read from (in the
+/// slices' spatial order, not file order), and the CT's study and frame of reference, as a
+/// reader of the files themselves finds them.
+#[test]
+fn study_context_references_each_slice_in_spatial_order() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-dicom");
+    let series = read_dicom_series(&dir).unwrap();
+    let study = &series.study;
+    assert!(study.from_input);
+    assert_eq!(study.slices.len(), series.volume.geometry.dims[2]);
+    let g = series.volume.geometry;
+    let normal = g.direction_lps[2];
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let obj = open_file(entry.unwrap().path()).unwrap();
+        let get = |tag| {
+            obj.element(tag)
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .trim()
+                .to_string()
+        };
+        assert_eq!(get(tags::STUDY_INSTANCE_UID), study.study_instance_uid);
+        assert_eq!(
+            get(tags::FRAME_OF_REFERENCE_UID),
+            study.frame_of_reference_uid
+        );
+        assert_eq!(get(tags::PATIENT_ID), study.patient_id);
+        let position: Vec<f64> = obj
+            .element(tags::IMAGE_POSITION_PATIENT)
+            .unwrap()
+            .to_multi_float64()
+            .unwrap();
+        let along: f64 = (0..3)
+            .map(|a| (position[a] - g.origin_lps_mm[a]) * normal[a])
+            .sum();
+        let k = (along / g.spacing_mm[2]).round() as usize;
+        assert_eq!(
+            study.slices[k].sop_instance_uid,
+            get(tags::SOP_INSTANCE_UID),
+            "slice {k}"
+        );
+        assert_eq!(study.slices[k].sop_class_uid, get(tags::SOP_CLASS_UID));
+    }
+}

@@ -36,6 +36,9 @@ pub struct LoadedScan {
     pub format: ScanFormat,
     /// The DICOM series' non-identifying description, when the input was DICOM.
     pub series: Option<dicom::SeriesInfo>,
+    /// The DICOM series' patient, study and frame of reference (identifying: never logged
+    /// or serialized), when the input was DICOM.
+    pub study: Option<dicom::DicomStudyContext>,
     /// Files skipped and other things the user should know.
     pub warnings: Vec<String>,
 }
@@ -109,13 +112,13 @@ pub fn load_ct(path: &Path) -> Result<LoadedScan> {
 pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Result<LoadedScan> {
     let start = std::time::Instant::now();
     let format = detect_scan_format(path)?;
-    let (ct, series, warnings) = match format {
+    let (ct, series, study, warnings) = match format {
         ScanFormat::DicomDirectory | ScanFormat::DicomZip | ScanFormat::DicomFile => {
             let s = dicom::read_dicom_series_with(path, dicom_options)?;
-            (s.volume, Some(s.info), s.warnings)
+            (s.volume, Some(s.info), Some(s.study), s.warnings)
         }
-        ScanFormat::Nifti => (nifti::read_nifti(path)?, None, Vec::new()),
-        ScanFormat::Nrrd => (nrrd::read_nrrd(path)?, None, Vec::new()),
+        ScanFormat::Nifti => (nifti::read_nifti(path)?, None, None, Vec::new()),
+        ScanFormat::Nrrd => (nrrd::read_nrrd(path)?, None, None, Vec::new()),
     };
     let read_s = start.elapsed().as_secs_f64();
     check_spacing_for_lung_model(&ct.geometry.spacing_mm, path)?;
@@ -131,6 +134,7 @@ pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Res
         ct,
         format,
         series,
+        study,
         warnings,
     })
 }

@@ -5,5 +5,6 @@ pub mod ingest_files;
 pub mod ingest_quicklooks;
 pub mod plots;
 pub mod quicklook;
+pub mod radiotherapy;
 pub mod raster_text;
 pub mod trajectories;

@@ -14,6 +14,7 @@
 //! Identifying data (patient name, ID, birth date, …) is never copied into [`SeriesInfo`].
 
 mod read;
+mod study;
 mod write;
 
 use serde::Serialize;
@@ -22,6 +23,7 @@ use crate::formats::archive::ArchiveLimits;
 use crate::volume::Volume;
 
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
+pub use study::{DicomStudyContext, SliceReference};
 pub use write::write_ct_series;
 
 /// Choices for [`read_dicom_series_with`].
@@ -68,6 +70,8 @@ pub struct DicomSeries {
     pub volume: Volume<f32>,
     /// What was read.
     pub info: SeriesInfo,
+    /// Patient, study, frame of reference and slice instances, for derived DICOM objects.
+    pub study: DicomStudyContext,
     /// Files skipped and oddities tolerated, one sentence each. Not logged here: they name
     /// files, and a hospital export may name folders after the patient, so the caller decides
     /// where they go (the CLI prints them, the service returns them to the uploader).

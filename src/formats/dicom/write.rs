@@ -352,18 +352,8 @@ impl UidRoot {
     }
 
     fn uid(&self, kind: u64, index: u64) -> String {
-        let a = splitmix64(self.key ^ splitmix64(kind.wrapping_mul(0x9e37_79b9) ^ index));
-        let b = splitmix64(a ^ index.rotate_left(17) ^ kind);
-        let n = (u128::from(a) << 64 | u128::from(b)).max(1);
-        format!("2.25.{n}")
+        super::study::derived_uid(self.key, kind, index)
     }
-}
-
-fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
 }
 
 /// A decimal string (DS) of at most 16 characters with as many digits as fit.

@@ -21,7 +21,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use super::{DicomReadOptions, DicomSeries, SeriesInfo};
+use super::{DicomReadOptions, DicomSeries, DicomStudyContext, SeriesInfo, SliceReference};
 use crate::formats::archive::{looks_like_zip, read_zip_file, ArchiveEntry};
 use crate::volume::{Volume, VolumeGeometry, MAX_DIM};
 use crate::{Error, IoContext, IoOp, Result};
@@ -413,12 +413,46 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
     geometry.validate(&format!("{what}: series {uid}"))?;
     let data = decode_slices(&slices, &layout, geometry.voxel_count())?;
     let info = describe_series(&label, &slices, &layout, &mut warnings);
+    let study = study_context(&slices, &uid);
     let volume = Volume::from_data(geometry, data)?;
     Ok(DicomSeries {
         volume,
         info,
+        study,
         warnings,
     })
+}
+
+/// The patient, study and frame of reference of the series (from its first slice) and the
+/// instance each slice came from, for the DICOM objects a run derives from this CT.
+fn study_context(slices: &[Slice], series_uid: &str) -> DicomStudyContext {
+    let first = &slices[0].file.object;
+    let field = |tag| text(first, tag).unwrap_or_default();
+    DicomStudyContext {
+        patient_name: field(tags::PATIENT_NAME),
+        patient_id: field(tags::PATIENT_ID),
+        patient_birth_date: field(tags::PATIENT_BIRTH_DATE),
+        patient_sex: field(tags::PATIENT_SEX),
+        study_instance_uid: field(tags::STUDY_INSTANCE_UID),
+        study_date: field(tags::STUDY_DATE),
+        study_time: field(tags::STUDY_TIME),
+        study_id: field(tags::STUDY_ID),
+        accession_number: field(tags::ACCESSION_NUMBER),
+        referring_physician_name: field(tags::REFERRING_PHYSICIAN_NAME),
+        study_description: field(tags::STUDY_DESCRIPTION),
+        frame_of_reference_uid: field(tags::FRAME_OF_REFERENCE_UID),
+        series_instance_uid: series_uid.to_string(),
+        patient_position: field(tags::PATIENT_POSITION),
+        slices: slices
+            .iter()
+            .map(|s| SliceReference {
+                sop_class_uid: text(&s.file.object, tags::SOP_CLASS_UID).unwrap_or_default(),
+                sop_instance_uid: text(&s.file.object, tags::SOP_INSTANCE_UID).unwrap_or_default(),
+                frame_number: s.frame.map(|f| f as u32 + 1),
+            })
+            .collect(),
+        from_input: true,
+    }
 }
 
 /// Reads each slice's frame layout (checked against the first slice's), position and
