@@ -49,6 +49,10 @@ pub struct RunArgs {
     /// The format is documented in the README; command-line options win.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Keep only the trace's samples from START to END seconds (`START:END`), e.g. the tidal
+    /// breaths of a recording with vital-capacity manoeuvres (the config's `[trace] window_s`).
+    #[arg(long, value_name = "START:END", value_parser = parse_window)]
+    trace_window: Option<[f64; 2]>,
     /// Points to follow (e.g. a tumour centre): CSV with the header name,x_mm,y_mm,z_mm, in
     /// LPS millimetres (DICOM patient coordinates, as a planning system shows them).
     #[arg(long)]
@@ -111,6 +115,9 @@ impl RunArgs {
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;
+        if let Some(window) = self.trace_window {
+            config.trace.window_s = Some(window);
+        }
         let reading = BreathingTrace::read_with_notes(&self.trace, &config.trace)?;
         // What was done to the file's columns goes to the console and, with the file's name,
         // into summary.json's trace source.
@@ -252,4 +259,17 @@ fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
         summary.timings_s.get("total").copied().unwrap_or(0.0),
         out.join("summary.json").display()
     );
+}
+
+/// `START:END` seconds.
+fn parse_window(text: &str) -> Result<[f64; 2], String> {
+    let (a, b) = text
+        .split_once(':')
+        .ok_or_else(|| format!("'{text}': expected START:END in seconds, e.g. 10:40"))?;
+    let number = |v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .map_err(|_| format!("'{v}' in '{text}' is not a number of seconds"))
+    };
+    Ok([number(a)?, number(b)?])
 }
