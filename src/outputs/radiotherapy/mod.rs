@@ -14,6 +14,7 @@ pub trait PhaseMotion: Sync {
 }
 
 pub mod contours;
+pub mod field_motion;
 pub mod rtstruct;
 pub mod target;
 pub mod target_motion;
