@@ -303,3 +303,88 @@ fn masks_off_the_cts_grid_and_bad_target_texts_are_refused_with_their_reason() {
     assert!(e.contains("holds no voxel of the CT's grid"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_demo_follows_the_phantom_tumour_into_the_summary_the_masks_and_the_rtstruct() {
+    use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
+    use lungmotion::run::{run_breathing, RunConfig, SilentObserver};
+    let out = scratch("demo");
+    let inputs = demo_inputs(&sample_volumes_dir()).unwrap();
+    let config = RunConfig {
+        element_size_mm: 12.0,
+        ..RunConfig::default()
+    };
+    let summary = run_breathing(&inputs, &config, &out, &mut SilentObserver).unwrap();
+    let target = summary.target.as_ref().expect("the demo has a target");
+    assert!(target.source.ends_with("phantom-truth.nii.gz:label=8"));
+    assert_eq!(target.frames.len(), summary.frames.len());
+    // The tumour's centroid follows the tracked point at its centre (both from the model:
+    // the mesh at the point, the sampled field over the tumour's voxels).
+    let tumour = summary.points.iter().find(|p| p.name == "tumour").unwrap();
+    for (f, d) in target.frames.iter().zip(&tumour.displacement_mm) {
+        let c = f.displacement_mm;
+        let gap = ((c.lr - d[0]).powi(2) + (c.ap - d[1]).powi(2) + (c.si - d[2]).powi(2)).sqrt();
+        assert!(
+            gap < 1.0,
+            "frame {}: centroid {c:?} vs point {d:?}",
+            f.frame
+        );
+    }
+    assert!(
+        target.peak_to_peak_mm.si > 5.0,
+        "{:?}",
+        target.peak_to_peak_mm
+    );
+    assert!(target.itv_volume_cc > target.planning_volume_cc);
+    let rtstruct = out.join(
+        target
+            .files
+            .rtstruct
+            .as_ref()
+            .expect("a DICOM CT gets an RTSTRUCT"),
+    );
+    let itv = read_nifti_labels(&out.join(&target.files.itv_nifti)).unwrap();
+    let study = lungmotion::formats::dicom::read_dicom_series(&inputs.ct_path)
+        .unwrap()
+        .study;
+    let back = lungmotion::outputs::radiotherapy::rtstruct::read_roi_mask(
+        &rtstruct,
+        "ITV",
+        &itv.geometry,
+        Some(&study.frame_of_reference_uid),
+    )
+    .unwrap();
+    assert_eq!(
+        back.as_slice(),
+        itv.as_slice(),
+        "the RTSTRUCT's ITV is the ITV mask"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert!(json["target"]["peak_to_peak_mm"]["si"].as_f64().unwrap() > 5.0);
+    assert!(out.join("target-motion.csv").is_file());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn the_cli_refuses_a_target_it_cannot_use_with_exit_status_2() {
+    let out = std::env::temp_dir().join(format!("lm-target-cli-{}", std::process::id()));
+    let run = |target: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_lungmotion"))
+            .args(["run", "--ct"])
+            .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-ct.nii.gz"))
+            .args(["--trace", "/dev/null", "--out"])
+            .arg(&out)
+            .args(["--target", target, "--quiet"])
+            .output()
+            .unwrap()
+    };
+    let o = run("point:1,2:r=5");
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("the point has 2 coordinate(s), not 3"),
+        "{err}"
+    );
+    assert!(!out.exists());
+}

@@ -1,7 +1,12 @@
 //! A [`PhaseMotion`] from one frame's sampled displacement field (the `displacement.nii.gz`
 //! a run writes, on the lung box or the CT grid): forward by trilinear interpolation of u,
-//! backward by fixed-point iteration. Zero motion outside the field's grid, as the field
-//! itself is zero outside the lungs.
+//! backward by fixed-point iteration.
+//!
+//! The field is zero outside the lungs, vessels and airways inside them included, which
+//! would tear a target that holds a vessel. So a zero vector counts as "no sample": u is the
+//! trilinear interpolation over the nonzero samples only, weights renormalised, and zero
+//! where all eight are zero (outside the lungs, at rest). This bridges one-voxel gaps, not
+//! wider ones; the motion over the whole CT grid supersedes it.
 
 use nalgebra::Vector3;
 
@@ -27,12 +32,14 @@ impl<'a> SampledFieldMotion<'a> {
             .then_some(SampledFieldMotion { geometry, field_mm })
     }
 
-    /// u at `p_lps_mm`, trilinear, the field taken as zero outside its grid.
+    /// u at `p_lps_mm`: trilinear over the nonzero samples (see the module doc), zero
+    /// outside the grid and where no sample is nonzero.
     pub fn displacement_mm(&self, p_lps_mm: [f64; 3]) -> [f64; 3] {
         let g = &self.geometry;
         let v = g.lps_mm_to_voxel(Vector3::from(p_lps_mm));
         let base = [v[0].floor(), v[1].floor(), v[2].floor()];
         let mut u = [0.0f64; 3];
+        let mut total_weight = 0.0;
         for corner in 0..8usize {
             let offset = [corner & 1, (corner >> 1) & 1, (corner >> 2) & 1];
             let mut weight = 1.0;
@@ -47,12 +54,19 @@ impl<'a> SampledFieldMotion<'a> {
             }
             if inside && weight > 0.0 {
                 let d = self.field_mm[g.index(index[0], index[1], index[2])];
-                for a in 0..3 {
-                    u[a] += weight * f64::from(d[a]);
+                if d != [0.0; 3] {
+                    total_weight += weight;
+                    for a in 0..3 {
+                        u[a] += weight * f64::from(d[a]);
+                    }
                 }
             }
         }
-        u
+        if total_weight > 0.0 {
+            u.map(|c| c / total_weight)
+        } else {
+            u
+        }
     }
 }
 
