@@ -376,6 +376,30 @@ fn listings_page_through_every_scan_and_job(server: &ServerProcess, scan: &str, 
     assert_eq!(got, expected, "each job exactly once");
     let other_jobs = server.get_json(&format!("/v1/jobs?scan_id={other}"));
     assert_eq!(other_jobs["total"], 0);
+    // A job that follows a target (the phantom's tumour as a ball) on the other scan.
+    let mut request = simulation_request(2, &[], 12.0, 3);
+    request["target"] = "point:-95,20,-80:r=12".into();
+    let targeted = server.submit(&other, &request);
+    server.wait_for_state(&targeted, &["done"], JOB_TIMEOUT);
+    let summary = server.get_json(&format!("/v1/jobs/{targeted}/summary"));
+    assert_eq!(summary["target"]["source"], "point:-95,20,-80:r=12");
+    assert!(
+        summary["target"]["peak_to_peak_mm"]["si"].as_f64().unwrap() > 1.0,
+        "{}",
+        summary["target"]
+    );
+    let itv = server.get(&format!("/v1/jobs/{targeted}/files/target/itv.nii.gz"));
+    assert_eq!(itv.status(), 200);
+    let resp = server.post_simulation(&other, &{
+        let mut r = simulation_request(2, &[], 12.0, 3);
+        r["target"] = "/etc/passwd:label=1".into();
+        r
+    });
+    assert_eq!(resp.status(), 422);
+    assert_eq!(
+        server.get_json(&format!("/v1/jobs?scan_id={other}"))["total"],
+        1
+    );
     assert_eq!(server.get_json("/v1/jobs?state=failed")["total"], 0);
     for (query, slug) in [
         ("/v1/jobs?limit=0", "invalid-limit"),

@@ -720,13 +720,17 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         trace_source,
         points,
         callback_url: _,
+        target,
     } = request;
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),
         trace: BreathingTrace::new(time_s, volume_ml)?,
         trace_source,
         points: points.iter().map(Into::into).collect(),
-        target: None,
+        target: target
+            .as_deref()
+            .map(str::parse::<crate::outputs::radiotherapy::target::TargetSpec>)
+            .transpose()?,
     };
     let mut observer = JobObserver::new(&shared.store, live.record.clone(), live.stop.clone());
     let (ingested, read_timings) = ingested_scan(shared, scan_id, &inputs, &config, &mut observer)?;

@@ -9,6 +9,7 @@ use utoipa::ToSchema;
 use super::problem::{ApiError, ApiResult};
 use super::store::{JobRequest, StoredPoint};
 use crate::breathing::{BreathingTrace, TraceFormat, TraceOptions};
+use crate::outputs::radiotherapy::target::TargetSpec;
 use crate::run::RunConfig;
 
 /// A breathing trace in a JSON request: the CLI's JSON trace file (`time_s` or `time_ms`,
@@ -97,6 +98,11 @@ pub struct SimulationRequest {
     /// Where to POST the job's outcome when it ends (http or https; see the README).
     #[serde(default)]
     pub callback_url: Option<String>,
+    /// The treatment target to follow (per-frame masks, ITV, motion per axis, RTSTRUCT):
+    /// `point:<x>,<y>,<z>:r=<radius mm>` in LPS mm. Masks and RTSTRUCT files name files on
+    /// the server's disk and are refused here.
+    #[serde(default)]
+    pub target: Option<String>,
     /// Any key of the CLI's configuration (`element_size_mm`, `material`, `diaphragm`,
     /// `trace`, `motion`, `outputs`), merged over the server's defaults.
     #[serde(flatten)]
@@ -111,6 +117,7 @@ struct ParsedRequest {
     points: Vec<StoredPoint>,
     source: String,
     callback_url: Option<String>,
+    target: Option<String>,
 }
 
 /// A 422 with the slug every unusable simulation request gets.
@@ -155,6 +162,7 @@ pub(crate) fn parse_simulation(
         points,
         source,
         callback_url,
+        target,
     } = parsed;
     Ok(JobRequest {
         config,
@@ -163,6 +171,7 @@ pub(crate) fn parse_simulation(
         trace_source: source,
         points,
         callback_url,
+        target,
     })
 }
 
@@ -216,6 +225,7 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
         trace: reading.trace,
         points: request.points,
         callback_url: request.callback_url,
+        target: request.target,
     })
 }
 
@@ -231,6 +241,7 @@ fn parse_csv_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedReque
         trace: reading.trace,
         points: Vec::new(),
         callback_url: None,
+        target: None,
     })
 }
 
@@ -257,8 +268,12 @@ fn check_request(request: &ParsedRequest) -> ApiResult<()> {
         config,
         trace,
         points,
+        target,
         ..
     } = request;
+    if let Some(text) = target {
+        check_target(text)?;
+    }
     config.validate().map_err(|e| invalid(e.to_string()))?;
     trace.validate().map_err(|e| invalid(e.to_string()))?;
     config
@@ -267,6 +282,19 @@ fn check_request(request: &ParsedRequest) -> ApiResult<()> {
         .times(trace)
         .map_err(|e| invalid(e.to_string()))?;
     check_points(points)
+}
+
+/// A target over HTTP is a point and a radius: a mask or RTSTRUCT path would name a file on
+/// the server's disk, which is not the client's to read.
+pub(crate) fn check_target(text: &str) -> ApiResult<TargetSpec> {
+    if !text.starts_with("point:") {
+        return Err(invalid(format!(
+            "target {:?}: over HTTP a target is a point and a radius,              point:<x>,<y>,<z>:r=<radius mm> (LPS mm); masks and RTSTRUCT files are given              to the command line",
+            text.chars().take(100).collect::<String>()
+        )));
+    }
+    text.parse::<TargetSpec>()
+        .map_err(|e| invalid(e.to_string()))
 }
 
 /// Point names end up in trajectories.csv, so they must be plain; coordinates finite.
@@ -405,6 +433,35 @@ mod tests {
             let e = parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
                 .unwrap_err();
             assert!(e.status == 422 && e.detail.contains(named), "{named}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_target_is_a_point_and_radius_over_http_and_never_a_server_path() {
+        let defaults = RunConfig::default();
+        let (t, v) = two_breaths();
+        let request = |target: &str| {
+            let body =
+                serde_json::json!({"trace": {"time_s": t, "volume_ml": v}, "target": target});
+            parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
+        };
+        let ok = request("point:-95,20,-80:r=15").unwrap();
+        assert_eq!(ok.target.as_deref(), Some("point:-95,20,-80:r=15"));
+        let stored: JobRequest =
+            serde_json::from_str(&serde_json::to_string(&ok).unwrap()).unwrap();
+        assert_eq!(stored.target, ok.target);
+        for (bad, named) in [
+            ("/etc/passwd:label=1", "over HTTP a target is a point"),
+            (
+                "sample-volumes/phantom-truth.nii.gz:label=8",
+                "over HTTP a target is a point",
+            ),
+            ("point:1,2:r=5", "2 coordinate(s)"),
+            ("point:1,2,3:r=0", "radius"),
+            ("point:1,2,NaN:r=5", "not a finite number"),
+        ] {
+            let e = request(bad).unwrap_err();
+            assert!(e.status == 422 && e.detail.contains(named), "{bad}: {e}");
         }
     }
 

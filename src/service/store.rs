@@ -189,6 +189,9 @@ pub struct JobRequest {
     /// Where to POST the job's outcome when it ends (checked when submitted).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub callback_url: Option<String>,
+    /// The target to follow, as the request gave it (`point:<x>,<y>,<z>:r=<mm>`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target: Option<String>,
 }
 
 /// A tracked point in `request.json`.
@@ -529,6 +532,7 @@ mod tests {
             trace_source: "test".into(),
             points: vec![],
             callback_url: None,
+            target: None,
         };
         store.put_job(&job, &request).unwrap();
         let mut running = store.job(job.job_id).unwrap().unwrap();
