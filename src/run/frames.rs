@@ -378,8 +378,12 @@ impl FrameRegistrations {
         mesh: &crate::model::HexMesh,
         positions: &[V3],
     ) -> Result<String> {
+        // The phase (when the instants are phases) leads: it is what a planner looks for.
+        let phase = frame
+            .phase_percent
+            .map_or(String::new(), |p| format!("phase {p:.0}% "));
         let label = format!(
-            "frame {} t={:.2}s {:+.0} mL",
+            "{phase}frame {} t={:.2}s {:+.0} mL",
             frame.index, frame.time_s, frame.target_volume_ml
         );
         let motion = MeshMotion::new(&self.lattice, mesh, positions);

@@ -38,7 +38,7 @@ pub use summary::{
     RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM, SCANNED_STATE_TOLERANCE_ML,
 };
 
-use crate::breathing::BreathingTrace;
+use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::durable::write_atomic;
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
@@ -259,7 +259,8 @@ pub fn run_breathing_on(
 ) -> Result<RunSummary> {
     let t_total = Instant::now();
     let mut timings = BTreeMap::new();
-    let (settings, times) = check_inputs(inputs, config, observer)?;
+    let (settings, plan) = check_inputs(inputs, config, observer)?;
+    let times = &plan.times;
     let staging = OutputStaging::new(out_dir)?;
 
     // A CT read here is let go once its last readers are done (fingerprint, ingest files,
@@ -301,7 +302,7 @@ pub fn run_breathing_on(
         staging.dir(),
         &config.outputs,
         inputs,
-        &times,
+        times,
         &study,
     )?;
     let (report, dynamic) = run_the_motion(
@@ -309,7 +310,7 @@ pub fn run_breathing_on(
         inputs,
         config,
         &settings,
-        &times,
+        &plan,
         &mut sink,
         observer,
     )
@@ -365,6 +366,10 @@ pub fn run_breathing_on(
         timings,
     );
     summary.ct_fingerprint = Some(ct.fingerprint);
+    if let Some(note) = plan.note {
+        summary.warnings.push(note.clone());
+        summary.output_instants_note = Some(note);
+    }
     log_memory("summary and quick looks");
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
@@ -449,14 +454,14 @@ fn check_inputs(
     inputs: &RunInputs,
     config: &RunConfig,
     observer: &dyn RunObserver,
-) -> Result<(MotionSettings, Vec<f64>)> {
+) -> Result<(MotionSettings, InstantPlan)> {
     config.validate()?;
     inputs.trace.validate()?;
     let mut settings = config.motion_settings();
     settings.cancel = observer.cancel_flag();
     settings.progress = observer.solve_progress();
-    let times = settings.instants.times(&inputs.trace)?;
-    Ok((settings, times))
+    let plan = settings.instants.plan(&inputs.trace)?;
+    Ok((settings, plan))
 }
 
 /// The lung scene of a run with the samplers that carry its node positions to the CT grid
@@ -543,7 +548,7 @@ fn run_the_motion(
     inputs: &RunInputs,
     config: &RunConfig,
     settings: &MotionSettings,
-    times: &[f64],
+    plan: &InstantPlan,
     sink: &mut FrameSink,
     observer: &mut dyn RunObserver,
 ) -> Result<(MotionReport, Option<DynamicReport>)> {
@@ -563,8 +568,12 @@ fn run_the_motion(
                 scene,
                 &inputs.trace,
                 &dynamic.settings(),
-                times,
-                &mut |f, positions| sink.frame(&f.as_frame_summary(), positions, observer),
+                &plan.times,
+                &mut |f, positions| {
+                    let mut frame = f.as_frame_summary();
+                    frame.phase_percent = plan.phase_percent.as_ref().map(|p| p[f.index]);
+                    sink.frame(&frame, positions, observer)
+                },
             )?;
             (r.as_motion_report(settings, &config.material), Some(r))
         }
