@@ -135,9 +135,15 @@ fn the_demo_registrations_carry_the_tracked_points_to_their_trajectories() {
     assert_eq!(found["spacing_mm"], serde_json::json!([3.0, 3.0, 3.0]));
     // The tumour moves 13.6 mm at end-inhale: vectors of that size, applied where the REG
     // says, land on the trajectories within 0.1 mm.
-    assert!(found["largest_motion_mm"].as_f64().unwrap() > 10.0, "{found}");
+    assert!(
+        found["largest_motion_mm"].as_f64().unwrap() > 10.0,
+        "{found}"
+    );
     let worst = found["worst_mm"].as_f64().unwrap();
-    assert!(worst < 0.1, "REG vectors miss trajectories.csv by {worst} mm");
+    assert!(
+        worst < 0.1,
+        "REG vectors miss trajectories.csv by {worst} mm"
+    );
     check_with_dcmtk_and_dicom3tools(&out.join("frames/0/registration.dcm"));
     std::fs::remove_dir_all(&out).unwrap();
 }
@@ -165,7 +171,9 @@ fn check_with_dcmtk_and_dicom3tools(file: &Path) {
             assert!(errors.is_empty(), "dciodvfy: {errors:#?}");
         }
         Err(_) => {
-            eprintln!("SKIPPED dciodvfy: dicom3tools is not installed (apt-get install dicom3tools)")
+            eprintln!(
+                "SKIPPED dciodvfy: dicom3tools is not installed (apt-get install dicom3tools)"
+            )
         }
     }
 }
@@ -236,4 +244,68 @@ fn invalid_registration_options_are_named() {
     assert!(e.contains("expected a boolean"), "{e}");
     let e = err("[outputs]\nregistration_grid = 3");
     assert!(e.contains("registration_grid"), "{e}");
+}
+
+/// `lungmotion run --registration-spacing 6`: the flag turns the registrations on at that
+/// spacing, `summary.json` lists one per frame, and pydicom reads the spacing back.
+#[cfg(feature = "cli")]
+#[test]
+fn the_cli_flag_writes_the_registrations_at_its_spacing() {
+    if !pydicom_available() {
+        return;
+    }
+    let dir = out_dir("cli");
+    std::fs::create_dir_all(&dir).unwrap();
+    // One sin² breath of 300 mL over 4 s at 5 Hz.
+    let mut csv = String::from("time_s,volume_ml\n");
+    for i in 0..=20 {
+        let t = f64::from(i) * 0.2;
+        let v = 300.0 * (std::f64::consts::PI * t / 4.0).sin().powi(2);
+        csv.push_str(&format!("{t:.1},{v:.3}\n"));
+    }
+    std::fs::write(dir.join("trace.csv"), csv).unwrap();
+    let out = dir.join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_lungmotion"))
+        .arg("run")
+        .arg("--ct")
+        .arg(sample_volumes_dir().join("phantom-ct.nii.gz"))
+        .arg("--trace")
+        .arg(dir.join("trace.csv"))
+        .arg("--out")
+        .arg(&out)
+        .args([
+            "--element-size",
+            "12",
+            "--registration-spacing",
+            "6",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let frames = summary["frames"].as_array().unwrap();
+    assert!(frames.len() >= 2, "{} frames", frames.len());
+    for (k, frame) in frames.iter().enumerate() {
+        assert_eq!(
+            frame["files"]["registration_dicom"],
+            format!("frames/{k}/registration.dcm"),
+            "{frame}"
+        );
+    }
+    let script = r#"
+import sys, pydicom
+g = pydicom.dcmread(sys.argv[1]).DeformableRegistrationSequence[0].DeformableRegistrationGridSequence[0]
+print([float(v) for v in g.GridResolution])
+"#;
+    let o = Command::new("python3")
+        .args(["-c", script])
+        .arg(out.join("frames/0/registration.dcm"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(text.trim(), "[6.0, 6.0, 6.0]");
+    std::fs::remove_dir_all(&dir).unwrap();
 }

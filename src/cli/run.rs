@@ -69,6 +69,14 @@ pub struct RunArgs {
     /// Also write each frame's deformed mesh (mesh.vtu, for ParaView).
     #[arg(long)]
     vtu: bool,
+    /// Also write each frame's DICOM Deformable Spatial Registration
+    /// (frames/<k>/registration.dcm; the config's `[outputs] registration`).
+    #[arg(long)]
+    registration: bool,
+    /// Spacing of the registrations' vector grid over the lungs, mm (0.5–20, default 3);
+    /// implies --registration.
+    #[arg(long, value_name = "MM")]
+    registration_spacing: Option<f64>,
     /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
@@ -154,6 +162,10 @@ impl RunArgs {
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;
+        config.outputs.registration |= self.registration || self.registration_spacing.is_some();
+        if let Some(mm) = self.registration_spacing {
+            config.outputs.registration_spacing_mm = mm;
+        }
         if let Some(window) = self.trace_window {
             config.trace.window_s = Some(window);
         }

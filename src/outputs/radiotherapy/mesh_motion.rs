@@ -55,7 +55,8 @@ impl MeshLattice {
             let centre = x(nodes[0]) + (axes[0] + axes[1] + axes[2]) * (0.5 * edge_m);
             let f = lattice.coords(centre);
             let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
-            let off = (f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64)).add_scalar(-0.5);
+            let off =
+                (f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64)).add_scalar(-0.5);
             if off.norm() > 1e-6 {
                 return Err(Error::InvalidModel(format!(
                     "element {e} is not a cube of the mesh's lattice"
@@ -115,9 +116,24 @@ impl<'a> MeshMotion<'a> {
         for (corner, &n) in self.mesh.elements[e as usize].iter().enumerate() {
             let n = n as usize;
             // VTK corner order: bit pattern of (x, y, z) per corner.
-            let bits = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]][corner];
+            let bits = [
+                [0, 0, 0],
+                [1, 0, 0],
+                [1, 1, 0],
+                [0, 1, 0],
+                [0, 0, 1],
+                [1, 0, 1],
+                [1, 1, 1],
+                [0, 1, 1],
+            ][corner];
             let w = (0..3)
-                .map(|a| if bits[a] == 1 { local[a] } else { 1.0 - local[a] })
+                .map(|a| {
+                    if bits[a] == 1 {
+                        local[a]
+                    } else {
+                        1.0 - local[a]
+                    }
+                })
                 .product::<f64>();
             u += (self.positions_m[n] - rest[n]) * w;
         }
@@ -173,7 +189,10 @@ mod tests {
         let motion = MeshMotion::new(&lattice, &mesh, &positions);
         let p = [13.0, 4.0, 7.0];
         let moved = motion.moved_lps_mm(p);
-        assert!((moved[0] - 14.3).abs() < 1e-9 && (moved[2] - 6.65).abs() < 1e-9, "{moved:?}");
+        assert!(
+            (moved[0] - 14.3).abs() < 1e-9 && (moved[2] - 6.65).abs() < 1e-9,
+            "{moved:?}"
+        );
         assert_eq!(motion.moved_lps_mm([35.0, 4.0, 7.0]), [35.0, 4.0, 7.0]);
         let back = motion.source_lps_mm(moved);
         assert!(

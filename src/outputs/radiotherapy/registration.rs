@@ -299,9 +299,7 @@ impl RegistrationWriter {
             .join("registration.dcm");
         let bytes = encode_file(obj, &path)?;
         if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).map_err(|e| {
-                Error::io(crate::IoOp::CreateDir, dir, e)
-            })?;
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(crate::IoOp::CreateDir, dir, e))?;
         }
         write_atomic(&path, &bytes)?;
         self.bytes_written += bytes.len() as u64;
@@ -480,11 +478,7 @@ fn put_text(obj: &mut InMemDicomObject, tag: Tag, vr: VR, value: &str) {
 
 /// Puts a sequence of `items` (possibly none).
 fn put_sequence(obj: &mut InMemDicomObject, tag: Tag, items: Vec<InMemDicomObject>) {
-    obj.put(DataElement::new(
-        tag,
-        VR::SQ,
-        DataSetSequence::from(items),
-    ));
+    obj.put(DataElement::new(tag, VR::SQ, DataSetSequence::from(items)));
 }
 
 /// General and Enhanced General Equipment.
@@ -679,7 +673,10 @@ mod tests {
         // 220 mm / 3 mm = 73.3: 74 steps, 75 points, the last one past +110.
         assert_eq!(g.dims(), [75, 51, 81]);
         let last = g.point_lps_mm(74, 50, 80);
-        assert!(last.x >= 110.0 && last.y >= 90.0 && last.z >= 30.0, "{last}");
+        assert!(
+            last.x >= 110.0 && last.y >= 90.0 && last.z >= 30.0,
+            "{last}"
+        );
         let v = g.sample_vectors_mm(&Shift([1.0, -2.0, 0.5])).unwrap();
         assert_eq!(v.len(), g.point_count() * 3);
         assert_eq!(&v[v.len() - 3..], &[1.0, -2.0, 0.5]);
@@ -697,9 +694,10 @@ mod tests {
     #[test]
     fn bad_spacings_and_oversized_grids_are_refused_by_name() {
         for bad in [0.0, -3.0, f64::NAN, 0.1, 50.0] {
-            let e = RegistrationGrid::around(corners().into_iter(), &Matrix3::identity(), bad, 10.0)
-                .unwrap_err()
-                .to_string();
+            let e =
+                RegistrationGrid::around(corners().into_iter(), &Matrix3::identity(), bad, 10.0)
+                    .unwrap_err()
+                    .to_string();
             assert!(e.contains("registration_spacing_mm"), "{bad}: {e}");
         }
         let huge = vec![V3::zeros(), V3::new(500.0, 500.0, 500.0)];
@@ -724,12 +722,18 @@ mod tests {
             .sample_vectors_mm(&Shift([f64::NAN, 0.0, 0.0]))
             .unwrap_err()
             .to_string();
-        assert!(e.contains("not finite at LPS (-100.0, -50.0, -200.0)"), "{e}");
+        assert!(
+            e.contains("not finite at LPS (-100.0, -50.0, -200.0)"),
+            "{e}"
+        );
     }
 
     #[test]
     fn content_labels_are_code_strings() {
-        assert_eq!(content_label("frame 3 t=1.20s +250 mL", 3), "FRAME_3_T_1_20S");
+        assert_eq!(
+            content_label("frame 3 t=1.20s +250 mL", 3),
+            "FRAME_3_T_1_20S"
+        );
         assert_eq!(content_label("30% (inhale)", 1), "30_INHALE");
         assert_eq!(content_label("%%", 7), "REG_7");
         assert_eq!(long_string("a\\b").as_str(), "a b");
