@@ -38,6 +38,7 @@ fn run(field_grid: &str) -> PathBuf {
         trace: BreathingTrace::new(vec![0.0, 1.0, 2.0], vec![0.0, 300.0, 0.0]).unwrap(),
         trace_source: "test: +300 mL".into(),
         points: Vec::new(),
+        target: None,
     };
     run_breathing(&inputs, &config(field_grid), &out, &mut SilentObserver).unwrap();
     out

@@ -51,6 +51,7 @@ fn run(name: &str, volumes_ml: &[f64]) -> (PathBuf, RunSummary) {
         trace: trace(volumes_ml),
         trace_source: format!("test: {volumes_ml:?}"),
         points: Vec::new(),
+        target: None,
     };
     let summary = run_breathing(&inputs, &config(), &out, &mut SilentObserver).unwrap();
     (out, summary)

@@ -244,6 +244,7 @@ fn small_inputs(trace: BreathingTrace) -> RunInputs {
         trace,
         trace_source: "test".into(),
         points: Vec::new(),
+        target: None,
     }
 }
 

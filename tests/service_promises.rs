@@ -298,9 +298,11 @@ fn jobs_on_one_scan_ingest_once_per_settings() {
     let scratch = Scratch::new("ingest-once");
     let server = ServerProcess::start(&scratch.join("data"), &["--workers", "1"]);
     let scan = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    let jobs = std::cell::RefCell::new(Vec::new());
     let run = |element_size_mm: f64, phases: usize| -> Value {
         let job = server.submit(&scan, &simulation_request(2, &[], element_size_mm, phases));
         server.wait_for_state(&job, &["done"], JOB_TIMEOUT);
+        jobs.borrow_mut().push(job.clone());
         server.get_json(&format!("/v1/jobs/{job}/summary"))
     };
     let first = run(12.0, 2);
@@ -326,6 +328,70 @@ fn jobs_on_one_scan_ingest_once_per_settings() {
     assert!(third["timings_s"]["load_ct"].is_number());
     assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 2.0);
     assert_ne!(third["ingest"]["elements"], first["ingest"]["elements"]);
+    listings_page_through_every_scan_and_job(&server, &scan, &jobs.into_inner());
+}
+
+/// The listings on a server holding `scan` (with `jobs`, all done) and one more scan.
+fn listings_page_through_every_scan_and_job(server: &ServerProcess, scan: &str, jobs: &[String]) {
+    let other = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    let scans = server.get_json("/v1/scans");
+    assert_eq!(scans["total"], 2, "{scans}");
+    let listed: Vec<&str> = scans["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["scan_id"].as_str().unwrap())
+        .collect();
+    assert!(
+        listed.contains(&scan) && listed.contains(&other.as_str()),
+        "{listed:?}"
+    );
+    assert!(scans["next"].is_null());
+    // Pages of two: every job once, newest first, the filters kept in the next link.
+    let mut seen = Vec::new();
+    let mut url = format!("/v1/jobs?limit=2&state=done&scan_id={scan}");
+    let mut pages = 0;
+    loop {
+        let page = server.get_json(&url);
+        pages += 1;
+        assert_eq!(page["total"], jobs.len(), "{page}");
+        for item in page["items"].as_array().unwrap() {
+            assert_eq!(item["state"], "done");
+            assert_eq!(item["scan_id"], scan);
+            seen.push(item["job_id"].as_str().unwrap().to_string());
+        }
+        match page["next"].as_str() {
+            Some(next) => {
+                assert!(next.contains("state=done") && next.contains(scan), "{next}");
+                url = next.to_string();
+            }
+            None => break,
+        }
+    }
+    assert_eq!(pages, jobs.len().div_ceil(2));
+    let mut expected = jobs.to_vec();
+    expected.sort();
+    let mut got = seen.clone();
+    got.sort();
+    assert_eq!(got, expected, "each job exactly once");
+    let other_jobs = server.get_json(&format!("/v1/jobs?scan_id={other}"));
+    assert_eq!(other_jobs["total"], 0);
+    assert_eq!(server.get_json("/v1/jobs?state=failed")["total"], 0);
+    for (query, slug) in [
+        ("/v1/jobs?limit=0", "invalid-limit"),
+        ("/v1/scans?limit=100000", "invalid-limit"),
+        ("/v1/jobs?state=finished", "invalid-state"),
+        ("/v1/jobs?scan_id=../etc", "invalid-scan-id"),
+        ("/v1/jobs?after=not-a-cursor", "invalid-cursor"),
+    ] {
+        let resp = server.get(query);
+        assert_eq!(resp.status(), 400, "{query}");
+        let body: Value = resp.json().unwrap();
+        assert!(
+            body["type"].as_str().unwrap_or("").ends_with(slug),
+            "{query}: {body}"
+        );
+    }
 }
 
 #[test]
@@ -392,4 +458,7 @@ fn the_openapi_document_declares_401s_upload_formats_and_the_run_options() {
     assert!(doc["paths"]["/v1/jobs/{id}/files"]["get"].is_object());
     assert!(doc["paths"]["/v1/jobs/{id}/files/{path}"]["get"].is_object());
     assert!(doc["paths"]["/v1/jobs/{id}/archives/{path}"]["get"].is_object());
+    assert!(doc["paths"]["/v1/jobs"]["get"].is_object());
+    assert!(doc["paths"]["/v1/scans"]["get"].is_object());
+    assert!(doc["components"]["schemas"]["JobPage"].is_object());
 }

@@ -63,6 +63,11 @@ pub struct RunArgs {
     /// LPS millimetres (DICOM patient coordinates, as a planning system shows them).
     #[arg(long)]
     points: Option<PathBuf>,
+    /// The treatment target to follow (its mask per frame, ITV, motion per axis, RTSTRUCT):
+    /// <mask.nii.gz|.nrrd>[:label=<n>] on the CT's grid, <rtstruct.dcm>:<ROI name>, or
+    /// point:<x>,<y>,<z>:r=<mm> (LPS millimetres).
+    #[arg(long, value_name = "SPEC")]
+    target: Option<lungmotion::outputs::radiotherapy::target::TargetSpec>,
     /// Also write each frame as MetaImage (displacement.mha).
     #[arg(long)]
     mha: bool,
@@ -201,6 +206,7 @@ impl RunArgs {
                 Some(path) => lungmotion::outputs::trajectories::read_points(path)?,
                 None => Vec::new(),
             },
+            target: self.target,
         };
         Ok(BreathingRun {
             inputs,
@@ -322,6 +328,23 @@ fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
                 (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
             );
         }
+    }
+    if let Some(t) = &summary.target {
+        let p = &t.peak_to_peak_mm;
+        println!(
+            "target {:.1} cc, ITV {:.1} cc; peak-to-peak motion LR {:.1} mm, AP {:.1} mm, \
+             SI {:.1} mm{}",
+            t.planning_volume_cc,
+            t.itv_volume_cc,
+            p.lr,
+            p.ap,
+            p.si,
+            if t.tg76_motion_management_advised {
+                " (over TG-76's 5 mm: motion management advised)"
+            } else {
+                ""
+            }
+        );
     }
     println!(
         "solved in {:.2} s ({} key volumes), {:.2} s in all; wrote {}",

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use super::{RunConfig, RunInputs, TrackedPoint};
 use crate::breathing::LujanBreathing;
+use crate::outputs::radiotherapy::target::TargetSpec;
 use crate::{Error, IoContext, IoOp, Result};
 
 /// Sample rate of the generated demo curve, Hz (a spirometer records 25–100 Hz).
@@ -14,6 +15,8 @@ pub const DEMO_BREATHS: f64 = 2.0;
 /// How far inside the lung the apex and base points are placed from the phantom's landmarks,
 /// mm (the landmarks lie on the lung boundary).
 const LANDMARK_INSET_MM: f64 = 15.0;
+/// Label of the tumour in `phantom-truth.nii.gz`, the demo's target.
+pub const PHANTOM_TUMOUR_LABEL: u8 = 8;
 
 /// Where the bundled sample volumes are: `./sample-volumes` when run from the repository,
 /// else the directory the binary was built from.
@@ -38,7 +41,8 @@ pub fn demo_config(element_size_mm: f64) -> RunConfig {
 }
 
 /// Inputs of the demo: the phantom's DICOM series, two Lujan breaths of 500 mL (4 s period,
-/// the CT at end-exhale) and tracked points at the tumour, the right apex and the right base.
+/// the CT at end-exhale), tracked points at the tumour, the right apex and the right base, and
+/// the tumour as the target.
 pub fn demo_inputs(sample_dir: &Path) -> Result<RunInputs> {
     let description = sample_dir.join("phantom.json");
     if !description.is_file() {
@@ -89,5 +93,10 @@ pub fn demo_inputs(sample_dir: &Path) -> Result<RunInputs> {
             DEMO_SAMPLE_RATE_HZ
         ),
         points,
+        // The phantom's tumour (label 8 of its truth labels, on the CT's grid).
+        target: Some(TargetSpec::Mask {
+            path: sample_dir.join("phantom-truth.nii.gz"),
+            label: Some(PHANTOM_TUMOUR_LABEL),
+        }),
     })
 }

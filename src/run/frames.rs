@@ -16,10 +16,12 @@ use crate::math::V3;
 use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::lung_mesh_vtu;
+use crate::outputs::radiotherapy::field_motion::SampledFieldMotion;
 use crate::outputs::radiotherapy::mesh_motion::{MeshLattice, MeshMotion};
 use crate::outputs::radiotherapy::registration::{
     RegistrationGrid, RegistrationWriter, REGISTRATION_MARGIN_MM,
 };
+use crate::outputs::radiotherapy::target_motion::TargetTracker;
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
 use crate::{IoContext, IoOp, Result};
@@ -46,6 +48,8 @@ pub(super) struct FrameSink<'a> {
     write_s: f64,
     sample_s: f64,
     nifti_s: f64,
+    /// The treatment target, followed frame by frame.
+    pub(super) target: Option<TargetTracker>,
 }
 
 impl<'a> FrameSink<'a> {
@@ -112,6 +116,7 @@ impl<'a> FrameSink<'a> {
             write_s: 0.0,
             sample_s: 0.0,
             nifti_s: 0.0,
+            target: None,
         })
     }
 
@@ -134,6 +139,7 @@ impl<'a> FrameSink<'a> {
             sample_s: self.sample_s,
             nifti_s: self.nifti_s,
             field_buffer_mm: self.field_mm,
+            target: self.target,
         }
     }
 }
@@ -157,6 +163,8 @@ pub(super) struct FramesWritten {
     /// The frames' field buffer (zero outside the lungs), handed on to the quick look so the
     /// run never holds two fields.
     pub(super) field_buffer_mm: Vec<[f32; 3]>,
+    /// The target, its frames done, to finish.
+    pub(super) target: Option<TargetTracker>,
 }
 
 impl FramesWritten {
@@ -287,6 +295,13 @@ impl FrameSink<'_> {
         }
         if let Some(registrations) = self.registrations.as_mut() {
             files.registration_dicom = Some(registrations.write(frame, mesh, positions)?);
+        }
+        if let Some(tracker) = self.target.as_mut() {
+            // The frame's sampled field (zero outside the lungs) until the motion over the
+            // whole CT replaces it.
+            let motion = SampledFieldMotion::new(self.geometry, &self.field_mm)
+                .ok_or_else(|| crate::Error::argument("frame field", "grid and values differ"))?;
+            tracker.frame(frame.index, frame.time_s, &motion)?;
         }
         self.points
             .displacements_into(mesh, positions, &mut self.point_displacements);

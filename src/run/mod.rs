@@ -47,6 +47,7 @@ use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
+use crate::outputs::radiotherapy::target_motion::{self, TargetTracker};
 use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
@@ -65,6 +66,8 @@ pub struct RunInputs {
     pub trace_source: String,
     /// Points to track.
     pub points: Vec<TrackedPoint>,
+    /// The treatment target to follow (warped per frame, ITV, RTSTRUCT), if any.
+    pub target: Option<crate::outputs::radiotherapy::target::TargetSpec>,
 }
 
 /// Stages a run reports to its observer.
@@ -215,6 +218,7 @@ fn check_cancel(observer: &dyn RunObserver, stage: &str) -> Result<()> {
 ///     trace: LujanBreathing::default().trace(8.0, 10.0)?,
 ///     trace_source: "generated".into(),
 ///     points: Vec::new(),
+///     target: None,
 /// };
 /// let config = RunConfig { element_size_mm: 12.0, ..RunConfig::default() };
 /// let out = std::env::temp_dir().join(format!("lm-doc-run-{}", std::process::id()));
@@ -278,6 +282,7 @@ pub fn run_breathing_on(
             (ScanHold::Owned(Box::new(read.scan)), &own_outcome)
         }
     };
+    let target = open_target(inputs, scan.get(), staging.dir(), &settings, times.len())?;
     let SceneOfScan {
         ct,
         lung,
@@ -305,6 +310,7 @@ pub fn run_breathing_on(
         times,
         &study,
     )?;
+    sink.target = target;
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
@@ -366,6 +372,9 @@ pub fn run_breathing_on(
         timings,
     );
     summary.ct_fingerprint = Some(ct.fingerprint);
+    if let Some(tracker) = written.target.take() {
+        summary.target = Some(tracker.finish()?);
+    }
     if let Some(note) = plan.note {
         summary.warnings.push(note.clone());
         summary.output_instants_note = Some(note);
@@ -375,6 +384,23 @@ pub fn run_breathing_on(
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;
     Ok(summary)
+}
+
+/// The run's target (`inputs.target`) on the CT's grid, followed into `staging_dir`; refused
+/// here, before the solves, when it does not fit the CT.
+fn open_target(
+    inputs: &RunInputs,
+    scan: &LoadedScan,
+    staging_dir: &Path,
+    settings: &MotionSettings,
+    frames: usize,
+) -> Result<Option<TargetTracker>> {
+    let Some(spec) = &inputs.target else {
+        return Ok(None);
+    };
+    let mask = spec.resolve(&scan.ct.geometry, scan.study.as_ref())?;
+    let names = target_motion::frame_names(&settings.instants, frames);
+    TargetTracker::new(mask, staging_dir, names, scan.study.clone()).map(Some)
 }
 
 /// What a run keeps of its CT once the lung scene is built.

@@ -55,6 +55,8 @@ pub struct RunSummary {
     pub deepest_expiration: Option<BreathExtremeSummary>,
     /// Tracked points (also in `trajectories.csv`).
     pub points: Vec<PointTrajectory>,
+    /// The treatment target through the frames (`--target`), with its ITV; `null` without one.
+    pub target: Option<crate::outputs::radiotherapy::target_motion::TargetSummary>,
     /// Stage wall times, s.
     pub timings_s: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB.
@@ -454,6 +456,7 @@ impl RunSummary {
             end_inhale: extreme(BreathExtreme::EndInhale),
             deepest_expiration: extreme(BreathExtreme::DeepestExpiration),
             points,
+            target: None,
             timings_s,
             peak_memory_mib: None,
             output_instants_note: None,

@@ -726,6 +726,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         trace: BreathingTrace::new(time_s, volume_ml)?,
         trace_source,
         points: points.iter().map(Into::into).collect(),
+        target: None,
     };
     let mut observer = JobObserver::new(&shared.store, live.record.clone(), live.stop.clone());
     let (ingested, read_timings) = ingested_scan(shared, scan_id, &inputs, &config, &mut observer)?;

@@ -12,8 +12,8 @@ use super::callbacks::{
 };
 use super::problem::Problem;
 use super::routes::{
-    self, FrameEntry, FrameList, Health, JobLinks, JobStatus, OutputFile, OutputFileList,
-    ScanLinks, ScanView, SimulationRequest, TraceBody,
+    self, FrameEntry, FrameList, Health, JobLinks, JobPage, JobStatus, OutputFile, OutputFileList,
+    ScanLinks, ScanPage, ScanView, SimulationRequest, TraceBody,
 };
 use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
 
@@ -35,9 +35,11 @@ pub mod run_options;
     ),
     paths(
         routes::upload_scan,
+        routes::list_scans,
         routes::get_scan,
         routes::delete_scan,
         routes::create_simulation,
+        routes::list_jobs,
         routes::get_job,
         routes::delete_job,
         routes::job_summary,
@@ -55,7 +57,7 @@ pub mod run_options;
         Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
         JobState, CallbackBody, CallbackDelivery, CallbackState,
         SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health, OutputFile,
-        OutputFileList
+        OutputFileList, ScanPage, JobPage
     )),
     modifiers(&BearerAuth),
     tags(

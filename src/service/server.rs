@@ -70,7 +70,9 @@ pub fn router(state: SharedState) -> Router {
         .route(
             "/v1/scans",
             // Uploads are limited while streaming, by max_upload_bytes.
-            post(routes::upload_scan).layer(DefaultBodyLimit::disable()),
+            post(routes::upload_scan)
+                .layer(DefaultBodyLimit::disable())
+                .get(routes::list_scans),
         )
         .route(
             "/v1/scans/{id}",
@@ -80,6 +82,7 @@ pub fn router(state: SharedState) -> Router {
             "/v1/scans/{id}/simulations",
             post(routes::create_simulation).layer(DefaultBodyLimit::max(request_limit)),
         )
+        .route("/v1/jobs", get(routes::list_jobs))
         .route(
             "/v1/jobs/{id}",
             get(routes::get_job).delete(routes::delete_job),

@@ -24,6 +24,7 @@ impl Bench {
             trace: trace.clone(),
             trace_source: "generated: Lujan breathing (service benchmark)".into(),
             points: Vec::new(),
+            target: None,
         };
         let request = serde_json::json!({
             "trace": {"time_s": trace.time_s, "volume_ml": trace.volume_change_ml}

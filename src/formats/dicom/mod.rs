@@ -22,6 +22,7 @@ use serde::Serialize;
 use crate::formats::archive::ArchiveLimits;
 use crate::volume::Volume;
 
+pub(crate) use read::read_single_object;
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
 pub use study::{DicomStudyContext, SliceReference};
 pub use write::write_ct_series;

@@ -15,3 +15,9 @@ pub trait PhaseMotion: Sync {
     /// inverse map, which an image resampler needs).
     fn source_lps_mm(&self, moved_lps_mm: [f64; 3]) -> [f64; 3];
 }
+
+pub mod contours;
+pub mod field_motion;
+pub mod rtstruct;
+pub mod target;
+pub mod target_motion;

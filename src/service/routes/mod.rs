@@ -3,7 +3,7 @@
 //! `/openapi.json` by its `utoipa::path` attribute, so the document cannot drift from the code.
 //!
 //! One file per resource: [`scans`], [`simulations`] (jobs), [`results`] (summary, frames,
-//! fields, trajectories), [`files`] (every output file) and [`operations`] (probes, metrics, unknown routes); the router
+//! fields, trajectories), [`files`] (every output file), [`listing`] (pages of scans and jobs) and [`operations`] (probes, metrics, unknown routes); the router
 //! that puts them on paths is [`super::server::router`]. What they share is here.
 
 use std::sync::Arc;
@@ -21,6 +21,7 @@ use super::problem::{ApiError, ApiResult};
 use super::store::{JobRecord, JobState, ScanRecord, Store};
 
 pub mod files;
+pub mod listing;
 pub mod operations;
 pub mod results;
 pub mod scans;
@@ -30,6 +31,7 @@ pub mod simulations;
 // with it for `openapi.rs`.
 pub use super::request::{SimulationRequest, TraceBody};
 pub use files::*;
+pub use listing::*;
 pub use operations::*;
 pub use results::*;
 pub use scans::*;

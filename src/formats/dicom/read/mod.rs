@@ -213,6 +213,15 @@ struct Parsed {
     repairs: Vec<String>,
 }
 
+/// Parses one DICOM file that is not part of a CT series (an RTSTRUCT), after the same
+/// structure and memory checks as a CT slice.
+pub(crate) fn read_single_object(path: &Path) -> Result<DefaultDicomObject> {
+    let budget = MemoryBudget::new(default_budget_bytes());
+    admit(Source::File(path.to_path_buf()), &budget)
+        .map(|admitted| admitted.object)
+        .map_err(|skipped| Error::format(path, skipped.reason))
+}
+
 /// Parses one source within the read's memory budget; `Err` names a skipped file and why.
 fn parse_source(source: Source, budget: &MemoryBudget) -> std::result::Result<Parsed, Skipped> {
     let admitted = admit(source, budget)?;
