@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use lungmotion::breathing::BreathingTrace;
 use lungmotion::pacs::DicomWebAddress;
-use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
+use lungmotion::run::demo::{demo_config, demo_inputs, sample_volumes_dir};
 use lungmotion::run::{Overwrite, RunConfig, RunInputs};
 
 use super::interrupt::Interrupt;
@@ -74,6 +74,14 @@ pub struct RunArgs {
     /// Also write each frame's deformed mesh (mesh.vtu, for ParaView).
     #[arg(long)]
     vtu: bool,
+    /// Also write each frame's DICOM Deformable Spatial Registration
+    /// (frames/<k>/registration.dcm; the config's `[outputs] registration`).
+    #[arg(long)]
+    registration: bool,
+    /// Spacing of the registrations' vector grid over the lungs, mm (0.5–20, default 3);
+    /// implies --registration.
+    #[arg(long, value_name = "MM")]
+    registration_spacing: Option<f64>,
     /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
@@ -159,6 +167,10 @@ impl RunArgs {
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;
+        config.outputs.registration |= self.registration || self.registration_spacing.is_some();
+        if let Some(mm) = self.registration_spacing {
+            config.outputs.registration_spacing_mm = mm;
+        }
         if let Some(window) = self.trace_window {
             config.trace.window_s = Some(window);
         }
@@ -211,10 +223,7 @@ impl RunArgs {
 impl DemoArgs {
     /// Runs the job on the bundled phantom and prints its summary.
     pub fn execute(self) -> anyhow::Result<()> {
-        let config = RunConfig {
-            element_size_mm: self.element_size,
-            ..RunConfig::default()
-        };
+        let config = demo_config(self.element_size);
         let inputs = demo_inputs(&sample_volumes_dir())?;
         eprintln!(
             "lungmotion: demo on {} with {}",

@@ -32,6 +32,8 @@
 //! ingest_files = true                  # ingest/: lung mask, groups, mesh, ingest.json
 //! quicklooks = true                    # breathing-curve and end-inhale PNGs
 //! field_grid = "lung_box"              # or "ct": the fields on the whole CT grid
+//! registration = false                 # frames/<k>/registration.dcm: DICOM deformable REG
+//! registration_spacing_mm = 3.0        # its grid spacing over the lungs (0.5–20 mm)
 //! ```
 
 use std::path::Path;
@@ -144,6 +146,10 @@ pub struct OutputConfig {
     pub quicklooks: bool,
     /// The displacement fields' grid: the box around the lungs (default) or the whole CT.
     pub field_grid: FieldGrid,
+    /// Write each frame's DICOM Deformable Spatial Registration (`registration.dcm`).
+    pub registration: bool,
+    /// Spacing of the registration's vector grid over the lungs, mm.
+    pub registration_spacing_mm: f64,
 }
 
 impl Default for RunConfig {
@@ -182,6 +188,9 @@ impl Default for OutputConfig {
             ingest_files: true,
             quicklooks: true,
             field_grid: FieldGrid::default(),
+            registration: false,
+            registration_spacing_mm:
+                crate::outputs::radiotherapy::registration::DEFAULT_REGISTRATION_SPACING_MM,
         }
     }
 }
@@ -272,6 +281,11 @@ impl RunConfig {
             return bad("element_size_mm", format!("{h} mm is not within 2–16 mm"));
         }
         self.material.validate()?;
+        if let Err(e) = crate::outputs::radiotherapy::registration::check_spacing(
+            self.outputs.registration_spacing_mm,
+        ) {
+            return bad("outputs.registration_spacing_mm", e.to_string());
+        }
         let m = &self.motion;
         if !(m.interpolation_tolerance_mm.is_finite() && m.interpolation_tolerance_mm > 0.0) {
             return bad(
@@ -383,6 +397,13 @@ mod tests {
         let law = err("[material]\nvolumetric_law = \"ogden\"");
         assert!(law.contains("ogden") && law.contains("hyperfoam"), "{law}");
         assert!(err("[motion]\ninterpolation_tolerance_mm = -1").contains("interpolation"));
+        let spacing = err("[outputs]\nregistration_spacing_mm = 0.1");
+        assert!(
+            spacing.contains("outputs.registration_spacing_mm") && spacing.contains("0.1 mm"),
+            "{spacing}"
+        );
+        let flag = err("[outputs]\nregistration = \"yes\"");
+        assert!(flag.contains("expected a boolean"), "{flag}");
         assert!(err("[motion]\ninstants = { kind = \"sometimes\" }").contains("sometimes"));
         assert!(
             err("element_size_mm = \"big\"").contains("element_size_mm")

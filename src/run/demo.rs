@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{RunInputs, TrackedPoint};
+use super::{RunConfig, RunInputs, TrackedPoint};
 use crate::breathing::LujanBreathing;
 use crate::outputs::radiotherapy::target::TargetSpec;
 use crate::{Error, IoContext, IoOp, Result};
@@ -27,6 +27,17 @@ pub fn sample_volumes_dir() -> PathBuf {
     } else {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes")
     }
+}
+
+/// The demo's configuration: `element_size_mm`, and the radiotherapy deliverables on (the
+/// DICOM registrations).
+pub fn demo_config(element_size_mm: f64) -> RunConfig {
+    let mut config = RunConfig {
+        element_size_mm,
+        ..RunConfig::default()
+    };
+    config.outputs.registration = true;
+    config
 }
 
 /// Inputs of the demo: the phantom's DICOM series, two Lujan breaths of 500 mL (4 s period,

@@ -17,6 +17,10 @@ use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::lung_mesh_vtu;
 use crate::outputs::radiotherapy::field_motion::SampledFieldMotion;
+use crate::outputs::radiotherapy::mesh_motion::{MeshLattice, MeshMotion};
+use crate::outputs::radiotherapy::registration::{
+    RegistrationGrid, RegistrationWriter, REGISTRATION_MARGIN_MM,
+};
 use crate::outputs::radiotherapy::target_motion::TargetTracker;
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
@@ -40,6 +44,7 @@ pub(super) struct FrameSink<'a> {
     extremes: ExtremeFrames,
     captures: Vec<ExtremeCapture>,
     pictured_positions_m: Option<Vec<V3>>,
+    registrations: Option<FrameRegistrations>,
     write_s: f64,
     sample_s: f64,
     nifti_s: f64,
@@ -50,7 +55,8 @@ pub(super) struct FrameSink<'a> {
 impl<'a> FrameSink<'a> {
     /// Prepares `frames/` and, with tracked points, `trajectories.csv` in the staging
     /// directory for one frame per instant of `times`, the fields on the sampler's grid;
-    /// `model` gives the frame meshes their lung and group labels.
+    /// `model` gives the frame meshes their lung and group labels, `study` the DICOM objects
+    /// their patient, study and frame of reference.
     pub(super) fn open(
         lung: &'a LungScene,
         model: &'a LungModel,
@@ -58,10 +64,22 @@ impl<'a> FrameSink<'a> {
         outputs: &'a OutputConfig,
         inputs: &RunInputs,
         times: &[f64],
+        study: &crate::formats::dicom::DicomStudyContext,
     ) -> Result<Self> {
         let frames_dir = staging_dir.join("frames");
         std::fs::create_dir_all(&frames_dir).at(IoOp::CreateDir, &frames_dir)?;
         let geometry = *lung.field.geometry();
+        let registrations = if outputs.registration {
+            Some(FrameRegistrations::open(
+                &lung.scene.mesh,
+                &geometry,
+                study,
+                &frames_dir,
+                outputs.registration_spacing_mm,
+            )?)
+        } else {
+            None
+        };
         Ok(FrameSink {
             field: &lung.field,
             points: &lung.points,
@@ -94,6 +112,7 @@ impl<'a> FrameSink<'a> {
             extremes: ExtremeFrames::of(&inputs.trace, times),
             captures: Vec::with_capacity(2),
             pictured_positions_m: None,
+            registrations,
             write_s: 0.0,
             sample_s: 0.0,
             nifti_s: 0.0,
@@ -250,6 +269,7 @@ impl FrameSink<'_> {
             displacement_nifti: format!("frames/{}/displacement.nii.gz", frame.index),
             displacement_mha: None,
             mesh_vtu: None,
+            registration_dicom: None,
         };
         if self.outputs.metaimage {
             metaimage::write_mha(
@@ -272,6 +292,9 @@ impl FrameSink<'_> {
                 )?,
             )?;
             files.mesh_vtu = Some(format!("frames/{}/mesh.vtu", frame.index));
+        }
+        if let Some(registrations) = self.registrations.as_mut() {
+            files.registration_dicom = Some(registrations.write(frame, mesh, positions)?);
         }
         if let Some(tracker) = self.target.as_mut() {
             // The frame's sampled field (zero outside the lungs) until the motion over the
@@ -332,6 +355,55 @@ impl FrameSink<'_> {
         if self.extremes.pictured().map(|p| p.1) == Some(index) {
             self.pictured_positions_m = Some(positions.to_vec());
         }
+    }
+}
+
+/// The frames' DICOM registrations, from the mesh's own motion (zero outside the lungs).
+struct FrameRegistrations {
+    lattice: MeshLattice,
+    writer: RegistrationWriter,
+}
+
+impl FrameRegistrations {
+    /// The writer on a grid of `spacing_mm` along the CT's axes (`ct_geometry`'s direction)
+    /// over the rest mesh and its margin.
+    fn open(
+        mesh: &crate::model::HexMesh,
+        ct_geometry: &VolumeGeometry,
+        study: &crate::formats::dicom::DicomStudyContext,
+        frames_dir: &Path,
+        spacing_mm: f64,
+    ) -> Result<Self> {
+        let grid = RegistrationGrid::around(
+            mesh.rest_positions_m.iter().map(|p| p * 1e3),
+            &ct_geometry.direction(),
+            spacing_mm,
+            REGISTRATION_MARGIN_MM,
+        )?;
+        Ok(FrameRegistrations {
+            lattice: MeshLattice::of(mesh)?,
+            writer: RegistrationWriter::new(study.clone(), grid, frames_dir),
+        })
+    }
+
+    /// Writes `frame`'s registration; returns its path relative to the output directory.
+    fn write(
+        &mut self,
+        frame: &FrameSummary,
+        mesh: &crate::model::HexMesh,
+        positions: &[V3],
+    ) -> Result<String> {
+        // The phase (when the instants are phases) leads: it is what a planner looks for.
+        let phase = frame
+            .phase_percent
+            .map_or(String::new(), |p| format!("phase {p:.0}% "));
+        let label = format!(
+            "{phase}frame {} t={:.2}s {:+.0} mL",
+            frame.index, frame.time_s, frame.target_volume_ml
+        );
+        let motion = MeshMotion::new(&self.lattice, mesh, positions);
+        self.writer.frame(frame.index, &label, &motion)?;
+        Ok(format!("frames/{}/registration.dcm", frame.index))
     }
 }
 

@@ -288,6 +288,7 @@ pub fn run_breathing_on(
         lung,
         ct_dims,
         backdrop,
+        study,
     } = scene_of_scan(
         scan,
         outcome,
@@ -307,6 +308,7 @@ pub fn run_breathing_on(
         &config.outputs,
         inputs,
         times,
+        &study,
     )?;
     sink.target = target;
     let (report, dynamic) = run_the_motion(
@@ -407,6 +409,8 @@ struct SceneOfScan {
     lung: LungScene,
     ct_dims: [usize; 3],
     backdrop: Option<LookBackdrop>,
+    /// The CT's patient, study and frame of reference (generated for a NIfTI/NRRD CT).
+    study: crate::formats::dicom::DicomStudyContext,
 }
 
 /// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
@@ -432,6 +436,12 @@ fn scene_of_scan(
             .map(|s| s.series_instance_uid.clone()),
     };
     staging.check_replaces(&ct, overwrite)?;
+    let study = scan.get().study.clone().unwrap_or_else(|| {
+        let key = ct.fingerprint.trim_start_matches("fnv1a64:");
+        crate::formats::dicom::DicomStudyContext::generated(
+            u64::from_str_radix(key, 16).unwrap_or(0),
+        )
+    });
     *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
     log_memory("ingested");
     return_freed_memory();
@@ -460,6 +470,7 @@ fn scene_of_scan(
         lung,
         ct_dims,
         backdrop,
+        study,
     })
 }
 

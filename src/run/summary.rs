@@ -135,6 +135,8 @@ pub struct FrameFiles {
     pub displacement_mha: Option<String>,
     /// Deformed mesh, when asked for.
     pub mesh_vtu: Option<String>,
+    /// DICOM Deformable Spatial Registration, when asked for.
+    pub registration_dicom: Option<String>,
 }
 
 /// One output frame in `summary.json`.

@@ -192,7 +192,12 @@ fn without_defaults() -> Value {
                     "quicklooks": boolean("Write the PNG quick looks"),
                     "field_grid": {"type": "string", "enum": ["lung_box", "ct"],
                         "description": "The fields' grid: the box around the lungs or the \
-                            whole CT"}
+                            whole CT"},
+                    "registration": boolean("Also write each frame's DICOM Deformable Spatial \
+                        Registration (frames/<k>/registration.dcm)"),
+                    "registration_spacing_mm": {"type": "number", "minimum": 0.5,
+                        "maximum": 20, "description": "Spacing of the registration's vector \
+                            grid over the lungs, mm (default 3)"}
                 }
             }
         }

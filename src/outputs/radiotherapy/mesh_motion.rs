@@ -1,0 +1,203 @@
+//! The lung mesh's own motion at one instant as a [`PhaseMotion`]: the elements' trilinear
+//! interpolation inside the lungs, zero outside. The exact motion the tracked points follow
+//! (`trajectories.csv`), used where the motion over the whole CT is not wanted or not built.
+
+use std::collections::HashMap;
+
+use super::PhaseMotion;
+use crate::math::V3;
+use crate::model::HexMesh;
+use crate::{Error, Result};
+
+/// Fixed-point iterations of [`MeshMotion::source_lps_mm`] before it gives its best estimate.
+const INVERSE_ITERATIONS: usize = 60;
+/// Residual |x + u(x) − y| at which the inverse stops, mm.
+const INVERSE_TOLERANCE_MM: f64 = 1e-5;
+
+/// Where each element of a cube-lattice mesh sits, to find the element holding a point in
+/// O(1). Built once per run (the rest mesh does not change).
+#[derive(Debug, Clone)]
+pub struct MeshLattice {
+    origin_m: V3,
+    axes: [V3; 3],
+    edge_m: f64,
+    /// The element filling each lattice cell (the first one when both lungs claim a cell).
+    cells: HashMap<[i64; 3], u32>,
+}
+
+impl MeshLattice {
+    /// Recovers the lattice of `mesh`'s equal cubes; refuses a mesh that is not one.
+    pub fn of(mesh: &HexMesh) -> Result<Self> {
+        let first = mesh
+            .elements
+            .first()
+            .ok_or_else(|| Error::InvalidModel("the mesh has no elements".into()))?;
+        let x = |n: u32| mesh.rest_positions_m[n as usize];
+        let edge = x(first[1]) - x(first[0]);
+        let edge_m = edge.norm();
+        if !(edge_m.is_finite() && edge_m > 0.0) {
+            return Err(Error::InvalidModel(format!(
+                "element 0 has an edge of {edge_m} m; the lung motion needs cubes"
+            )));
+        }
+        let axes = [
+            edge / edge_m,
+            (x(first[3]) - x(first[0])).normalize(),
+            (x(first[4]) - x(first[0])).normalize(),
+        ];
+        let mut lattice = MeshLattice {
+            origin_m: x(first[0]),
+            axes,
+            edge_m,
+            cells: HashMap::with_capacity(mesh.elements.len()),
+        };
+        for (e, nodes) in mesh.elements.iter().enumerate() {
+            let centre = x(nodes[0]) + (axes[0] + axes[1] + axes[2]) * (0.5 * edge_m);
+            let f = lattice.coords(centre);
+            let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
+            let off =
+                (f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64)).add_scalar(-0.5);
+            if off.norm() > 1e-6 {
+                return Err(Error::InvalidModel(format!(
+                    "element {e} is not a cube of the mesh's lattice"
+                )));
+            }
+            lattice.cells.entry(cell).or_insert(e as u32);
+        }
+        Ok(lattice)
+    }
+
+    /// Lattice coordinates of `p_m`, in element edges.
+    fn coords(&self, p_m: V3) -> V3 {
+        let d = p_m - self.origin_m;
+        V3::new(
+            d.dot(&self.axes[0]),
+            d.dot(&self.axes[1]),
+            d.dot(&self.axes[2]),
+        ) / self.edge_m
+    }
+
+    /// The element holding `p_m` and the point's place in it (0…1 per axis), if any.
+    fn locate(&self, p_m: V3) -> Option<(u32, V3)> {
+        let f = self.coords(p_m);
+        let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
+        let e = *self.cells.get(&cell)?;
+        Some((
+            e,
+            f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64),
+        ))
+    }
+}
+
+/// The mesh's motion at one instant: node positions over the rest mesh.
+pub struct MeshMotion<'a> {
+    lattice: &'a MeshLattice,
+    mesh: &'a HexMesh,
+    positions_m: &'a [V3],
+}
+
+impl<'a> MeshMotion<'a> {
+    /// The motion that takes `mesh`'s rest nodes to `positions_m` (metres, LPS).
+    pub fn new(lattice: &'a MeshLattice, mesh: &'a HexMesh, positions_m: &'a [V3]) -> Self {
+        MeshMotion {
+            lattice,
+            mesh,
+            positions_m,
+        }
+    }
+
+    /// Displacement of the tissue at rest point `p_m`, metres; zero outside every element.
+    fn displacement_m(&self, p_m: V3) -> V3 {
+        let Some((e, local)) = self.lattice.locate(p_m) else {
+            return V3::zeros();
+        };
+        let rest = &self.mesh.rest_positions_m;
+        let mut u = V3::zeros();
+        for (corner, &n) in self.mesh.elements[e as usize].iter().enumerate() {
+            let n = n as usize;
+            // VTK corner order: bit pattern of (x, y, z) per corner.
+            let bits = [
+                [0, 0, 0],
+                [1, 0, 0],
+                [1, 1, 0],
+                [0, 1, 0],
+                [0, 0, 1],
+                [1, 0, 1],
+                [1, 1, 1],
+                [0, 1, 1],
+            ][corner];
+            let w = (0..3)
+                .map(|a| {
+                    if bits[a] == 1 {
+                        local[a]
+                    } else {
+                        1.0 - local[a]
+                    }
+                })
+                .product::<f64>();
+            u += (self.positions_m[n] - rest[n]) * w;
+        }
+        u
+    }
+}
+
+impl PhaseMotion for MeshMotion<'_> {
+    fn moved_lps_mm(&self, rest_lps_mm: [f64; 3]) -> [f64; 3] {
+        let p = V3::from(rest_lps_mm);
+        (p + self.displacement_m(p * 1e-3) * 1e3).into()
+    }
+
+    fn source_lps_mm(&self, moved_lps_mm: [f64; 3]) -> [f64; 3] {
+        // x = y − u(x): converges where the motion's gradient stays below 1, as breathing's does.
+        let y = V3::from(moved_lps_mm);
+        let mut x = y;
+        for _ in 0..INVERSE_ITERATIONS {
+            let next = y - self.displacement_m(x * 1e-3) * 1e3;
+            let step = (next - x).norm();
+            x = next;
+            if step < INVERSE_TOLERANCE_MM {
+                break;
+            }
+        }
+        x.into()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{HexMesh, Material, VoxelGrid};
+
+    /// A 2 × 1 × 1 block of 10 mm cubes at the origin.
+    fn block() -> HexMesh {
+        VoxelGrid::filled_box([2, 1, 1], [0.01; 3], V3::zeros())
+            .to_mesh(Material::LUNG)
+            .unwrap()
+            .mesh
+    }
+
+    #[test]
+    fn a_linear_stretch_is_reproduced_inside_and_is_zero_outside_and_inverts() {
+        let mesh = block();
+        let lattice = MeshLattice::of(&mesh).unwrap();
+        // u = (0.1·x, 0, −0.05·z): linear, so the elements carry it exactly.
+        let positions: Vec<V3> = mesh
+            .rest_positions_m
+            .iter()
+            .map(|p| V3::new(p.x * 1.1, p.y, p.z * 0.95))
+            .collect();
+        let motion = MeshMotion::new(&lattice, &mesh, &positions);
+        let p = [13.0, 4.0, 7.0];
+        let moved = motion.moved_lps_mm(p);
+        assert!(
+            (moved[0] - 14.3).abs() < 1e-9 && (moved[2] - 6.65).abs() < 1e-9,
+            "{moved:?}"
+        );
+        assert_eq!(motion.moved_lps_mm([35.0, 4.0, 7.0]), [35.0, 4.0, 7.0]);
+        let back = motion.source_lps_mm(moved);
+        assert!(
+            (0..3).all(|a| (back[a] - p[a]).abs() < 1e-4),
+            "{back:?} is not {p:?}"
+        );
+    }
+}
