@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use lungmotion::breathing::BreathingTrace;
-use lungmotion::run::demo::{demo_inputs, sample_volumes_dir};
+use lungmotion::run::demo::{demo_config, demo_inputs, sample_volumes_dir};
 use lungmotion::run::{Overwrite, RunConfig, RunInputs};
 
 use super::interrupt::Interrupt;
@@ -143,10 +143,7 @@ impl RunArgs {
 impl DemoArgs {
     /// Runs the job on the bundled phantom and prints its summary.
     pub fn execute(self) -> anyhow::Result<()> {
-        let config = RunConfig {
-            element_size_mm: self.element_size,
-            ..RunConfig::default()
-        };
+        let config = demo_config(self.element_size);
         let inputs = demo_inputs(&sample_volumes_dir())?;
         eprintln!(
             "lungmotion: demo on {} with {}",

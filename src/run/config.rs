@@ -31,6 +31,8 @@
 //! ingest_files = true                  # ingest/: lung mask, groups, mesh, ingest.json
 //! quicklooks = true                    # breathing-curve and end-inhale PNGs
 //! field_grid = "lung_box"              # or "ct": the fields on the whole CT grid
+//! virtual_ct = "off"                   # "nifti", "dicom" or "both": the CT at each frame
+//! outside_lung_decay_mm = 15.0         # how far the motion reaches beyond the lungs
 //! ```
 
 use std::path::Path;
@@ -43,6 +45,7 @@ use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
 use crate::outputs::displacement_field::FieldGrid;
+use crate::outputs::radiotherapy::virtual_ct::VirtualCtOutput;
 use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest configuration file read, bytes (a real one is well under 2 kB).
@@ -143,6 +146,10 @@ pub struct OutputConfig {
     pub quicklooks: bool,
     /// The displacement fields' grid: the box around the lungs (default) or the whole CT.
     pub field_grid: FieldGrid,
+    /// The virtual 4D-CT (the CT at each frame, MIP, AIP) as NIfTI, DICOM, both, or not.
+    pub virtual_ct: VirtualCtOutput,
+    /// Decay length (Gaussian σ) of the motion outside the lungs under the virtual CT, mm.
+    pub outside_lung_decay_mm: f64,
 }
 
 impl Default for RunConfig {
@@ -181,6 +188,8 @@ impl Default for OutputConfig {
             ingest_files: true,
             quicklooks: true,
             field_grid: FieldGrid::default(),
+            virtual_ct: VirtualCtOutput::Off,
+            outside_lung_decay_mm: crate::outputs::radiotherapy::ct_motion::DEFAULT_DECAY_LENGTH_MM,
         }
     }
 }
@@ -271,6 +280,13 @@ impl RunConfig {
             return bad("element_size_mm", format!("{h} mm is not within 2–16 mm"));
         }
         self.material.validate()?;
+        let decay = self.outputs.outside_lung_decay_mm;
+        if !(decay.is_finite() && (1.0..=500.0).contains(&decay)) {
+            return bad(
+                "outputs.outside_lung_decay_mm",
+                format!("{decay} mm is not within 1–500 mm"),
+            );
+        }
         let m = &self.motion;
         if !(m.interpolation_tolerance_mm.is_finite() && m.interpolation_tolerance_mm > 0.0) {
             return bad(

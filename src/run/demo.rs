@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{RunInputs, TrackedPoint};
+use super::{RunConfig, RunInputs, TrackedPoint};
 use crate::breathing::LujanBreathing;
 use crate::{Error, IoContext, IoOp, Result};
 
@@ -24,6 +24,17 @@ pub fn sample_volumes_dir() -> PathBuf {
     } else {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes")
     }
+}
+
+/// The demo's settings: elements of `element_size_mm` and every output a radiotherapy team
+/// loads, the virtual 4D-CT as NIfTI and DICOM included.
+pub fn demo_config(element_size_mm: f64) -> RunConfig {
+    let mut config = RunConfig {
+        element_size_mm,
+        ..RunConfig::default()
+    };
+    config.outputs.virtual_ct = crate::outputs::radiotherapy::virtual_ct::VirtualCtOutput::Both;
+    config
 }
 
 /// Inputs of the demo: the phantom's DICOM series, two Lujan breaths of 500 mL (4 s period,

@@ -16,6 +16,7 @@ use crate::math::V3;
 use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::lung_mesh_vtu;
+use crate::outputs::radiotherapy::virtual_ct::VirtualCtWriter;
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
 use crate::{IoContext, IoOp, Result};
@@ -41,9 +42,21 @@ pub(super) struct FrameSink<'a> {
     write_s: f64,
     sample_s: f64,
     nifti_s: f64,
+    /// The virtual 4D-CT, when asked for: each frame's CT written as the frames stream past.
+    virtual_ct: Option<VirtualCtWriter<'a>>,
 }
 
 impl<'a> FrameSink<'a> {
+    /// Also writes the virtual CT of each frame with `writer`.
+    pub(super) fn set_virtual_ct(&mut self, writer: VirtualCtWriter<'a>) {
+        self.virtual_ct = Some(writer);
+    }
+
+    /// The virtual CT writer, to finish once the frames are through.
+    pub(super) fn take_virtual_ct(&mut self) -> Option<VirtualCtWriter<'a>> {
+        self.virtual_ct.take()
+    }
+
     /// Prepares `frames/` and, with tracked points, `trajectories.csv` in the staging
     /// directory for one frame per instant of `times`, the fields on the sampler's grid;
     /// `model` gives the frame meshes their lung and group labels.
@@ -93,6 +106,7 @@ impl<'a> FrameSink<'a> {
             write_s: 0.0,
             sample_s: 0.0,
             nifti_s: 0.0,
+            virtual_ct: None,
         })
     }
 
@@ -288,6 +302,9 @@ impl FrameSink<'_> {
                 |best, (i, d)| if d > best.1 { (i, d) } else { best },
             );
         self.capture_extreme(frame.index, positions);
+        if let Some(writer) = self.virtual_ct.as_mut() {
+            writer.write_phase(frame.index, frame.time_s, mesh, positions)?;
+        }
         let write_time_s = t.elapsed().as_secs_f64();
         self.records.push(FrameRecord {
             summary: frame.clone(),

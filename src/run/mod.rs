@@ -40,6 +40,7 @@ pub use summary::{
 
 use crate::breathing::BreathingTrace;
 use crate::durable::write_atomic;
+use crate::formats::dicom::DicomStudyContext;
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
 use crate::ingest::scan::{load_ct_with, LoadedScan};
@@ -47,6 +48,10 @@ use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
+use crate::outputs::radiotherapy::ct_motion::CtMotionSettings;
+use crate::outputs::radiotherapy::virtual_ct::{
+    check_phase_count, inverse_warnings, phase_labels, VirtualCtWriter,
+};
 use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
@@ -282,6 +287,7 @@ pub fn run_breathing_on(
         lung,
         ct_dims,
         backdrop,
+        kept,
     } = scene_of_scan(
         scan,
         outcome,
@@ -302,6 +308,11 @@ pub fn run_breathing_on(
         inputs,
         &times,
     )?;
+    if let Some(kept) = &kept {
+        sink.set_virtual_ct(virtual_ct_writer(
+            kept, &lung, inputs, config, &times, &staging,
+        )?);
+    }
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
@@ -312,7 +323,13 @@ pub fn run_breathing_on(
         observer,
     )
     .map_err(|e| name_element_groups(e, &outcome.model))?;
+    let virtual_ct = sink.take_virtual_ct();
     let mut written = sink.finish();
+    let virtual_ct = virtual_ct.map(VirtualCtWriter::finish).transpose()?;
+    drop(kept);
+    if let Some(v) = &virtual_ct {
+        timings.insert("virtual_ct".to_string(), v.time_s);
+    }
     log_memory("frames written");
     written.record_timings(report.wall_time_s, &mut timings);
 
@@ -363,6 +380,12 @@ pub fn run_breathing_on(
         timings,
     );
     summary.ct_fingerprint = Some(ct.fingerprint);
+    if let Some(v) = virtual_ct {
+        summary
+            .warnings
+            .extend(inverse_warnings(&v, VIRTUAL_CT_RESIDUAL_WARNING_MM));
+        summary.virtual_ct = Some(v);
+    }
     log_memory("summary and quick looks");
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
@@ -371,25 +394,60 @@ pub fn run_breathing_on(
 }
 
 /// What a run keeps of its CT once the lung scene is built.
-struct SceneOfScan {
+struct SceneOfScan<'a> {
     ct: CtIdentity,
     lung: LungScene,
     ct_dims: [usize; 3],
     backdrop: Option<LookBackdrop>,
+    /// The CT itself and its study, kept only for the virtual CT.
+    kept: Option<KeptCt<'a>>,
+}
+
+/// The CT voxels and DICOM study a virtual CT is made from.
+struct KeptCt<'a> {
+    ct: std::borrow::Cow<'a, crate::volume::Volume<f32>>,
+    study: crate::formats::dicom::DicomStudyContext,
+}
+
+/// A virtual CT between inverse-map nodes off by more than this raises a warning, mm.
+const VIRTUAL_CT_RESIDUAL_WARNING_MM: f64 = 0.5;
+
+/// The writer of the virtual CT of `kept` through the frames at `times`.
+fn virtual_ct_writer<'a>(
+    kept: &'a KeptCt<'a>,
+    lung: &LungScene,
+    inputs: &RunInputs,
+    config: &RunConfig,
+    times: &[f64],
+    staging: &OutputStaging,
+) -> Result<VirtualCtWriter<'a>> {
+    let settings = CtMotionSettings {
+        decay_length_mm: config.outputs.outside_lung_decay_mm,
+        ..CtMotionSettings::default()
+    };
+    VirtualCtWriter::new(
+        &kept.ct,
+        kept.study.clone(),
+        &lung.scene.mesh,
+        settings,
+        config.outputs.virtual_ct,
+        phase_labels(&inputs.trace, times, &config.motion.instants),
+        staging.dir(),
+    )
 }
 
 /// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
 /// the ingest files and cuts out the quick look's backdrop; the CT is let go on return when
 /// the run owns it. Adds `ingest`, `lung_scene` and `ingest_files` to `timings`.
-fn scene_of_scan(
-    scan: ScanHold,
+fn scene_of_scan<'a>(
+    scan: ScanHold<'a>,
     outcome: &IngestOutcome,
     inputs: &RunInputs,
     config: &RunConfig,
     staging: &OutputStaging,
     overwrite: Overwrite,
     timings: &mut BTreeMap<String, f64>,
-) -> Result<SceneOfScan> {
+) -> Result<SceneOfScan<'a>> {
     let t = Instant::now();
     let ct = CtIdentity {
         path: inputs.ct_path.display().to_string(),
@@ -414,14 +472,31 @@ fn scene_of_scan(
     }
     timings.insert("ingest_files".to_string(), t.elapsed().as_secs_f64());
     let ct_dims = scan.get().ct.geometry.dims;
-    let backdrop = if config.outputs.quicklooks {
-        Some(LookBackdrop::of(
-            scan.into_ct(),
+    let study = config.outputs.virtual_ct.enabled().then(|| {
+        scan.get().study.clone().unwrap_or_else(|| {
+            let key = ct.fingerprint.rsplit(':').next().unwrap_or("0");
+            DicomStudyContext::generated(u64::from_str_radix(key, 16).unwrap_or(0))
+        })
+    });
+    let (kept, ct_for_look) = match study {
+        Some(study) => (
+            Some(KeptCt {
+                ct: scan.into_ct(),
+                study,
+            }),
+            None,
+        ),
+        None => (None, Some(scan.into_ct())),
+    };
+    // A kept CT is lent to the look (which crops it), else the look takes it.
+    let look_ct = ct_for_look.or_else(|| kept.as_ref().map(|k| std::borrow::Cow::Borrowed(&*k.ct)));
+    let backdrop = match look_ct {
+        Some(ct) if config.outputs.quicklooks => Some(LookBackdrop::of(
+            ct,
             &outcome.segmentation.lungs,
             &lung.field,
-        )?)
-    } else {
-        None
+        )?),
+        _ => None,
     };
     log_memory("lung scene built, ingest files written, CT let go");
     Ok(SceneOfScan {
@@ -429,6 +504,7 @@ fn scene_of_scan(
         lung,
         ct_dims,
         backdrop,
+        kept,
     })
 }
 
@@ -445,6 +521,7 @@ fn check_inputs(
     settings.cancel = observer.cancel_flag();
     settings.progress = observer.solve_progress();
     let times = settings.instants.times(&inputs.trace)?;
+    check_phase_count(config.outputs.virtual_ct, times.len())?;
     Ok((settings, times))
 }
 

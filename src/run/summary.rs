@@ -52,6 +52,9 @@ pub struct RunSummary {
     pub deepest_expiration: Option<BreathExtremeSummary>,
     /// Tracked points (also in `trajectories.csv`).
     pub points: Vec<PointTrajectory>,
+    /// The virtual 4D-CT: motion grid, decay, inverse residual and files per phase; `null`
+    /// when not asked for.
+    pub virtual_ct: Option<crate::outputs::radiotherapy::virtual_ct::VirtualCtSummary>,
     /// Stage wall times, s.
     pub timings_s: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB.
@@ -449,6 +452,7 @@ impl RunSummary {
             end_inhale: extreme(BreathExtreme::EndInhale),
             deepest_expiration: extreme(BreathExtreme::DeepestExpiration),
             points,
+            virtual_ct: None,
             timings_s,
             peak_memory_mib: None,
             warnings,

@@ -24,7 +24,7 @@ use crate::volume::Volume;
 
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
 pub use study::{DicomStudyContext, SliceReference};
-pub use write::write_ct_series;
+pub use write::{write_ct_series, DerivedSeries, RespiratoryPhase};
 
 /// Choices for [`read_dicom_series_with`].
 #[derive(Debug, Clone, Default)]
@@ -98,6 +98,10 @@ pub struct CtSeriesMetadata {
     pub manufacturer: String,
     /// PatientPosition, e.g. "HFS" (head first, supine).
     pub patient_position: String,
+    /// A series derived from a planning CT (virtual 4D-CT phase, MIP, AIP): written into its
+    /// patient, study and frame of reference, the fields above giving only the descriptions,
+    /// manufacturer and series number; `None` starts a study of its own.
+    pub derived: Option<DerivedSeries>,
 }
 
 impl Default for CtSeriesMetadata {
@@ -111,6 +115,7 @@ impl Default for CtSeriesMetadata {
             series_number: 1,
             manufacturer: "lungmotion".into(),
             patient_position: "HFS".into(),
+            derived: None,
         }
     }
 }

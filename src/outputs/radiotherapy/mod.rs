@@ -2,6 +2,9 @@
 //! phase (virtual 4D-CT), the target's motion and internal target volume, and the DICOM
 //! objects (CT series, RTSTRUCT, spatial registrations) a planning system and a PACS accept.
 
+pub mod ct_motion;
+pub mod virtual_ct;
+
 /// The motion of one output instant over the whole CT grid, both ways, in LPS millimetres:
 /// what the virtual CT, the warped target and the spatial registrations are made from, so
 /// that all of them agree with each other.

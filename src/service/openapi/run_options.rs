@@ -190,7 +190,13 @@ fn without_defaults() -> Value {
                     "quicklooks": boolean("Write the PNG quick looks"),
                     "field_grid": {"type": "string", "enum": ["lung_box", "ct"],
                         "description": "The fields' grid: the box around the lungs or the \
-                            whole CT"}
+                            whole CT"},
+                    "virtual_ct": {"type": "string", "enum": ["off", "nifti", "dicom", "both"],
+                        "description": "The virtual 4D-CT (the CT at each frame, MIP, AIP) \
+                            as NIfTI, DICOM CT series, both, or not"},
+                    "outside_lung_decay_mm": {"type": "number", "minimum": 1, "maximum": 500,
+                        "description": "Decay length of the motion outside the lungs under \
+                            the virtual CT, mm"}
                 }
             }
         }
