@@ -182,6 +182,18 @@ pub enum Error {
     /// The run was cancelled by its caller (nothing was published).
     #[error("cancelled: {0}")]
     Cancelled(String),
+
+    /// A DICOMweb server (PACS) could not be reached, refused a request or answered with
+    /// something unusable.
+    #[error("PACS {url}{}: {reason}", status.map(|s| format!(" answered HTTP {s}")).unwrap_or_default())]
+    Pacs {
+        /// The request's URL.
+        url: String,
+        /// The HTTP status, when the server answered.
+        status: Option<u16>,
+        /// What went wrong.
+        reason: String,
+    },
 }
 
 /// What was being done to a file or directory when it failed; shown as a verb phrase

@@ -57,6 +57,8 @@ pub mod math;
 pub mod model;
 pub mod motion;
 pub mod outputs;
+#[cfg(feature = "pacs")]
+pub mod pacs;
 pub mod phantom;
 pub mod process;
 pub mod run;

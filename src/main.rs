@@ -82,6 +82,9 @@ enum Command {
     /// it gracefully: running jobs get shutdown_grace_s, then go back to the queue.
     #[command(verbatim_doc_comment)]
     Serve(ServeArgs),
+    /// Exchange DICOM with a PACS over DICOMweb: `pacs pull` fetches a CT series (QIDO-RS,
+    /// WADO-RS), `pacs push` stores a run's DICOM outputs (STOW-RS), never twice.
+    Pacs(cli::pacs::PacsArgs),
 }
 
 fn main() -> ExitCode {
@@ -99,6 +102,7 @@ fn main() -> ExitCode {
         Command::Phantom(args) => args.execute(),
         Command::Validate(args) => args.execute(),
         Command::Bench(args) => args.execute(),
+        Command::Pacs(args) => args.execute(),
         Command::Serve(_) => unreachable!("handled above"),
     })
 }

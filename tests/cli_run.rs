@@ -143,8 +143,16 @@ fn bad_traces_points_and_configurations_are_named() {
     std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,300\n2,0\n").unwrap();
     std::fs::write(dir.join("points.csv"), "name,x_mm,y_mm\ntumour,1,2\n").unwrap();
     std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
-    let cases: [(&[&str], &str); 4] = [
+    let cases: [(&[&str], &str); 6] = [
         (&["--trace", "{dir}/unsorted.csv"], "unsorted.csv"),
+        (
+            &["--trace", "{dir}/trace.csv", "--trace-window", "5:9"],
+            "holds 0 sample",
+        ),
+        (
+            &["--trace", "{dir}/trace.csv", "--trace-window", "1-2"],
+            "expected START:END",
+        ),
         (&["--trace", "{dir}/missing.csv"], "missing.csv"),
         (
             &["--trace", "{dir}/trace.csv", "--points", "{dir}/points.csv"],
@@ -178,6 +186,7 @@ fn help_explains_the_trace_and_the_field_convention() {
         "end-inhale",
         "--element-size",
         "--points",
+        "--trace-window",
     ] {
         assert!(
             help.contains(needle),

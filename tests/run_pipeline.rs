@@ -393,3 +393,48 @@ fn the_dynamic_mode_runs_the_pipeline_and_shows_hysteresis() {
     assert!(field.iter().all(|u| u.iter().all(|c| c.is_finite())));
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// A curve a user actually has: one breath (end-exhale, end-inhale, end-exhale) gets its 10
+/// phases, phase 0 % at end-inhale, each frame labelled; a ramp gets every sample; both say
+/// so in `summary.json`.
+#[test]
+fn one_breath_gets_phases_and_a_ramp_gets_every_sample() {
+    let out = temp_dir("one-breath");
+    let one = LujanBreathing::default().trace(4.0, 10.0).unwrap();
+    let s = run_breathing(&small_inputs(one), &coarse(), &out, &mut SilentObserver).unwrap();
+    assert_eq!(s.frames.len(), 10);
+    let phases: Vec<f64> = s
+        .frames
+        .iter()
+        .map(|f| f.summary.phase_percent.unwrap())
+        .collect();
+    assert_eq!(phases[0], 60.0, "{phases:?}");
+    let end_inhale = s
+        .frames
+        .iter()
+        .find(|f| f.summary.phase_percent == Some(0.0));
+    let end_inhale = end_inhale.unwrap();
+    assert!((end_inhale.summary.target_volume_ml - 500.0).abs() < 1e-6);
+    assert!(s
+        .output_instants_note
+        .as_deref()
+        .unwrap()
+        .contains("one breath"));
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["frames"][0]["phase_percent"], 60.0);
+    std::fs::remove_dir_all(&out).unwrap();
+
+    let ramp = BreathingTrace::new(
+        vec![0.0, 0.5, 1.0, 1.5, 2.0],
+        vec![0.0, 50.0, 100.0, 150.0, 200.0],
+    )
+    .unwrap();
+    let s = run_breathing(&small_inputs(ramp), &coarse(), &out, &mut SilentObserver).unwrap();
+    assert_eq!(s.frames.len(), 5);
+    assert!(s.frames.iter().all(|f| f.summary.phase_percent.is_none()));
+    let note = s.output_instants_note.as_deref().unwrap();
+    assert!(note.contains("every sample"), "{note}");
+    assert!(s.warnings.iter().any(|w| w == note));
+    std::fs::remove_dir_all(&out).unwrap();
+}

@@ -518,9 +518,23 @@ fn every_bad_input_is_refused_with_its_status_and_reason() {
         422,
         &[],
     );
-    // One breath has no full cycle between two end-inhale peaks: no phases to output.
-    let half = simulation_request(1, &[], 12.0, 4);
-    check(server.post_simulation(&scan_id, &half), 422, &[]);
+    // A trace window outside the trace keeps nothing.
+    let mut windowed = tiny_request(2);
+    windowed["trace"]["window_s"] = json!([1000.0, 1001.0]);
+    check(
+        server.post_simulation(&scan_id, &windowed),
+        422,
+        &["holds 0 sample"],
+    );
+    // A trace that does not breathe has no phases to output.
+    check(
+        server.post_simulation(
+            &scan_id,
+            &json!({"trace": trace(vec![0.0, 1.0, 2.0], vec![5.0, 5.0, 5.0])}),
+        ),
+        422,
+        &["far less than a breath"],
+    );
     let mut bad_point = tiny_request(2);
     bad_point["points"] = json!([{"name": "a,b", "lps_mm": [0, 0, 0]}]);
     check(

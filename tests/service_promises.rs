@@ -150,6 +150,7 @@ fn expected_content_type(path: &str) -> &'static str {
         "csv" => "text/csv",
         "png" => "image/png",
         "vtu" | "vtp" => "application/xml",
+        "dcm" => "application/dicom",
         _ => "application/octet-stream",
     }
 }
@@ -261,7 +262,27 @@ fn progress_moves_while_solving_and_every_output_file_is_served() {
     ] {
         let resp = server.get(&format!("/v1/jobs/{job}/files/{outside}"));
         assert_eq!(resp.status(), 404, "{outside}");
+        let resp = server.get(&format!("/v1/jobs/{job}/archives/{outside}"));
+        assert_eq!(resp.status(), 404, "archive {outside}");
     }
+    // A directory as one zip (a virtual 4D-CT phase's DICOM series is fetched this way).
+    let resp = server.get(&format!("/v1/jobs/{job}/archives/ingest"));
+    assert_eq!(resp.status(), 200);
+    assert_eq!(resp.headers()["content-type"], "application/zip");
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(resp.bytes().unwrap())).unwrap();
+    let ingest_files: Vec<&String> = on_disk
+        .iter()
+        .filter(|p| p.starts_with("ingest/"))
+        .collect();
+    assert_eq!(zip.len(), ingest_files.len());
+    for path in ingest_files {
+        let mut entry = zip.by_name(path.strip_prefix("ingest/").unwrap()).unwrap();
+        let mut bytes = Vec::new();
+        std::io::Read::read_to_end(&mut entry, &mut bytes).unwrap();
+        assert_eq!(bytes, std::fs::read(out.join(path)).unwrap(), "{path}");
+    }
+    let resp = server.get(&format!("/v1/jobs/{job}/archives/summary.json"));
+    assert_eq!(resp.status(), 404);
 }
 
 /// A metric's value in the `/metrics` text (0 when absent).
@@ -370,4 +391,5 @@ fn the_openapi_document_declares_401s_upload_formats_and_the_run_options() {
     }
     assert!(doc["paths"]["/v1/jobs/{id}/files"]["get"].is_object());
     assert!(doc["paths"]["/v1/jobs/{id}/files/{path}"]["get"].is_object());
+    assert!(doc["paths"]["/v1/jobs/{id}/archives/{path}"]["get"].is_object());
 }

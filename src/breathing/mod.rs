@@ -8,5 +8,5 @@ pub mod instants;
 pub mod trace;
 
 pub use generator::{IrregularBreathing, LujanBreathing};
-pub use instants::OutputInstants;
+pub use instants::{InstantPlan, OutputInstants};
 pub use trace::{BreathingTrace, TraceFormat, TraceOptions, TraceReading, VolumeReference};

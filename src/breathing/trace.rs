@@ -79,6 +79,11 @@ pub struct TraceOptions {
     pub seconds_per_time_unit: Option<f64>,
     /// Multiplies the volume column to get mL; `None` reads the unit from the header.
     pub ml_per_volume_unit: Option<f64>,
+    /// Keeps only the samples from the first time to the second, s (e.g. the tidal breaths
+    /// of a recording that also holds vital-capacity manoeuvres); a flow is integrated and
+    /// its drift removed over the whole recording first. `None`: the whole trace.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub window_s: Option<[f64; 2]>,
 }
 
 /// A trace read from a file, with what was done to it on the way (an integrated airflow, a
@@ -176,7 +181,46 @@ impl BreathingTrace {
                 trace
             }
         };
+        let trace = match options.window_s {
+            Some(window) => {
+                let (kept, note) = trace.window(window).map_err(Fault::whole)?;
+                notes.push(note);
+                kept
+            }
+            None => trace,
+        };
         Ok(TraceReading { trace, notes })
+    }
+
+    /// The samples from `window[0]` to `window[1]` s, with a sentence saying what was kept.
+    fn window(self, window: [f64; 2]) -> std::result::Result<(Self, String), String> {
+        let [from, to] = window;
+        let (first, last) = (self.time_s[0], self.time_s[self.time_s.len() - 1]);
+        if !(from.is_finite() && to.is_finite() && from < to) {
+            return Err(format!(
+                "trace window [{from}, {to}] s: the start must be a number before the end"
+            ));
+        }
+        let keep: Vec<usize> = (0..self.time_s.len())
+            .filter(|&i| (from..=to).contains(&self.time_s[i]))
+            .collect();
+        if keep.len() < 2 {
+            return Err(format!(
+                "trace window [{from}, {to}] s holds {} sample(s); the trace runs from {first} s \
+                 to {last} s",
+                keep.len()
+            ));
+        }
+        let note = format!(
+            "kept the samples from {from} s to {to} s ({} of {}; window_s)",
+            keep.len(),
+            self.time_s.len()
+        );
+        let kept = BreathingTrace {
+            time_s: keep.iter().map(|&i| self.time_s[i]).collect(),
+            volume_change_ml: keep.iter().map(|&i| self.volume_change_ml[i]).collect(),
+        };
+        Ok((kept, note))
     }
 
     /// Checks finiteness, strictly increasing times, plausible volumes and flows.
@@ -481,6 +525,26 @@ mod tests {
         assert!((t.volume_at(0.25) - 60.25).abs() < 1e-12);
         assert_eq!(t.volume_at(-1.0), 0.0);
         assert_eq!(t.volume_at(9.0), 250.0);
+    }
+
+    #[test]
+    fn a_window_keeps_the_tidal_breaths_and_refuses_an_empty_or_inverted_one() {
+        let text = "time_s,volume_ml\n0,0\n1,500\n2,0\n3,2500\n4,0\n";
+        let opts = |w| TraceOptions {
+            window_s: Some(w),
+            ..TraceOptions::default()
+        };
+        let r = BreathingTrace::parse_with_notes(text, &opts([0.0, 2.0])).unwrap();
+        assert_eq!(r.trace.time_s, vec![0.0, 1.0, 2.0]);
+        assert_eq!(r.trace.volume_change_ml, vec![0.0, 500.0, 0.0]);
+        assert!(r.notes[0].contains("3 of 5"), "{:?}", r.notes);
+        let e = BreathingTrace::parse(text, &opts([2.5, 2.9])).unwrap_err();
+        assert!(
+            e.contains("holds 0 sample") && e.contains("from 0 s to 4 s"),
+            "{e}"
+        );
+        let e = BreathingTrace::parse(text, &opts([3.0, 1.0])).unwrap_err();
+        assert!(e.contains("start must be a number before the end"), "{e}");
     }
 
     #[test]

@@ -43,6 +43,8 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::OutputDir { .. }
         | Error::MissingData { .. }
         | Error::Listen { .. } => true,
+        // The PACS refused the request as asked (unknown study, no CT series): the input.
+        Error::Pacs { status, .. } => status.is_some_and(|s| (400..500).contains(&s)),
         // An input that cannot be read is refused; an output that cannot be written failed.
         Error::Io { op, .. } => {
             matches!(op, IoOp::Read | IoOp::Open | IoOp::List | IoOp::Metadata)

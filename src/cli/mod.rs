@@ -7,6 +7,7 @@ pub mod exit;
 pub mod ingest;
 pub mod interrupt;
 pub mod logging;
+pub mod pacs;
 pub mod phantom;
 pub mod progress;
 pub mod run;

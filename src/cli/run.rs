@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use lungmotion::breathing::BreathingTrace;
+use lungmotion::pacs::DicomWebAddress;
 use lungmotion::run::demo::{demo_config, demo_inputs, sample_volumes_dir};
 use lungmotion::run::{Overwrite, RunConfig, RunInputs};
 
@@ -23,9 +24,14 @@ fn overwrite_of(flag: bool) -> Overwrite {
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// The CT: a DICOM directory, a zip of one DICOM series, a NIfTI (.nii, .nii.gz) or a
-    /// NRRD file (told apart by content).
+    /// NRRD file (told apart by content), or a series on a PACS:
+    /// dicomweb://HOST:PORT/ROOT/studies/STUDY_UID[/series/SERIES_UID] (see `pacs pull`).
     #[arg(long)]
     ct: PathBuf,
+    /// After a successful run, store its DICOM outputs on this DICOMweb server
+    /// (dicomweb://HOST:PORT/ROOT), skipping the instances it already holds.
+    #[arg(long, value_name = "DICOMWEB_ROOT")]
+    push: Option<String>,
     /// The breathing trace (CSV or JSON, see above).
     #[arg(long)]
     trace: PathBuf,
@@ -49,6 +55,10 @@ pub struct RunArgs {
     /// The format is documented in the README; command-line options win.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Keep only the trace's samples from START to END seconds (`START:END`), e.g. the tidal
+    /// breaths of a recording with vital-capacity manoeuvres (the config's `[trace] window_s`).
+    #[arg(long, value_name = "START:END", value_parser = parse_window)]
+    trace_window: Option<[f64; 2]>,
     /// Points to follow (e.g. a tumour centre): CSV with the header name,x_mm,y_mm,z_mm, in
     /// LPS millimetres (DICOM patient coordinates, as a planning system shows them).
     #[arg(long)]
@@ -88,6 +98,39 @@ struct BreathingRun {
     out: PathBuf,
     overwrite: Overwrite,
     quiet: bool,
+    /// The CT pulled from a PACS, removed when the run ends.
+    pulled: Option<PulledSeries>,
+    /// Where to push the DICOM outputs.
+    push: Option<DicomWebAddress>,
+}
+
+/// A CT series pulled from a PACS into a temporary directory, removed on drop.
+struct PulledSeries {
+    dir: PathBuf,
+}
+
+impl PulledSeries {
+    /// Pulls the series `address` names into a fresh temporary directory.
+    fn pull(address: &DicomWebAddress, quiet: bool) -> anyhow::Result<Self> {
+        let dir = std::env::temp_dir().join(format!("lungmotion-pull-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let pulled = PulledSeries { dir };
+        let files = lungmotion::pacs::pull_ct(address, &pulled.dir)?;
+        if !quiet {
+            eprintln!(
+                "lungmotion: pulled {} instances from {}",
+                files.len(),
+                address.root_url
+            );
+        }
+        Ok(pulled)
+    }
+}
+
+impl Drop for PulledSeries {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
 }
 
 impl RunArgs {
@@ -111,6 +154,9 @@ impl RunArgs {
         }
         config.outputs.metaimage |= self.mha;
         config.outputs.mesh_vtu |= self.vtu;
+        if let Some(window) = self.trace_window {
+            config.trace.window_s = Some(window);
+        }
         let reading = BreathingTrace::read_with_notes(&self.trace, &config.trace)?;
         // What was done to the file's columns goes to the console and, with the file's name,
         // into summary.json's trace source.
@@ -121,8 +167,22 @@ impl RunArgs {
         if !reading.notes.is_empty() {
             trace_source = format!("{trace_source} ({})", reading.notes.join("; "));
         }
+        let push = self
+            .push
+            .as_deref()
+            .map(DicomWebAddress::parse)
+            .transpose()?;
+        let ct_text = self.ct.to_string_lossy();
+        let pulled = if DicomWebAddress::is_dicomweb(&ct_text) {
+            Some(PulledSeries::pull(
+                &DicomWebAddress::parse(&ct_text)?,
+                self.quiet,
+            )?)
+        } else {
+            None
+        };
         let inputs = RunInputs {
-            ct_path: self.ct,
+            ct_path: pulled.as_ref().map_or(self.ct.clone(), |p| p.dir.clone()),
             trace: reading.trace,
             trace_source,
             points: match &self.points {
@@ -136,6 +196,8 @@ impl RunArgs {
             out: self.out,
             overwrite: overwrite_of(self.overwrite),
             quiet: self.quiet,
+            pulled,
+            push,
         })
     }
 }
@@ -156,6 +218,8 @@ impl DemoArgs {
             out: self.out,
             overwrite: overwrite_of(self.overwrite),
             quiet: self.quiet,
+            pulled: None,
+            push: None,
         }
         .execute()
     }
@@ -190,6 +254,15 @@ impl BreathingRun {
             eprintln!("lungmotion: warning: {w}");
         }
         print_summary(&summary, &self.out);
+        drop(self.pulled);
+        if let Some(address) = &self.push {
+            let report =
+                lungmotion::pacs::push(&address.root_url, std::slice::from_ref(&self.out))?;
+            println!(
+                "pushed to {}: {} instances stored, {} already there",
+                address.root_url, report.stored, report.already_stored
+            );
+        }
         Ok(())
     }
 }
@@ -249,4 +322,17 @@ fn print_summary(summary: &lungmotion::run::RunSummary, out: &std::path::Path) {
         summary.timings_s.get("total").copied().unwrap_or(0.0),
         out.join("summary.json").display()
     );
+}
+
+/// `START:END` seconds.
+fn parse_window(text: &str) -> Result<[f64; 2], String> {
+    let (a, b) = text
+        .split_once(':')
+        .ok_or_else(|| format!("'{text}': expected START:END in seconds, e.g. 10:40"))?;
+    let number = |v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .map_err(|_| format!("'{v}' in '{text}' is not a number of seconds"))
+    };
+    Ok([number(a)?, number(b)?])
 }

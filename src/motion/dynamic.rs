@@ -557,6 +557,7 @@ impl DynamicFrame {
         super::FrameSummary {
             index: self.index,
             time_s: self.time_s,
+            phase_percent: None,
             target_volume_ml: self.bellows.volume_ml,
             simulated_volume_ml: self.simulated_volume_ml,
             pressure_pa: self.surface_pressure_pa,

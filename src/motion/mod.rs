@@ -85,6 +85,9 @@ pub struct FrameSummary {
     pub index: usize,
     /// Time in the trace, s.
     pub time_s: f64,
+    /// Breathing phase, percent of the cycle from end-inhale, when phases were asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phase_percent: Option<f64>,
     /// Volume change from the scan the trace asks for, mL.
     pub target_volume_ml: f64,
     /// Volume change of the simulated lung surface, mL.
@@ -150,7 +153,8 @@ pub fn run_motion(
 ) -> Result<MotionReport> {
     let start = Instant::now();
     trace.validate()?;
-    let times = settings.instants.times(trace)?;
+    let plan = settings.instants.plan(trace)?;
+    let times = plan.times;
     let targets: Vec<f64> = times.iter().map(|&t| trace.volume_at(t)).collect();
     let (lo, hi) = targets
         .iter()
@@ -215,6 +219,7 @@ pub fn run_motion(
         let frame = FrameSummary {
             index,
             time_s,
+            phase_percent: plan.phase_percent.as_ref().map(|p| p[index]),
             target_volume_ml: target,
             simulated_volume_ml: simulated,
             pressure_pa: solve.pressure_pa,

@@ -16,6 +16,7 @@
 //!                                      # hydrostatic response follows that law
 //! [trace]
 //! reference = "change_from_scan"       # or { absolute = { scanned_volume_ml = 2800 } }
+//! # window_s = [10.0, 40.0]            # keep only these seconds (e.g. the tidal breaths)
 //! [motion]
 //! driver = { kind = "volume" }         # or { kind = "compliance", compliance_ml_per_pa = 2.0 }
 //! instants = { kind = "phases", count = 10 }   # every_sample | every_kth k | frame_rate hz

@@ -38,7 +38,7 @@ pub use summary::{
     RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM, SCANNED_STATE_TOLERANCE_ML,
 };
 
-use crate::breathing::BreathingTrace;
+use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::durable::write_atomic;
 use crate::formats::dicom::DicomStudyContext;
 use crate::ingest::lung_model::ConstraintGroup;
@@ -264,7 +264,8 @@ pub fn run_breathing_on(
 ) -> Result<RunSummary> {
     let t_total = Instant::now();
     let mut timings = BTreeMap::new();
-    let (settings, times) = check_inputs(inputs, config, observer)?;
+    let (settings, plan) = check_inputs(inputs, config, observer)?;
+    let times = &plan.times;
     let staging = OutputStaging::new(out_dir)?;
 
     // A CT read here is let go once its last readers are done (fingerprint, ingest files,
@@ -306,11 +307,11 @@ pub fn run_breathing_on(
         staging.dir(),
         &config.outputs,
         inputs,
-        &times,
+        times,
     )?;
     if let Some(kept) = &kept {
         sink.set_virtual_ct(virtual_ct_writer(
-            kept, &lung, inputs, config, &times, &staging,
+            kept, &lung, inputs, config, &plan, &staging,
         )?);
     }
     let (report, dynamic) = run_the_motion(
@@ -318,7 +319,7 @@ pub fn run_breathing_on(
         inputs,
         config,
         &settings,
-        &times,
+        &plan,
         &mut sink,
         observer,
     )
@@ -386,6 +387,10 @@ pub fn run_breathing_on(
             .extend(inverse_warnings(&v, VIRTUAL_CT_RESIDUAL_WARNING_MM));
         summary.virtual_ct = Some(v);
     }
+    if let Some(note) = plan.note {
+        summary.warnings.push(note.clone());
+        summary.output_instants_note = Some(note);
+    }
     log_memory("summary and quick looks");
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
@@ -418,7 +423,7 @@ fn virtual_ct_writer<'a>(
     lung: &LungScene,
     inputs: &RunInputs,
     config: &RunConfig,
-    times: &[f64],
+    plan: &InstantPlan,
     staging: &OutputStaging,
 ) -> Result<VirtualCtWriter<'a>> {
     let settings = CtMotionSettings {
@@ -431,7 +436,7 @@ fn virtual_ct_writer<'a>(
         &lung.scene.mesh,
         settings,
         config.outputs.virtual_ct,
-        phase_labels(&inputs.trace, times, &config.motion.instants),
+        phase_labels(&inputs.trace, plan),
         staging.dir(),
     )
 }
@@ -514,15 +519,15 @@ fn check_inputs(
     inputs: &RunInputs,
     config: &RunConfig,
     observer: &dyn RunObserver,
-) -> Result<(MotionSettings, Vec<f64>)> {
+) -> Result<(MotionSettings, InstantPlan)> {
     config.validate()?;
     inputs.trace.validate()?;
     let mut settings = config.motion_settings();
     settings.cancel = observer.cancel_flag();
     settings.progress = observer.solve_progress();
-    let times = settings.instants.times(&inputs.trace)?;
-    check_phase_count(config.outputs.virtual_ct, times.len())?;
-    Ok((settings, times))
+    let plan = settings.instants.plan(&inputs.trace)?;
+    check_phase_count(config.outputs.virtual_ct, plan.times.len())?;
+    Ok((settings, plan))
 }
 
 /// The lung scene of a run with the samplers that carry its node positions to the CT grid
@@ -609,7 +614,7 @@ fn run_the_motion(
     inputs: &RunInputs,
     config: &RunConfig,
     settings: &MotionSettings,
-    times: &[f64],
+    plan: &InstantPlan,
     sink: &mut FrameSink,
     observer: &mut dyn RunObserver,
 ) -> Result<(MotionReport, Option<DynamicReport>)> {
@@ -629,8 +634,12 @@ fn run_the_motion(
                 scene,
                 &inputs.trace,
                 &dynamic.settings(),
-                times,
-                &mut |f, positions| sink.frame(&f.as_frame_summary(), positions, observer),
+                &plan.times,
+                &mut |f, positions| {
+                    let mut frame = f.as_frame_summary();
+                    frame.phase_percent = plan.phase_percent.as_ref().map(|p| p[f.index]);
+                    sink.frame(&frame, positions, observer)
+                },
             )?;
             (r.as_motion_report(settings, &config.material), Some(r))
         }

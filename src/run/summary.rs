@@ -42,6 +42,9 @@ pub struct RunSummary {
     pub dynamic: Option<DynamicReport>,
     /// The grid every frame's displacement field is written on.
     pub field_grid: FieldGridSummary,
+    /// How the requested output instants were met (phases of one breath, every sample of a
+    /// ramp), when not literally.
+    pub output_instants_note: Option<String>,
     /// One entry per output frame, in time order.
     pub frames: Vec<FrameRecord>,
     /// The largest inspiration above the scanned volume, with physical checks; `null` when
@@ -455,6 +458,7 @@ impl RunSummary {
             virtual_ct: None,
             timings_s,
             peak_memory_mib: None,
+            output_instants_note: None,
             warnings,
         }
     }

@@ -46,6 +46,7 @@ pub mod run_options;
         routes::job_trajectories,
         routes::job_files,
         routes::job_file,
+        routes::job_archive,
         routes::healthz,
         routes::readyz,
         routes::metrics,

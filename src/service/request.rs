@@ -41,6 +41,9 @@ pub struct TraceBody {
     /// Multiplies the volumes to get mL (instead of the unit in the key's name).
     #[serde(default)]
     pub ml_per_volume_unit: Option<f64>,
+    /// Keep only the samples from the first time to the second, s.
+    #[serde(default)]
+    pub window_s: Option<[f64; 2]>,
 }
 
 impl TraceBody {
@@ -70,6 +73,7 @@ impl TraceBody {
                 "ml_per_volume_unit",
                 self.ml_per_volume_unit.map(Value::from),
             ),
+            ("window_s", self.window_s.map(|w| Value::from(w.to_vec()))),
         ] {
             if let Some(value) = value {
                 options[key] = value;

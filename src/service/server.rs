@@ -93,6 +93,7 @@ pub fn router(state: SharedState) -> Router {
         .route("/v1/jobs/{id}/trajectories", get(routes::job_trajectories))
         .route("/v1/jobs/{id}/files", get(routes::job_files))
         .route("/v1/jobs/{id}/files/{*path}", get(routes::job_file))
+        .route("/v1/jobs/{id}/archives/{*path}", get(routes::job_archive))
         .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     Router::new()
         .merge(v1)

@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use super::ct_motion::{CtMotionLayout, CtMotionSettings, InverseReport, ABDOMEN_DECAY_FACTOR};
 use super::PhaseMotion;
-use crate::breathing::{BreathingTrace, OutputInstants};
+use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::formats::dicom::{
     write_ct_series, CtSeriesMetadata, DerivedSeries, DicomStudyContext, RespiratoryPhase,
 };
@@ -99,7 +99,7 @@ pub struct PhaseLabel {
     pub percent: Option<f64>,
     /// `end-inhale`, `exhale`, `end-exhale` or `inhale`.
     pub breathing: &'static str,
-    /// Time since the first frame (end-inhale for phases), s.
+    /// Time since the cycle's end-inhale for phases, else since the first frame, s.
     pub time_since_first_s: f64,
     /// The cycle's length when the instants are phases of one cycle, s.
     #[serde(skip)]
@@ -128,14 +128,13 @@ impl PhaseLabel {
     }
 }
 
-/// The phase of each output time: percent of the cycle for phases (0 % at end-inhale), the
-/// largest and smallest volumes named end-inhale and end-exhale, the others by the trace's
-/// slope.
-pub fn phase_labels(
-    trace: &BreathingTrace,
-    times: &[f64],
-    instants: &OutputInstants,
-) -> Vec<PhaseLabel> {
+/// The phase of each output time of `plan`: its percent of the cycle from end-inhale when
+/// the instants are phases (the plan's `phase_percent`, as `FrameSummary.phase_percent`
+/// reports it), the largest and smallest volumes named end-inhale and end-exhale, the others
+/// by the trace's slope; the time since end-inhale and the cycle's length follow from the
+/// percentages (a one-breath trace's frames need not start at phase 0 %).
+pub fn phase_labels(trace: &BreathingTrace, plan: &InstantPlan) -> Vec<PhaseLabel> {
+    let times = &plan.times;
     let volumes: Vec<f64> = times.iter().map(|&t| trace.volume_at(t)).collect();
     let largest = volumes
         .iter()
@@ -147,18 +146,20 @@ pub fn phase_labels(
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(b.1))
         .map(|m| m.0);
+    let percents = plan
+        .phase_percent
+        .as_ref()
+        .filter(|p| p.len() == times.len());
+    // The cycle: from the 0 % frame to any later frame at p %, (t − t₀)·100/p.
+    let cycle_s = percents.and_then(|p| {
+        let zero = p.iter().position(|&x| x == 0.0)?;
+        let t0 = times[zero];
+        (0..times.len())
+            .filter(|&k| p[k] > 0.0 && times[k] > t0)
+            .map(|k| (times[k] - t0) * 100.0 / p[k])
+            .next()
+    });
     let first = times.first().copied().unwrap_or(0.0);
-    let (percent_of, cycle_s) = match *instants {
-        OutputInstants::Phases { count } if count > 0 && times.len() == count => {
-            let step = if count > 1 {
-                (times[count - 1] - first) / (count - 1) as f64
-            } else {
-                0.0
-            };
-            (Some(count), Some(step * count as f64))
-        }
-        _ => (None, None),
-    };
     let dt = 0.05;
     times
         .iter()
@@ -173,10 +174,15 @@ pub fn phase_labels(
             } else {
                 "exhale"
             };
+            let percent = percents.map(|p| p[k]);
+            let since = match (percent, cycle_s) {
+                (Some(p), Some(c)) => p / 100.0 * c,
+                _ => t - first,
+            };
             PhaseLabel {
-                percent: percent_of.map(|n| 100.0 * k as f64 / n as f64),
+                percent,
                 breathing,
-                time_since_first_s: t - first,
+                time_since_first_s: since,
                 cycle_s,
             }
         })

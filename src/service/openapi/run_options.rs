@@ -72,7 +72,9 @@ fn variant(kind: &str, description: &str, fields: Value) -> Value {
 fn instants() -> Value {
     json!({
         "description": "Which instants of the trace get a displacement field (default: 10 \
-            phases of the first complete breath)",
+            phases of the first complete cycle; a trace holding one breath is taken as one \
+            period, end-exhale to end-exhale; a trace without a complete breath gets every \
+            sample, said in the summary's output_instants_note)",
         "oneOf": [
             variant("every_sample", "Every sample of the trace", json!({})),
             variant("every_kth", "Every k-th sample, starting with the first", json!({
@@ -82,8 +84,8 @@ fn instants() -> Value {
                 "hz": {"type": "number", "exclusiveMinimum": 0,
                        "description": "Frames per second (at most 100 000 frames per run)"}
             })),
-            variant("phases", "`count` equally spaced phases of the first complete breath, \
-                phase 0 at end-inhale", json!({
+            variant("phases", "`count` equally spaced phases of the first complete cycle, \
+                phase 0 at end-inhale; each frame's phase in its phase_percent", json!({
                 "count": {"type": "integer", "minimum": 1,
                           "description": "Number of phases (10 like a 4D-CT)"}
             })),

@@ -42,6 +42,7 @@ pub fn content_type_of(name: &str) -> &'static str {
     let lower = name.to_ascii_lowercase();
     let by_suffix = [
         (".nii.gz", "application/gzip"),
+        (".dcm", "application/dicom"),
         (".gz", "application/gzip"),
         (".json", "application/json"),
         (".csv", "text/csv"),
@@ -91,7 +92,14 @@ fn output_files(out: &FsPath) -> std::io::Result<Vec<(String, u64)>> {
 /// The file `relative` names inside `out`, or 404: plain names only (no `..`, no absolute
 /// path, no hidden file), and it must be a regular file inside `out` once links are resolved.
 fn resolve_output(out: &FsPath, relative: &str) -> ApiResult<PathBuf> {
-    let missing = || ApiError::not_found(format!("the job wrote no file {relative:?}"));
+    resolve_output_entry(out, relative, false)
+}
+
+/// The file (or, with `directory`, the directory) `relative` names inside `out`, or 404, as
+/// [`resolve_output`] checks it.
+fn resolve_output_entry(out: &FsPath, relative: &str, directory: bool) -> ApiResult<PathBuf> {
+    let what = if directory { "directory" } else { "file" };
+    let missing = || ApiError::not_found(format!("the job wrote no {what} {relative:?}"));
     let plain = !relative.is_empty()
         && relative.len() <= 1024
         && !relative.contains('\\')
@@ -109,10 +117,94 @@ fn resolve_output(out: &FsPath, relative: &str) -> ApiResult<PathBuf> {
     let (Ok(root), Ok(real)) = (out.canonicalize(), path.canonicalize()) else {
         return Err(missing());
     };
-    if !real.starts_with(&root) || !real.is_file() {
+    let right_kind = if directory {
+        real.is_dir()
+    } else {
+        real.is_file()
+    };
+    if !real.starts_with(&root) || !right_kind {
         return Err(missing());
     }
     Ok(real)
+}
+
+/// Most bytes of files one archive may hold (a 512 × 512 × 500 DICOM series is ≈ 260 MB).
+const MAX_ARCHIVE_BYTES: u64 = 2 << 30;
+
+/// A zip (stored, not deflated: DICOM and gzip gain nothing) of the files under `dir`, with
+/// paths relative to it.
+fn zip_directory(dir: &FsPath, shown: &str) -> ApiResult<Vec<u8>> {
+    let files =
+        output_files(dir).map_err(|e| ApiError::internal(format!("cannot list {shown}: {e}")))?;
+    let total: u64 = files.iter().map(|(_, bytes)| bytes).sum();
+    if total > MAX_ARCHIVE_BYTES {
+        return Err(ApiError::new(
+            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            "archive-too-large",
+            format!(
+                "{shown} holds {total} bytes, more than the {MAX_ARCHIVE_BYTES} one archive may; \
+                 fetch its files one by one"
+            ),
+        ));
+    }
+    let failed = |e: &dyn std::fmt::Display| ApiError::internal(format!("zip of {shown}: {e}"));
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::with_capacity(
+        total as usize + files.len() * 128,
+    )));
+    let options = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Stored)
+        .large_file(total > u64::from(u32::MAX));
+    for (name, _) in &files {
+        zip.start_file(name.as_str(), options)
+            .map_err(|e| failed(&e))?;
+        let bytes = std::fs::read(dir.join(name)).map_err(|e| failed(&e))?;
+        std::io::Write::write_all(&mut zip, &bytes).map_err(|e| failed(&e))?;
+    }
+    Ok(zip.finish().map_err(|e| failed(&e))?.into_inner())
+}
+
+/// One directory of a finished job's outputs as a zip: a virtual 4D-CT phase's DICOM series
+/// (`frames/3/virtual-ct-dicom`), a frame's whole folder, `ingest` …
+#[utoipa::path(
+    get, path = "/v1/jobs/{id}/archives/{path}", tag = "results",
+    params(("id" = String, Path, description = "Job id"),
+           ("path" = String, Path, description = "A directory of the file list's paths \
+            (`frames/3/virtual-ct-dicom`, `frames/3`, `ingest`)")),
+    responses(
+        (status = 200, description = "A zip of the directory's files (stored, paths relative \
+            to it)", content_type = "application/zip"),
+        (status = 404, description = "No such job or directory", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "More than 2 GiB of files", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn job_archive(
+    State(state): State<SharedState>,
+    Path((id, relative)): Path<(String, String)>,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    let shown = relative.trim_end_matches('/').to_string();
+    let name = shown.clone();
+    let bytes = blocking(move || {
+        finished_job(&state, id)?;
+        let dir = resolve_output_entry(&state.store.job_output_dir(id), &name, true)?;
+        zip_directory(&dir, &name)
+    })
+    .await?;
+    let filename = format!("{id}-{}.zip", shown.replace('/', "-"));
+    let mut response = Response::new(axum::body::Body::from(bytes));
+    let headers = response.headers_mut();
+    headers.insert(
+        axum::http::header::CONTENT_TYPE,
+        axum::http::HeaderValue::from_static("application/zip"),
+    );
+    if let Ok(v) =
+        axum::http::HeaderValue::from_str(&format!("attachment; filename=\"{filename}\""))
+    {
+        headers.insert(axum::http::header::CONTENT_DISPOSITION, v);
+    }
+    Ok(response)
 }
 
 /// Every file of a finished job, with its link and content type.
@@ -233,6 +325,13 @@ mod tests {
             std::os::unix::fs::symlink(dir.join("job.json"), out.join("link.json")).unwrap();
             assert!(resolve_output(&out, "link.json").is_err());
         }
+        let zipped = zip_directory(&out.join("ingest"), "ingest").unwrap();
+        let mut read = zip::ZipArchive::new(std::io::Cursor::new(zipped)).unwrap();
+        assert_eq!(read.len(), 1);
+        assert_eq!(read.by_index(0).unwrap().name().unwrap(), "ingest.json");
+        assert!(resolve_output_entry(&out, "ingest", true).is_ok());
+        assert!(resolve_output_entry(&out, "ingest/ingest.json", true).is_err());
+        assert!(resolve_output_entry(&out, "../out", true).is_err());
         let listed = output_files(&out).unwrap();
         assert_eq!(
             listed.iter().map(|(p, _)| p.as_str()).collect::<Vec<_>>(),

@@ -1,0 +1,289 @@
+//! The PACS round trip against a real DICOMweb server: Debian's Orthanc with its DICOMweb
+//! plugin (`.ci/run` installs both), started here on loopback ports of its own. Push the
+//! bundled CT, pull it back by study, run on it straight from the PACS and push the outputs;
+//! a repeated push stores nothing twice; a server that is down, an unknown study and a study
+//! without a CT are refused by name.
+
+mod common;
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output};
+use std::time::{Duration, Instant};
+
+use common::{absent_temp_dir, bin, sample, write_breaths};
+use dicom_dictionary_std::tags;
+use dicom_object::open_file;
+use lungmotion::formats::dicom::read_dicom_series;
+
+/// An Orthanc server on loopback, stopped and its storage removed on drop.
+struct Orthanc {
+    child: Child,
+    dir: PathBuf,
+    port: u16,
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+impl Orthanc {
+    /// Starts a server whose storage lives in a directory named after `test`.
+    fn start(test: &str) -> Orthanc {
+        let dir = absent_temp_dir(&format!("orthanc-{test}"));
+        std::fs::create_dir_all(dir.join("db")).unwrap();
+        let port = free_port();
+        let config = serde_json::json!({
+            "Name": "lungmotion-test",
+            "StorageDirectory": dir.join("db"),
+            "IndexDirectory": dir.join("db"),
+            "HttpPort": port,
+            "DicomPort": free_port(),
+            "RemoteAccessAllowed": false,
+            "AuthenticationEnabled": false,
+            "Plugins": ["/usr/share/orthanc/plugins/libOrthancDicomWeb.so"],
+            "DicomWeb": {"Enable": true, "Root": "/dicom-web/"}
+        });
+        std::fs::write(dir.join("orthanc.json"), config.to_string()).unwrap();
+        let log = std::fs::File::create(dir.join("orthanc.log")).unwrap();
+        let child = Command::new("Orthanc")
+            .arg(dir.join("orthanc.json"))
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .expect("Orthanc is not installed (apt-get install orthanc orthanc-dicomweb)");
+        let server = Orthanc { child, dir, port };
+        let started = Instant::now();
+        let url = format!("http://127.0.0.1:{port}/dicom-web/studies");
+        while reqwest::blocking::get(&url).map_or(true, |r| !r.status().is_success()) {
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "Orthanc did not start; its log: {}",
+                std::fs::read_to_string(server.dir.join("orthanc.log")).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        server
+    }
+
+    fn root(&self) -> String {
+        format!("dicomweb://127.0.0.1:{}/dicom-web", self.port)
+    }
+
+    /// The study's series as Orthanc's DICOMweb lists them: (modality, series UID).
+    fn series_of(&self, study: &str) -> Vec<(String, String)> {
+        let url = format!(
+            "http://127.0.0.1:{}/dicom-web/studies/{study}/series",
+            self.port
+        );
+        let found: serde_json::Value = reqwest::blocking::get(url).unwrap().json().unwrap();
+        found
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| {
+                (
+                    s["00080060"]["Value"][0].as_str().unwrap().to_string(),
+                    s["0020000E"]["Value"][0].as_str().unwrap().to_string(),
+                )
+            })
+            .collect()
+    }
+}
+
+impl Drop for Orthanc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn lungmotion(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn study_uid(dir: &Path) -> String {
+    let first = std::fs::read_dir(dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let obj = open_file(first).unwrap();
+    obj.element(tags::STUDY_INSTANCE_UID)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .trim_end_matches('\0')
+        .to_string()
+}
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "needs Orthanc with its DICOMweb plugin (.ci/run installs it): cargo test --features slow-tests --test pacs_orthanc"
+)]
+fn push_pull_run_and_push_back_through_a_real_dicomweb_server() {
+    let orthanc = Orthanc::start("roundtrip");
+    let root = orthanc.root();
+    let ct_dir = sample("phantom-dicom");
+    let study = study_uid(&ct_dir);
+    let scratch = absent_temp_dir("pacs-roundtrip");
+    std::fs::create_dir_all(&scratch).unwrap();
+
+    // Push the planning CT; again: nothing stored twice.
+    let o = lungmotion(&["pacs", "push", "--to", &root, ct_dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("stored 68 instances"), "{}", text(&o));
+    let o = lungmotion(&["pacs", "push", "--to", &root, ct_dir.to_str().unwrap()]);
+    assert!(
+        text(&o).contains("stored 0 instances; 68 already on the server"),
+        "{}",
+        text(&o)
+    );
+
+    // Pull it back by study: the same volume as the files pushed.
+    let pulled = scratch.join("pulled");
+    let from = format!("{root}/studies/{study}");
+    let o = lungmotion(&[
+        "pacs",
+        "pull",
+        "--from",
+        &from,
+        "--out",
+        pulled.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let original = read_dicom_series(&ct_dir).unwrap();
+    let back = read_dicom_series(&pulled).unwrap();
+    assert_eq!(back.volume.geometry, original.volume.geometry);
+    assert_eq!(back.volume.as_slice(), original.volume.as_slice());
+    assert_eq!(back.study.study_instance_uid, study);
+
+    // Run straight from the PACS and push the outputs back into the CT's study.
+    let trace = scratch.join("trace.csv");
+    write_breaths(&trace, 300.0, 0.2, 4.0);
+    let out = scratch.join("run");
+    let o = lungmotion(&[
+        "run",
+        "--ct",
+        &from,
+        "--trace",
+        trace.to_str().unwrap(),
+        "--element-size",
+        "12",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+        "--push",
+        &root,
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(out.join("summary.json").is_file());
+    assert!(text(&o).contains("pushed to"), "{}", text(&o));
+    let series = orthanc.series_of(&study);
+    assert!(series.iter().any(|(m, _)| m == "CT"), "{series:?}");
+    std::fs::remove_dir_all(&scratch).unwrap();
+}
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "needs Orthanc with its DICOMweb plugin (.ci/run installs it): cargo test --features slow-tests --test pacs_orthanc"
+)]
+fn a_server_down_an_unknown_study_and_a_study_without_ct_are_refused_by_name() {
+    let scratch = absent_temp_dir("pacs-refusals");
+    std::fs::create_dir_all(&scratch).unwrap();
+    let out = scratch.join("pulled");
+    let out_arg = out.to_str().unwrap();
+
+    // Nothing listens on that port: a failure while working (exit 1), named.
+    let down = format!(
+        "dicomweb://127.0.0.1:{}/dicom-web/studies/1.2.3",
+        free_port()
+    );
+    let o = lungmotion(&["pacs", "pull", "--from", &down, "--out", out_arg]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("cannot connect"), "{}", text(&o));
+
+    let orthanc = Orthanc::start("refusals");
+    let root = orthanc.root();
+    // A study the server does not hold: refused (exit 2), named.
+    let o = lungmotion(&[
+        "pacs",
+        "pull",
+        "--from",
+        &format!("{root}/studies/1.2.3.4"),
+        "--out",
+        out_arg,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("holds no study 1.2.3.4"), "{}", text(&o));
+
+    // A study holding an MR image only.
+    let mr = scratch.join("mr.dcm");
+    let first = std::fs::read_dir(sample("phantom-dicom"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let mut obj = open_file(first).unwrap();
+    for (tag, value) in [
+        (tags::MODALITY, "MR"),
+        (tags::SOP_CLASS_UID, "1.2.840.10008.5.1.4.1.1.4"),
+        (tags::STUDY_INSTANCE_UID, "1.2.826.0.1.3680043.2.1125.77.1"),
+        (tags::SERIES_INSTANCE_UID, "1.2.826.0.1.3680043.2.1125.77.2"),
+        (tags::SOP_INSTANCE_UID, "1.2.826.0.1.3680043.2.1125.77.3"),
+    ] {
+        obj.put(dicom_core::DataElement::new(
+            tag,
+            if tag == tags::MODALITY {
+                dicom_core::VR::CS
+            } else {
+                dicom_core::VR::UI
+            },
+            dicom_core::PrimitiveValue::from(value),
+        ));
+    }
+    obj.meta_mut().media_storage_sop_class_uid = "1.2.840.10008.5.1.4.1.1.4".into();
+    obj.meta_mut().media_storage_sop_instance_uid = "1.2.826.0.1.3680043.2.1125.77.3".into();
+    obj.write_to_file(&mr).unwrap();
+    let o = lungmotion(&["pacs", "push", "--to", &root, mr.to_str().unwrap()]);
+    assert!(text(&o).contains("stored 1 instances"), "{}", text(&o));
+    let from = format!("{root}/studies/1.2.826.0.1.3680043.2.1125.77.1");
+    let o = lungmotion(&["pacs", "pull", "--from", &from, "--out", out_arg]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(
+        text(&o).contains("holds no CT series (it holds: MR"),
+        "{}",
+        text(&o)
+    );
+    assert!(!out.exists() || std::fs::read_dir(&out).unwrap().next().is_none());
+
+    // A malformed address is refused before any request.
+    let o = lungmotion(&[
+        "pacs",
+        "pull",
+        "--from",
+        "http://example.org/x",
+        "--out",
+        out_arg,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("not a DICOMweb address"), "{}", text(&o));
+    std::fs::remove_dir_all(&scratch).unwrap();
+}
