@@ -40,21 +40,31 @@ pub enum VirtualCtOutput {
     Both,
 }
 
+impl std::str::FromStr for VirtualCtOutput {
+    type Err = String;
+
+    /// `off`, `nifti`, `dicom` or `both`; the error names the values taken.
+    fn from_str(value: &str) -> std::result::Result<Self, String> {
+        match value {
+            "off" => Ok(VirtualCtOutput::Off),
+            "nifti" => Ok(VirtualCtOutput::Nifti),
+            "dicom" => Ok(VirtualCtOutput::Dicom),
+            "both" => Ok(VirtualCtOutput::Both),
+            _ => Err(format!(
+                "\"{value}\" is not one of \"off\", \"nifti\", \"dicom\", \"both\""
+            )),
+        }
+    }
+}
+
 impl<'de> Deserialize<'de> for VirtualCtOutput {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
         // Named here, with the values it takes: serde's own message names neither the key
         // nor that "off" exists.
         let value = String::deserialize(d)?;
-        match value.as_str() {
-            "off" => Ok(VirtualCtOutput::Off),
-            "nifti" => Ok(VirtualCtOutput::Nifti),
-            "dicom" => Ok(VirtualCtOutput::Dicom),
-            "both" => Ok(VirtualCtOutput::Both),
-            _ => Err(serde::de::Error::custom(format!(
-                "outputs.virtual_ct = \"{value}\" is not one of \"off\", \"nifti\", \"dicom\", \
-                 \"both\""
-            ))),
-        }
+        value
+            .parse()
+            .map_err(|e| serde::de::Error::custom(format!("outputs.virtual_ct = {e}")))
     }
 }
 
