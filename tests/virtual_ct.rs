@@ -54,14 +54,23 @@ fn an_affine_motion_is_reproduced_inside_and_inverts_to_the_stated_residual() {
         }
     }
     assert!(worst_forward < 1e-3, "forward off by {worst_forward} mm");
-    assert!(worst_round_trip < 0.01, "round trip off by {worst_round_trip} mm");
+    assert!(
+        worst_round_trip < 0.01,
+        "round trip off by {worst_round_trip} mm"
+    );
     let r = motion.inverse_report();
     println!("affine motion: inverse residual {r:?}");
     assert_eq!(r.unconverged_nodes, 0, "{r:?}");
     // The stated residual (README, Outputs): at the nodes within the 0.01 mm tolerance;
     // between them, where the cube's edge bends the extension, within 0.5 mm.
-    assert!(r.lung_node_max_mm <= 0.01 && r.all_node_max_mm <= 0.01, "{r:?}");
-    assert!(r.lung_cell_max_mm < 0.5 && r.lung_cell_p99_mm < 0.1, "{r:?}");
+    assert!(
+        r.lung_node_max_mm <= 0.01 && r.all_node_max_mm <= 0.01,
+        "{r:?}"
+    );
+    assert!(
+        r.lung_cell_max_mm < 0.5 && r.lung_cell_p99_mm < 0.1,
+        "{r:?}"
+    );
     // No seam at the pleura: 1 mm either side of the cube's top face, u agrees within the
     // extension's slope over 2 mm.
     let top = |dz: f64| Vector3::from(motion.displacement_mm([5.0, 5.0, 40.0 + dz]));
@@ -88,8 +97,7 @@ fn demo_run() -> &'static (PathBuf, RunSummary) {
         let out = std::env::temp_dir().join(format!("lm-virtual-ct-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&out);
         let inputs = demo_inputs(&sample_volumes_dir()).unwrap();
-        let summary =
-            run_breathing(&inputs, &demo_config(8.0), &out, &mut SilentObserver).unwrap();
+        let summary = run_breathing(&inputs, &demo_config(8.0), &out, &mut SilentObserver).unwrap();
         (out, summary)
     })
 }
@@ -125,7 +133,11 @@ fn the_demo_writes_every_phase_and_the_projections_with_their_residual() {
     assert!(out.join("mip-ct-dicom").is_dir() && out.join("aip-ct-dicom").is_dir());
     // The phases are the run's own: each frame's phase_percent.
     for (p, f) in v.phases.iter().zip(&summary.frames) {
-        assert_eq!(p.label.percent, f.summary.phase_percent, "frame {}", p.frame);
+        assert_eq!(
+            p.label.percent, f.summary.phase_percent,
+            "frame {}",
+            p.frame
+        );
         assert_eq!(p.frame, f.summary.index);
     }
     // The MIP is at least every phase, voxel by voxel, and the AIP is their mean (rounded
@@ -143,7 +155,10 @@ fn the_demo_writes_every_phase_and_the_projections_with_their_residual() {
             sum[n] += f64::from(x);
         }
     }
-    assert!(mip_reached.iter().all(|&r| r), "the MIP is some phase's value everywhere");
+    assert!(
+        mip_reached.iter().all(|&r| r),
+        "the MIP is some phase's value everywhere"
+    );
     let count = v.phases.len() as f64;
     let worst = aip
         .as_slice()
@@ -181,8 +196,7 @@ fn dome_z_mm(ct: &Volume<f32>, lungs: &Volume<u8>, i: usize, j: usize) -> Option
 }
 
 #[test]
-fn every_virtual_phase_holds_the_traces_volume_and_the_end_inhale_dome_sits_where_the_field_says()
-{
+fn every_virtual_phase_holds_the_traces_volume_and_the_end_inhale_dome_sits_where_the_field_says() {
     let (out, summary) = demo_run();
     let end_inhale = summary.end_inhale.as_ref().expect("the demo breathes in");
     let frame = end_inhale.frame;
@@ -231,8 +245,7 @@ fn every_virtual_phase_holds_the_traces_volume_and_the_end_inhale_dome_sits_wher
     )
     .unwrap();
     let base: [f64; 3] =
-        serde_json::from_value(description["landmarks"]["right_lung_base_lps_mm"].clone())
-            .unwrap();
+        serde_json::from_value(description["landmarks"]["right_lung_base_lps_mm"].clone()).unwrap();
     let centre = ct.geometry.lps_mm_to_voxel(Vector3::from(base));
     let (ci, cj) = (centre.x.round() as usize, centre.y.round() as usize);
     let mut worst = 0.0f64;
@@ -251,7 +264,9 @@ fn every_virtual_phase_holds_the_traces_volume_and_the_end_inhale_dome_sits_wher
             let p = ct
                 .geometry
                 .voxel_to_lps_mm(Vector3::new(i as f64, j as f64, lowest as f64));
-            let f = field_geometry.lps_mm_to_voxel(p).map(|v| v.round() as usize);
+            let f = field_geometry
+                .lps_mm_to_voxel(p)
+                .map(|v| v.round() as usize);
             let u = field[field_geometry.index(f.x, f.y, f.z)];
             let expected = z_rest + f64::from(u[2]);
             println!(
@@ -264,7 +279,10 @@ fn every_virtual_phase_holds_the_traces_volume_and_the_end_inhale_dome_sits_wher
         }
     }
     assert!(columns >= 5, "only {columns} columns reach the dome");
-    assert!(worst < 2.0, "the dome is {worst:.2} mm from where the field says");
+    assert!(
+        worst < 2.0,
+        "the dome is {worst:.2} mm from where the field says"
+    );
 }
 
 /// Whether `python3 -c "import pydicom"` works; says why not when it does not.
@@ -385,7 +403,11 @@ fn the_dicom_phases_sit_in_the_planning_study_and_equal_the_nifti_phases() {
         assert_eq!(s["compensation"], "RETROSPECTIVE");
         assert_eq!(s["signal_source"], "SPIROMETER");
         // pydicom's IS is an int, which json writes as a number.
-        assert_eq!(s["temporal_position"].as_u64(), Some(k as u64 + 1), "phase {k}");
+        assert_eq!(
+            s["temporal_position"].as_u64(),
+            Some(k as u64 + 1),
+            "phase {k}"
+        );
         let description = s["description"].as_str().unwrap();
         assert!(
             description.starts_with(&format!("lungmotion virtual 4D-CT phase {percent:.0}% (")),
@@ -396,7 +418,12 @@ fn the_dicom_phases_sit_in_the_planning_study_and_equal_the_nifti_phases() {
     let expected: Vec<(String, PathBuf)> = v
         .phases
         .iter()
-        .map(|p| (format!("frame {}", p.frame), out.join(p.nifti.as_ref().unwrap())))
+        .map(|p| {
+            (
+                format!("frame {}", p.frame),
+                out.join(p.nifti.as_ref().unwrap()),
+            )
+        })
         .chain([
             ("MIP".to_string(), out.join("mip-ct.nii.gz")),
             ("AIP".to_string(), out.join("aip-ct.nii.gz")),
@@ -409,7 +436,10 @@ fn the_dicom_phases_sit_in_the_planning_study_and_equal_the_nifti_phases() {
         assert_eq!(shape, vec![g.dims[2], g.dims[1], g.dims[0]], "{what}");
         let sum: f64 = volume.as_slice().iter().map(|&x| f64::from(x)).sum();
         let got = s["hu_sum"].as_f64().unwrap();
-        assert!((got - sum).abs() < 0.5, "{what}: pydicom HU sum {got}, NIfTI {sum}");
+        assert!(
+            (got - sum).abs() < 0.5,
+            "{what}: pydicom HU sum {got}, NIfTI {sum}"
+        );
         let close = |key: &str, want: Vector3<f64>| {
             let p: Vec<f64> = serde_json::from_value(s[key].clone()).unwrap();
             let d = (Vector3::new(p[0], p[1], p[2]) - want).norm();
@@ -421,7 +451,8 @@ fn the_dicom_phases_sit_in_the_planning_study_and_equal_the_nifti_phases() {
         let spacing: Vec<f64> = serde_json::from_value(s["pixel_spacing"].clone()).unwrap();
         // PixelSpacing is row spacing (between rows, along j) then column spacing (along i).
         assert!(
-            (spacing[0] - g.spacing_mm[1]).abs() < 1e-6 && (spacing[1] - g.spacing_mm[0]).abs() < 1e-6,
+            (spacing[0] - g.spacing_mm[1]).abs() < 1e-6
+                && (spacing[1] - g.spacing_mm[0]).abs() < 1e-6,
             "{what}: {spacing:?}"
         );
         assert_eq!(s["orientation"], ct["orientation"], "{what}");
@@ -445,14 +476,20 @@ fn a_bad_option_and_too_many_phases_are_refused_with_the_reason_and_the_remedy()
     let e = RunConfig::from_toml("[outputs]\noutside_lung_decay_mm = 0.0")
         .unwrap_err()
         .to_string();
-    assert!(e.contains("outputs.outside_lung_decay_mm") && e.contains("1–500"), "{e}");
+    assert!(
+        e.contains("outputs.outside_lung_decay_mm") && e.contains("1–500"),
+        "{e}"
+    );
     let config = RunConfig::from_toml(
         "[motion]\ninstants = { kind = \"every_sample\" }\n[outputs]\nvirtual_ct = \"nifti\"",
     )
     .unwrap();
     // 20 s at 5 Hz: 101 frames. Refused before the CT is read (there is none here).
     let times: Vec<f64> = (0..=100).map(|i| i as f64 * 0.2).collect();
-    let volumes = times.iter().map(|t| 250.0 * (1.0 - (t * 1.5).cos())).collect();
+    let volumes = times
+        .iter()
+        .map(|t| 250.0 * (1.0 - (t * 1.5).cos()))
+        .collect();
     let inputs = RunInputs {
         ct_path: Path::new("/nonexistent/ct").to_path_buf(),
         trace: BreathingTrace::new(times, volumes).unwrap(),
