@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use lungmotion::breathing::BreathingTrace;
+use lungmotion::outputs::radiotherapy::virtual_ct::VirtualCtOutput;
 use lungmotion::pacs::DicomWebAddress;
 use lungmotion::run::demo::{demo_config, demo_inputs, sample_volumes_dir};
 use lungmotion::run::{Overwrite, RunConfig, RunInputs};
@@ -82,6 +83,11 @@ pub struct RunArgs {
     /// implies --registration.
     #[arg(long, value_name = "MM")]
     registration_spacing: Option<f64>,
+    /// The virtual 4D-CT: the CT at each frame with its MIP and AIP, as `nifti`, `dicom`
+    /// (CT series in the planning CT's study), `both`, or `off` (default, or the config's
+    /// `[outputs] virtual_ct`).
+    #[arg(long, value_name = "off|nifti|dicom|both")]
+    virtual_ct: Option<VirtualCtOutput>,
     /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
@@ -170,6 +176,9 @@ impl RunArgs {
         config.outputs.registration |= self.registration || self.registration_spacing.is_some();
         if let Some(mm) = self.registration_spacing {
             config.outputs.registration_spacing_mm = mm;
+        }
+        if let Some(output) = self.virtual_ct {
+            config.outputs.virtual_ct = output;
         }
         if let Some(window) = self.trace_window {
             config.trace.window_s = Some(window);

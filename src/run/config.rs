@@ -34,6 +34,8 @@
 //! field_grid = "lung_box"              # or "ct": the fields on the whole CT grid
 //! registration = false                 # frames/<k>/registration.dcm: DICOM deformable REG
 //! registration_spacing_mm = 3.0        # its grid spacing over the lungs (0.5–20 mm)
+//! virtual_ct = "off"                   # "nifti", "dicom" or "both": the CT at each frame
+//! outside_lung_decay_mm = 15.0         # how far the motion reaches beyond the lungs
 //! ```
 
 use std::path::Path;
@@ -46,6 +48,7 @@ use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
 use crate::outputs::displacement_field::FieldGrid;
+use crate::outputs::radiotherapy::virtual_ct::VirtualCtOutput;
 use crate::{Error, IoContext, IoOp, Result};
 
 /// Largest configuration file read, bytes (a real one is well under 2 kB).
@@ -150,6 +153,10 @@ pub struct OutputConfig {
     pub registration: bool,
     /// Spacing of the registration's vector grid over the lungs, mm.
     pub registration_spacing_mm: f64,
+    /// The virtual 4D-CT (the CT at each frame, MIP, AIP) as NIfTI, DICOM, both, or not.
+    pub virtual_ct: VirtualCtOutput,
+    /// Decay length (Gaussian σ) of the motion outside the lungs under the virtual CT, mm.
+    pub outside_lung_decay_mm: f64,
 }
 
 impl Default for RunConfig {
@@ -191,6 +198,8 @@ impl Default for OutputConfig {
             registration: false,
             registration_spacing_mm:
                 crate::outputs::radiotherapy::registration::DEFAULT_REGISTRATION_SPACING_MM,
+            virtual_ct: VirtualCtOutput::Off,
+            outside_lung_decay_mm: crate::outputs::radiotherapy::ct_motion::DEFAULT_DECAY_LENGTH_MM,
         }
     }
 }
@@ -285,6 +294,13 @@ impl RunConfig {
             self.outputs.registration_spacing_mm,
         ) {
             return bad("outputs.registration_spacing_mm", e.to_string());
+        }
+        let decay = self.outputs.outside_lung_decay_mm;
+        if !(decay.is_finite() && (1.0..=500.0).contains(&decay)) {
+            return bad(
+                "outputs.outside_lung_decay_mm",
+                format!("{decay} mm is not within 1–500 mm"),
+            );
         }
         let m = &self.motion;
         if !(m.interpolation_tolerance_mm.is_finite() && m.interpolation_tolerance_mm > 0.0) {

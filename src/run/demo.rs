@@ -29,14 +29,15 @@ pub fn sample_volumes_dir() -> PathBuf {
     }
 }
 
-/// The demo's configuration: `element_size_mm`, and the radiotherapy deliverables on (the
-/// DICOM registrations).
+/// The demo's settings: elements of `element_size_mm` and every output a radiotherapy team
+/// loads: the virtual 4D-CT as NIfTI and DICOM and the DICOM registrations.
 pub fn demo_config(element_size_mm: f64) -> RunConfig {
     let mut config = RunConfig {
         element_size_mm,
         ..RunConfig::default()
     };
     config.outputs.registration = true;
+    config.outputs.virtual_ct = crate::outputs::radiotherapy::virtual_ct::VirtualCtOutput::Both;
     config
 }
 

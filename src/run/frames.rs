@@ -22,6 +22,7 @@ use crate::outputs::radiotherapy::registration::{
     RegistrationGrid, RegistrationWriter, REGISTRATION_MARGIN_MM,
 };
 use crate::outputs::radiotherapy::target_motion::TargetTracker;
+use crate::outputs::radiotherapy::virtual_ct::VirtualCtWriter;
 use crate::outputs::trajectories::TrajectoryFile;
 use crate::volume::VolumeGeometry;
 use crate::{IoContext, IoOp, Result};
@@ -50,9 +51,21 @@ pub(super) struct FrameSink<'a> {
     nifti_s: f64,
     /// The treatment target, followed frame by frame.
     pub(super) target: Option<TargetTracker>,
+    /// The virtual 4D-CT, when asked for: each frame's CT written as the frames stream past.
+    virtual_ct: Option<VirtualCtWriter<'a>>,
 }
 
 impl<'a> FrameSink<'a> {
+    /// Also writes the virtual CT of each frame with `writer`.
+    pub(super) fn set_virtual_ct(&mut self, writer: VirtualCtWriter<'a>) {
+        self.virtual_ct = Some(writer);
+    }
+
+    /// The virtual CT writer, to finish once the frames are through.
+    pub(super) fn take_virtual_ct(&mut self) -> Option<VirtualCtWriter<'a>> {
+        self.virtual_ct.take()
+    }
+
     /// Prepares `frames/` and, with tracked points, `trajectories.csv` in the staging
     /// directory for one frame per instant of `times`, the fields on the sampler's grid;
     /// `model` gives the frame meshes their lung and group labels, `study` the DICOM objects
@@ -117,6 +130,7 @@ impl<'a> FrameSink<'a> {
             sample_s: 0.0,
             nifti_s: 0.0,
             target: None,
+            virtual_ct: None,
         })
     }
 
@@ -326,6 +340,9 @@ impl FrameSink<'_> {
                 |best, (i, d)| if d > best.1 { (i, d) } else { best },
             );
         self.capture_extreme(frame.index, positions);
+        if let Some(writer) = self.virtual_ct.as_mut() {
+            writer.write_phase(frame.index, frame.time_s, mesh, positions)?;
+        }
         let write_time_s = t.elapsed().as_secs_f64();
         self.records.push(FrameRecord {
             summary: frame.clone(),

@@ -40,6 +40,7 @@ pub use summary::{
 
 use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::durable::write_atomic;
+use crate::formats::dicom::DicomStudyContext;
 use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
 use crate::ingest::scan::{load_ct_with, LoadedScan};
@@ -47,7 +48,11 @@ use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
+use crate::outputs::radiotherapy::ct_motion::CtMotionSettings;
 use crate::outputs::radiotherapy::target_motion::{self, TargetTracker};
+use crate::outputs::radiotherapy::virtual_ct::{
+    check_phase_count, inverse_warnings, phase_labels, VirtualCtWriter,
+};
 use crate::simulation::Scene;
 use crate::{Error, IoContext, IoOp, Result};
 use frames::FrameSink;
@@ -289,6 +294,7 @@ pub fn run_breathing_on(
         ct_dims,
         backdrop,
         study,
+        kept,
     } = scene_of_scan(
         scan,
         outcome,
@@ -311,6 +317,11 @@ pub fn run_breathing_on(
         &study,
     )?;
     sink.target = target;
+    if let Some(kept) = &kept {
+        sink.set_virtual_ct(virtual_ct_writer(
+            kept, &lung, inputs, config, &plan, &staging,
+        )?);
+    }
     let (report, dynamic) = run_the_motion(
         &lung.scene,
         inputs,
@@ -321,7 +332,13 @@ pub fn run_breathing_on(
         observer,
     )
     .map_err(|e| name_element_groups(e, &outcome.model))?;
+    let virtual_ct = sink.take_virtual_ct();
     let mut written = sink.finish();
+    let virtual_ct = virtual_ct.map(VirtualCtWriter::finish).transpose()?;
+    drop(kept);
+    if let Some(v) = &virtual_ct {
+        timings.insert("virtual_ct".to_string(), v.time_s);
+    }
     log_memory("frames written");
     written.record_timings(report.wall_time_s, &mut timings);
 
@@ -375,6 +392,12 @@ pub fn run_breathing_on(
     if let Some(tracker) = written.target.take() {
         summary.target = Some(tracker.finish()?);
     }
+    if let Some(v) = virtual_ct {
+        summary
+            .warnings
+            .extend(inverse_warnings(&v, VIRTUAL_CT_RESIDUAL_WARNING_MM));
+        summary.virtual_ct = Some(v);
+    }
     if let Some(note) = plan.note {
         summary.warnings.push(note.clone());
         summary.output_instants_note = Some(note);
@@ -404,27 +427,62 @@ fn open_target(
 }
 
 /// What a run keeps of its CT once the lung scene is built.
-struct SceneOfScan {
+struct SceneOfScan<'a> {
     ct: CtIdentity,
     lung: LungScene,
     ct_dims: [usize; 3],
     backdrop: Option<LookBackdrop>,
     /// The CT's patient, study and frame of reference (generated for a NIfTI/NRRD CT).
     study: crate::formats::dicom::DicomStudyContext,
+    /// The CT itself and its study, kept only for the virtual CT.
+    kept: Option<KeptCt<'a>>,
+}
+
+/// The CT voxels and DICOM study a virtual CT is made from.
+struct KeptCt<'a> {
+    ct: std::borrow::Cow<'a, crate::volume::Volume<f32>>,
+    study: crate::formats::dicom::DicomStudyContext,
+}
+
+/// A virtual CT between inverse-map nodes off by more than this raises a warning, mm.
+const VIRTUAL_CT_RESIDUAL_WARNING_MM: f64 = 0.5;
+
+/// The writer of the virtual CT of `kept` through the frames at `times`.
+fn virtual_ct_writer<'a>(
+    kept: &'a KeptCt<'a>,
+    lung: &LungScene,
+    inputs: &RunInputs,
+    config: &RunConfig,
+    plan: &InstantPlan,
+    staging: &OutputStaging,
+) -> Result<VirtualCtWriter<'a>> {
+    let settings = CtMotionSettings {
+        decay_length_mm: config.outputs.outside_lung_decay_mm,
+        ..CtMotionSettings::default()
+    };
+    VirtualCtWriter::new(
+        &kept.ct,
+        kept.study.clone(),
+        &lung.scene.mesh,
+        settings,
+        config.outputs.virtual_ct,
+        phase_labels(&inputs.trace, plan),
+        staging.dir(),
+    )
 }
 
 /// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
 /// the ingest files and cuts out the quick look's backdrop; the CT is let go on return when
 /// the run owns it. Adds `ingest`, `lung_scene` and `ingest_files` to `timings`.
-fn scene_of_scan(
-    scan: ScanHold,
+fn scene_of_scan<'a>(
+    scan: ScanHold<'a>,
     outcome: &IngestOutcome,
     inputs: &RunInputs,
     config: &RunConfig,
     staging: &OutputStaging,
     overwrite: Overwrite,
     timings: &mut BTreeMap<String, f64>,
-) -> Result<SceneOfScan> {
+) -> Result<SceneOfScan<'a>> {
     let t = Instant::now();
     let ct = CtIdentity {
         path: inputs.ct_path.display().to_string(),
@@ -438,9 +496,7 @@ fn scene_of_scan(
     staging.check_replaces(&ct, overwrite)?;
     let study = scan.get().study.clone().unwrap_or_else(|| {
         let key = ct.fingerprint.trim_start_matches("fnv1a64:");
-        crate::formats::dicom::DicomStudyContext::generated(
-            u64::from_str_radix(key, 16).unwrap_or(0),
-        )
+        DicomStudyContext::generated(u64::from_str_radix(key, 16).unwrap_or(0))
     });
     *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
     log_memory("ingested");
@@ -455,14 +511,24 @@ fn scene_of_scan(
     }
     timings.insert("ingest_files".to_string(), t.elapsed().as_secs_f64());
     let ct_dims = scan.get().ct.geometry.dims;
-    let backdrop = if config.outputs.quicklooks {
-        Some(LookBackdrop::of(
-            scan.into_ct(),
+    let (kept, ct_for_look) = if config.outputs.virtual_ct.enabled() {
+        let kept = KeptCt {
+            ct: scan.into_ct(),
+            study: study.clone(),
+        };
+        (Some(kept), None)
+    } else {
+        (None, Some(scan.into_ct()))
+    };
+    // A kept CT is lent to the look (which crops it), else the look takes it.
+    let look_ct = ct_for_look.or_else(|| kept.as_ref().map(|k| std::borrow::Cow::Borrowed(&*k.ct)));
+    let backdrop = match look_ct {
+        Some(ct) if config.outputs.quicklooks => Some(LookBackdrop::of(
+            ct,
             &outcome.segmentation.lungs,
             &lung.field,
-        )?)
-    } else {
-        None
+        )?),
+        _ => None,
     };
     log_memory("lung scene built, ingest files written, CT let go");
     Ok(SceneOfScan {
@@ -471,6 +537,7 @@ fn scene_of_scan(
         ct_dims,
         backdrop,
         study,
+        kept,
     })
 }
 
@@ -487,6 +554,7 @@ fn check_inputs(
     settings.cancel = observer.cancel_flag();
     settings.progress = observer.solve_progress();
     let plan = settings.instants.plan(&inputs.trace)?;
+    check_phase_count(config.outputs.virtual_ct, plan.times.len())?;
     Ok((settings, plan))
 }
 

@@ -57,6 +57,9 @@ pub struct RunSummary {
     pub points: Vec<PointTrajectory>,
     /// The treatment target through the frames (`--target`), with its ITV; `null` without one.
     pub target: Option<crate::outputs::radiotherapy::target_motion::TargetSummary>,
+    /// The virtual 4D-CT: motion grid, decay, inverse residual and files per phase; `null`
+    /// when not asked for.
+    pub virtual_ct: Option<crate::outputs::radiotherapy::virtual_ct::VirtualCtSummary>,
     /// Stage wall times, s.
     pub timings_s: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB.
@@ -457,6 +460,7 @@ impl RunSummary {
             deepest_expiration: extreme(BreathExtreme::DeepestExpiration),
             points,
             target: None,
+            virtual_ct: None,
             timings_s,
             peak_memory_mib: None,
             output_instants_note: None,

@@ -25,7 +25,7 @@ use crate::volume::Volume;
 pub(crate) use read::read_single_object;
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
 pub use study::{DicomStudyContext, SliceReference};
-pub use write::write_ct_series;
+pub use write::{write_ct_series, DerivedSeries, RespiratoryPhase};
 
 /// Choices for [`read_dicom_series_with`].
 #[derive(Debug, Clone, Default)]
@@ -99,6 +99,10 @@ pub struct CtSeriesMetadata {
     pub manufacturer: String,
     /// PatientPosition, e.g. "HFS" (head first, supine).
     pub patient_position: String,
+    /// A series derived from a planning CT (virtual 4D-CT phase, MIP, AIP): written into its
+    /// patient, study and frame of reference, the fields above giving only the descriptions,
+    /// manufacturer and series number; `None` starts a study of its own.
+    pub derived: Option<DerivedSeries>,
 }
 
 impl Default for CtSeriesMetadata {
@@ -112,6 +116,7 @@ impl Default for CtSeriesMetadata {
             series_number: 1,
             manufacturer: "lungmotion".into(),
             patient_position: "HFS".into(),
+            derived: None,
         }
     }
 }

@@ -1,15 +1,18 @@
-//! Writing a volume as a CT Image Storage series (one file per k-slice).
+//! Writing a volume as a CT Image Storage series (one file per k-slice), as a study of its
+//! own or derived from a planning CT (its patient, study and frame of reference), with the
+//! respiratory phase a virtual 4D-CT series carries.
 
 use std::path::{Path, PathBuf};
 
 use dicom_core::smallvec::SmallVec;
+use dicom_core::value::DataSetSequence;
 use dicom_core::{DataElement, PrimitiveValue, Tag, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use super::CtSeriesMetadata;
+use super::{CtSeriesMetadata, DicomStudyContext};
 use crate::durable::write_atomic;
 use crate::volume::Volume;
 use crate::{Error, Result};
@@ -36,6 +39,9 @@ pub fn write_ct_series(
         .map(|k| {
             let mut obj = InMemDicomObject::new_empty();
             put_identity_elements(&mut obj, volume, meta, &series, k);
+            if let Some(derived) = &meta.derived {
+                put_derived_elements(&mut obj, derived);
+            }
             put_image_plane_elements(&mut obj, volume, &series, k);
             put_image_pixel_elements(&mut obj, volume, &series, k);
             let bytes = encode_slice_file(obj, volume, k, &what)?;
@@ -44,6 +50,135 @@ pub fn write_ct_series(
             Ok(path)
         })
         .collect()
+}
+
+/// What makes a series derived from a planning CT: its study, which series it is, and the
+/// respiratory phase of a virtual 4D-CT.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DerivedSeries {
+    /// The planning CT's patient, study and frame of reference.
+    pub study: DicomStudyContext,
+    /// Tells the series derived from one CT apart (phase index, MIP, AIP): mixed into the
+    /// series and instance UIDs with the voxels.
+    pub series_key: u64,
+    /// ImageType (0008,0008), e.g. `DERIVED\SECONDARY\AXIAL`.
+    pub image_type: String,
+    /// DerivationDescription (0008,2111): how the images were made.
+    pub derivation_description: String,
+    /// The breathing phase the series shows, for a virtual 4D-CT phase.
+    pub respiratory: Option<RespiratoryPhase>,
+}
+
+/// The respiratory attributes of one virtual 4D-CT phase (PS3.3 C.7.6.16.2.17 and the
+/// Respiratory Synchronization Module, carried by a classic CT image as standard extended
+/// attributes).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RespiratoryPhase {
+    /// NominalPercentageOfRespiratoryPhase (0020,9245): 0 at end-inhale; `None` when the
+    /// instants are not phases of one cycle.
+    pub nominal_percentage: Option<f32>,
+    /// StartingRespiratoryPhase (0020,9247): INSPIRATION, MAXIMUM, EXPIRATION or MINIMUM.
+    pub cycle_position: &'static str,
+    /// NominalRespiratoryTriggerDelayTime (0020,9255): time since the cycle's end-inhale, ms.
+    pub time_since_end_inhale_ms: f64,
+    /// RespiratoryIntervalTime (0020,9254): the cycle's length, ms, when known.
+    pub interval_ms: Option<f64>,
+    /// TemporalPositionIdentifier (0020,0100), 1-based.
+    pub temporal_position: u32,
+    /// NumberOfTemporalPositions (0020,0105).
+    pub temporal_positions: u32,
+}
+
+/// The study of a series written without a planning CT: the fictitious patient of `meta`.
+fn fictitious_study(meta: &CtSeriesMetadata) -> DicomStudyContext {
+    DicomStudyContext {
+        patient_name: meta.patient_name.clone(),
+        patient_id: meta.patient_id.clone(),
+        patient_sex: "O".into(),
+        study_id: "1".into(),
+        study_description: meta.study_description.clone(),
+        ..DicomStudyContext::generated(0)
+    }
+}
+
+/// DerivationDescription and, for a virtual 4D-CT phase, the respiratory attributes: the
+/// compensation technique, signal source and trigger type at the top level, the phase in a
+/// one-item RespiratorySynchronizationSequence as the Enhanced CT functional group holds it,
+/// and the temporal position among the phases.
+fn put_derived_elements(obj: &mut InMemDicomObject, derived: &DerivedSeries) {
+    put_text(
+        obj,
+        tags::DERIVATION_DESCRIPTION,
+        VR::ST,
+        derived.derivation_description.clone(),
+    );
+    let Some(phase) = &derived.respiratory else {
+        return;
+    };
+    put_text(
+        obj,
+        tags::RESPIRATORY_MOTION_COMPENSATION_TECHNIQUE,
+        VR::CS,
+        "RETROSPECTIVE".into(),
+    );
+    put_text(
+        obj,
+        tags::RESPIRATORY_MOTION_COMPENSATION_TECHNIQUE_DESCRIPTION,
+        VR::ST,
+        "virtual 4D-CT: the planning CT deformed to this instant of the breathing trace by \
+         the lungmotion model, not an acquisition"
+            .into(),
+    );
+    put_text(
+        obj,
+        tags::RESPIRATORY_SIGNAL_SOURCE,
+        VR::CS,
+        "SPIROMETER".into(),
+    );
+    put_text(obj, tags::RESPIRATORY_TRIGGER_TYPE, VR::CS, "TIME".into());
+    put_text(
+        obj,
+        tags::TEMPORAL_POSITION_IDENTIFIER,
+        VR::IS,
+        phase.temporal_position.to_string(),
+    );
+    put_text(
+        obj,
+        tags::NUMBER_OF_TEMPORAL_POSITIONS,
+        VR::IS,
+        phase.temporal_positions.to_string(),
+    );
+    let mut item = InMemDicomObject::new_empty();
+    if let Some(percent) = phase.nominal_percentage {
+        item.put(DataElement::new(
+            tags::NOMINAL_PERCENTAGE_OF_RESPIRATORY_PHASE,
+            VR::FL,
+            PrimitiveValue::from(percent),
+        ));
+    }
+    item.put(DataElement::new(
+        tags::NOMINAL_RESPIRATORY_TRIGGER_DELAY_TIME,
+        VR::FD,
+        PrimitiveValue::from(phase.time_since_end_inhale_ms),
+    ));
+    if let Some(interval) = phase.interval_ms {
+        item.put(DataElement::new(
+            tags::RESPIRATORY_INTERVAL_TIME,
+            VR::FD,
+            PrimitiveValue::from(interval),
+        ));
+    }
+    put_text(
+        &mut item,
+        tags::STARTING_RESPIRATORY_PHASE,
+        VR::CS,
+        phase.cycle_position.into(),
+    );
+    obj.put(DataElement::new(
+        tags::RESPIRATORY_SYNCHRONIZATION_SEQUENCE,
+        VR::SQ,
+        DataSetSequence::from(vec![item]),
+    ));
 }
 
 /// The error for series `what` with message `m`.
@@ -128,10 +263,26 @@ impl SeriesLayout {
         let column_direction: Vector3<f64> = direction.column(1).into();
         let k_axis: Vector3<f64> = direction.column(2).into();
         let normal = row_direction.cross(&column_direction);
-        let uid_root = UidRoot::new(meta.uid_seed, volume);
-        let study_uid = uid_root.uid(1, 0);
+        let (uid_root, study_uid, frame_of_reference_uid) = match &meta.derived {
+            None => {
+                let root = UidRoot::new(meta.uid_seed, volume);
+                let (study, frame) = (root.uid(1, 0), root.uid(3, 0));
+                (root, study, frame)
+            }
+            Some(d) => {
+                // The planning CT's series and the derived series' key join the voxels in
+                // the seed: each phase gets a series of its own, the same on a rerun.
+                let seed = meta.uid_seed
+                    ^ super::study::fnv1a(d.study.series_instance_uid.as_bytes())
+                    ^ super::study::splitmix64(d.series_key);
+                (
+                    UidRoot::new(seed, volume),
+                    d.study.study_instance_uid.clone(),
+                    d.study.frame_of_reference_uid.clone(),
+                )
+            }
+        };
         let series_uid = uid_root.uid(2, 0);
-        let frame_of_reference_uid = uid_root.uid(3, 0);
         SeriesLayout {
             row_direction,
             column_direction,
@@ -169,43 +320,68 @@ fn put_identity_elements(
     let mut put = |tag: Tag, vr: VR, value: String| put_text(obj, tag, vr, value);
     let sop_uid = series.uid_root.uid(4, k as u64 + 1);
     put(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 100".into());
-    put(tags::IMAGE_TYPE, VR::CS, "DERIVED\\SECONDARY\\AXIAL".into());
+    let image_type = meta
+        .derived
+        .as_ref()
+        .map_or("DERIVED\\SECONDARY\\AXIAL", |d| d.image_type.as_str());
+    put(tags::IMAGE_TYPE, VR::CS, image_type.into());
     put(tags::SOP_CLASS_UID, VR::UI, uids::CT_IMAGE_STORAGE.into());
     put(tags::SOP_INSTANCE_UID, VR::UI, sop_uid);
-    put(tags::STUDY_DATE, VR::DA, String::new());
-    put(tags::STUDY_TIME, VR::TM, String::new());
-    put(tags::ACCESSION_NUMBER, VR::SH, String::new());
+    let fictitious;
+    let study = match &meta.derived {
+        Some(d) => &d.study,
+        None => {
+            fictitious = fictitious_study(meta);
+            &fictitious
+        }
+    };
+    put(tags::STUDY_DATE, VR::DA, study.study_date.clone());
+    put(tags::STUDY_TIME, VR::TM, study.study_time.clone());
+    put(
+        tags::ACCESSION_NUMBER,
+        VR::SH,
+        study.accession_number.clone(),
+    );
     put(tags::MODALITY, VR::CS, "CT".into());
     put(tags::MANUFACTURER, VR::LO, meta.manufacturer.clone());
-    put(tags::REFERRING_PHYSICIAN_NAME, VR::PN, String::new());
+    put(
+        tags::REFERRING_PHYSICIAN_NAME,
+        VR::PN,
+        study.referring_physician_name.clone(),
+    );
     put(
         tags::STUDY_DESCRIPTION,
         VR::LO,
-        meta.study_description.clone(),
+        study.study_description.clone(),
     );
     put(
         tags::SERIES_DESCRIPTION,
         VR::LO,
         meta.series_description.clone(),
     );
-    put(tags::PATIENT_NAME, VR::PN, meta.patient_name.clone());
-    put(tags::PATIENT_ID, VR::LO, meta.patient_id.clone());
-    put(tags::PATIENT_BIRTH_DATE, VR::DA, String::new());
-    put(tags::PATIENT_SEX, VR::CS, "O".into());
+    put(tags::PATIENT_NAME, VR::PN, study.patient_name.clone());
+    put(tags::PATIENT_ID, VR::LO, study.patient_id.clone());
+    put(
+        tags::PATIENT_BIRTH_DATE,
+        VR::DA,
+        study.patient_birth_date.clone(),
+    );
+    put(tags::PATIENT_SEX, VR::CS, study.patient_sex.clone());
     put(tags::KVP, VR::DS, String::new());
     put(
         tags::SLICE_THICKNESS,
         VR::DS,
         ds(volume.geometry.spacing_mm[2]),
     );
-    put(
-        tags::PATIENT_POSITION,
-        VR::CS,
-        meta.patient_position.clone(),
-    );
+    let position = if study.patient_position.is_empty() {
+        meta.patient_position.clone()
+    } else {
+        study.patient_position.clone()
+    };
+    put(tags::PATIENT_POSITION, VR::CS, position);
     put(tags::STUDY_INSTANCE_UID, VR::UI, series.study_uid.clone());
     put(tags::SERIES_INSTANCE_UID, VR::UI, series.series_uid.clone());
-    put(tags::STUDY_ID, VR::SH, "1".into());
+    put(tags::STUDY_ID, VR::SH, study.study_id.clone());
     put(tags::SERIES_NUMBER, VR::IS, meta.series_number.to_string());
     put(tags::ACQUISITION_NUMBER, VR::IS, "1".into());
     put(tags::INSTANCE_NUMBER, VR::IS, (k + 1).to_string());

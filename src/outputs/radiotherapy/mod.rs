@@ -2,8 +2,10 @@
 //! phase (virtual 4D-CT), the target's motion and internal target volume, and the DICOM
 //! objects (CT series, RTSTRUCT, spatial registrations) a planning system and a PACS accept.
 
+pub mod ct_motion;
 pub mod mesh_motion;
 pub mod registration;
+pub mod virtual_ct;
 
 /// The motion of one output instant over the whole CT grid, both ways, in LPS millimetres:
 /// what the virtual CT, the warped target and the spatial registrations are made from, so

@@ -197,7 +197,13 @@ fn without_defaults() -> Value {
                         Registration (frames/<k>/registration.dcm)"),
                     "registration_spacing_mm": {"type": "number", "minimum": 0.5,
                         "maximum": 20, "description": "Spacing of the registration's vector \
-                            grid over the lungs, mm (default 3)"}
+                            grid over the lungs, mm (default 3)"},
+                    "virtual_ct": {"type": "string", "enum": ["off", "nifti", "dicom", "both"],
+                        "description": "The virtual 4D-CT (the CT at each frame, MIP, AIP) \
+                            as NIfTI, DICOM CT series, both, or not"},
+                    "outside_lung_decay_mm": {"type": "number", "minimum": 1, "maximum": 500,
+                        "description": "Decay length of the motion outside the lungs under \
+                            the virtual CT, mm"}
                 }
             }
         }
