@@ -16,7 +16,6 @@ use crate::math::V3;
 use crate::motion::FrameSummary;
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::lung_mesh_vtu;
-use crate::outputs::radiotherapy::field_motion::SampledFieldMotion;
 use crate::outputs::radiotherapy::mesh_motion::{MeshLattice, MeshMotion};
 use crate::outputs::radiotherapy::registration::{
     RegistrationGrid, RegistrationWriter, REGISTRATION_MARGIN_MM,
@@ -51,6 +50,8 @@ pub(super) struct FrameSink<'a> {
     nifti_s: f64,
     /// The treatment target, followed frame by frame.
     pub(super) target: Option<TargetTracker>,
+    /// Where the mesh's elements lie, for the target without a virtual CT (built once).
+    target_lattice: Option<MeshLattice>,
     /// The virtual 4D-CT, when asked for: each frame's CT written as the frames stream past.
     virtual_ct: Option<VirtualCtWriter<'a>>,
 }
@@ -130,6 +131,7 @@ impl<'a> FrameSink<'a> {
             sample_s: 0.0,
             nifti_s: 0.0,
             target: None,
+            target_lattice: None,
             virtual_ct: None,
         })
     }
@@ -310,12 +312,18 @@ impl FrameSink<'_> {
         if let Some(registrations) = self.registrations.as_mut() {
             files.registration_dicom = Some(registrations.write(frame, mesh, positions)?);
         }
-        if let Some(tracker) = self.target.as_mut() {
-            // The frame's sampled field (zero outside the lungs) until the motion over the
-            // whole CT replaces it.
-            let motion = SampledFieldMotion::new(self.geometry, &self.field_mm)
-                .ok_or_else(|| crate::Error::argument("frame field", "grid and values differ"))?;
-            tracker.frame(frame.index, frame.time_s, &motion)?;
+        // The target moves as the virtual CT does when there is one (the motion over the
+        // whole CT, so the ITV matches the phase images a planner contours on); else with the
+        // mesh's own motion, as the tracked points and the registrations do.
+        if self.virtual_ct.is_none() {
+            if let Some(tracker) = self.target.as_mut() {
+                if self.target_lattice.is_none() {
+                    self.target_lattice = Some(MeshLattice::of(mesh)?);
+                }
+                let lattice = self.target_lattice.as_ref().expect("set just above");
+                let motion = MeshMotion::new(lattice, mesh, positions);
+                tracker.frame(frame.index, frame.time_s, &motion)?;
+            }
         }
         self.points
             .displacements_into(mesh, positions, &mut self.point_displacements);
@@ -341,7 +349,17 @@ impl FrameSink<'_> {
             );
         self.capture_extreme(frame.index, positions);
         if let Some(writer) = self.virtual_ct.as_mut() {
-            writer.write_phase(frame.index, frame.time_s, mesh, positions)?;
+            let tracker = self.target.as_mut();
+            writer.write_phase(
+                frame.index,
+                frame.time_s,
+                mesh,
+                positions,
+                |motion| match tracker {
+                    Some(t) => t.frame(frame.index, frame.time_s, motion),
+                    None => Ok(()),
+                },
+            )?;
         }
         let write_time_s = t.elapsed().as_secs_f64();
         self.records.push(FrameRecord {

@@ -19,7 +19,6 @@ pub trait PhaseMotion: Sync {
 }
 
 pub mod contours;
-pub mod field_motion;
 pub mod rtstruct;
 pub mod target;
 pub mod target_motion;

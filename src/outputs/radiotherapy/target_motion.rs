@@ -441,7 +441,9 @@ impl TargetTracker {
             axes: "LPS mm: LR = x (+ patient left), AP = y (+ posterior), SI = z (+ superior)",
             warp: "CT voxel y is in a frame's target when the planning target mask, trilinearly \
                    interpolated at the voxel's source position (inverse motion), is ≥ 0.5; \
-                   centroids are the mean forward-moved planning target voxel",
+                   centroids are the mean forward-moved planning target voxel; the motion is the \
+                   virtual CT's (over the whole CT) when one is written, else the lung mesh's \
+                   own (zero outside the lungs)",
             planning_volume_cc: cc(self.rest_positions_lps_mm.len(), &self.ct),
             planning_centroid_lps_mm: self.rest_centroid_lps_mm,
             tg76_motion_management_advised: peak_to_peak.max() > TG76_MOTION_THRESHOLD_MM,

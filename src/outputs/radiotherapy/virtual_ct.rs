@@ -361,13 +361,15 @@ impl<'a> VirtualCtWriter<'a> {
     }
 
     /// Builds frame `frame`'s motion from the node positions (metres), warps the CT,
-    /// writes the phase and adds it to the MIP and AIP.
+    /// writes the phase and adds it to the MIP and AIP; `also` gets the same motion (the
+    /// target follows it, so that the ITV matches the phase images).
     pub fn write_phase(
         &mut self,
         frame: usize,
         time_s: f64,
         mesh: &HexMesh,
         positions_m: &[V3],
+        also: impl FnOnce(&dyn PhaseMotion) -> Result<()>,
     ) -> Result<()> {
         let t = Instant::now();
         let label = self.labels.get(frame).cloned().ok_or_else(|| {
@@ -378,6 +380,7 @@ impl<'a> VirtualCtWriter<'a> {
         })?;
         let motion = self.layout.motion(mesh, positions_m)?;
         warp_ct_into(self.ct, &motion, self.phase.as_slice_mut());
+        also(&motion)?;
         let report = *motion.inverse_report();
         drop(motion);
         self.mip
