@@ -188,14 +188,38 @@ fn push_pull_run_and_push_back_through_a_real_dicomweb_server() {
         "--out",
         out.to_str().unwrap(),
         "--quiet",
+        "--virtual-ct",
+        "dicom",
+        "--registration-spacing",
+        "6",
+        "--target",
+        "point:-95,20,-80:r=12",
         "--push",
         &root,
     ]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(out.join("summary.json").is_file());
     assert!(text(&o).contains("pushed to"), "{}", text(&o));
+    // Everything a planner loads is in the CT's study on the PACS: the planning CT, one
+    // virtual phase series per frame, MIP and AIP, a REG per frame and the RTSTRUCT.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let frames = summary["frames"].as_array().unwrap().len();
     let series = orthanc.series_of(&study);
-    assert!(series.iter().any(|(m, _)| m == "CT"), "{series:?}");
+    let count = |modality: &str| series.iter().filter(|(m, _)| m == modality).count();
+    assert_eq!(count("CT"), 1 + frames + 2, "{series:?}");
+    assert_eq!(count("REG"), frames, "{series:?}");
+    assert_eq!(count("RTSTRUCT"), 1, "{series:?}");
+    let (_, reg_series) = series.iter().find(|(m, _)| m == "REG").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/dicom-web/studies/{study}/series/{reg_series}/metadata",
+        orthanc.port
+    );
+    let metadata: serde_json::Value = reqwest::blocking::get(url).unwrap().json().unwrap();
+    assert_eq!(
+        metadata[0]["00080016"]["Value"][0], "1.2.840.10008.5.1.4.1.1.66.3",
+        "the stored REG read back is a Deformable Spatial Registration"
+    );
     std::fs::remove_dir_all(&scratch).unwrap();
 }
 

@@ -27,11 +27,10 @@
 //! the largest value and the 99th percentile over lung tissue; nodes that did not converge
 //! are counted, never hidden.
 
-use std::collections::HashMap;
-
 use rayon::prelude::*;
 use serde::Serialize;
 
+use super::mesh_motion::MeshLattice;
 use super::PhaseMotion;
 use crate::math::V3;
 use crate::model::HexMesh;
@@ -213,69 +212,16 @@ impl CoarseGrid {
     }
 }
 
-/// The cube lattice the lung mesh's elements lie on.
-struct MeshLattice {
-    origin_m: V3,
-    axes: [V3; 3],
-    edge_m: f64,
-    cells: HashMap<[i32; 3], u32>,
-}
-
-impl MeshLattice {
-    fn new(mesh: &HexMesh) -> Result<Self> {
-        let first = mesh
-            .elements
-            .first()
-            .ok_or_else(|| Error::InvalidModel("the lung mesh has no elements".into()))?;
-        let x = |n: u32| mesh.rest_positions_m[n as usize];
-        let edge_m = (x(first[1]) - x(first[0])).norm();
-        if !(edge_m.is_finite() && edge_m > 0.0) {
-            return Err(Error::InvalidModel(
-                "the lung mesh's first element has no extent".into(),
-            ));
-        }
-        let axes = [first[1], first[3], first[4]].map(|n| (x(n) - x(first[0])) / edge_m);
-        let mut lattice = MeshLattice {
-            origin_m: x(first[0]),
-            axes,
-            edge_m,
-            cells: HashMap::with_capacity(mesh.elements.len()),
-        };
-        for (e, nodes) in mesh.elements.iter().enumerate() {
-            let centre = x(nodes[0]) + (axes[0] + axes[1] + axes[2]) * (0.5 * edge_m);
-            let (cell, _) = lattice.cell_of(centre);
-            // Where both lungs hold an element of one cell (the anterior junction), the
-            // first lung's motion stands for the cell's.
-            lattice.cells.entry(cell).or_insert(e as u32);
-        }
-        Ok(lattice)
+/// The element holding `p_m` in `lattice` and its eight corner weights (VTK order).
+fn locate(lattice: &MeshLattice, p_m: V3) -> Option<(u32, [f32; 8])> {
+    let (e, local) = lattice.locate(p_m)?;
+    let mut w = [0.0f32; 8];
+    for (c, bits) in CORNER_BITS.iter().enumerate() {
+        w[c] = (0..3)
+            .map(|a| if bits[a] { local[a] } else { 1.0 - local[a] })
+            .product::<f64>() as f32;
     }
-
-    /// The lattice cell of `p_m` and the position within it (0…1 per axis).
-    fn cell_of(&self, p_m: V3) -> ([i32; 3], V3) {
-        let d = p_m - self.origin_m;
-        let f = V3::new(
-            d.dot(&self.axes[0]),
-            d.dot(&self.axes[1]),
-            d.dot(&self.axes[2]),
-        ) / self.edge_m;
-        let cell = [f.x.floor() as i32, f.y.floor() as i32, f.z.floor() as i32];
-        let local = f - V3::new(f64::from(cell[0]), f64::from(cell[1]), f64::from(cell[2]));
-        (cell, local)
-    }
-
-    /// The element holding `p_m` and its corner weights.
-    fn locate(&self, p_m: V3) -> Option<(u32, [f32; 8])> {
-        let (cell, local) = self.cell_of(p_m);
-        let &e = self.cells.get(&cell)?;
-        let mut w = [0.0f32; 8];
-        for (c, bits) in CORNER_BITS.iter().enumerate() {
-            w[c] = (0..3)
-                .map(|a| if bits[a] { local[a] } else { 1.0 - local[a] })
-                .product::<f64>() as f32;
-        }
-        Some((e, w))
-    }
+    Some((e, w))
 }
 
 impl CtMotionLayout {
@@ -289,13 +235,13 @@ impl CtMotionLayout {
         check_settings(&settings)?;
         ct_geometry.validate("the CT under the motion grid")?;
         let grid = CoarseGrid::new(ct_geometry, settings.grid_spacing_mm)?;
-        let lattice = MeshLattice::new(mesh)?;
+        let lattice = MeshLattice::of(mesh)?;
         let located: Vec<Option<(u32, [f32; 8])>> = (0..grid.node_count())
             .into_par_iter()
             .map(|n| {
                 let [a, b, c] = grid.node_of(n);
                 let p_mm = grid.lps_mm(V3::new(a as f64, b as f64, c as f64));
-                lattice.locate(p_mm * 1e-3)
+                locate(&lattice, p_mm * 1e-3)
             })
             .collect();
         let in_lung: Vec<bool> = located.iter().map(Option::is_some).collect();

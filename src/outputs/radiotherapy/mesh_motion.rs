@@ -78,7 +78,7 @@ impl MeshLattice {
     }
 
     /// The element holding `p_m` and the point's place in it (0…1 per axis), if any.
-    fn locate(&self, p_m: V3) -> Option<(u32, V3)> {
+    pub fn locate(&self, p_m: V3) -> Option<(u32, V3)> {
         let f = self.coords(p_m);
         let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
         let e = *self.cells.get(&cell)?;
