@@ -74,7 +74,7 @@ pub struct FieldSampler {
 }
 
 /// Bits (x, y, z) of each VTK hexahedron corner in the element's own frame.
-const CORNER_BITS: [[bool; 3]; 8] = [
+pub(crate) const CORNER_BITS: [[bool; 3]; 8] = [
     [false, false, false],
     [true, false, false],
     [true, true, false],
@@ -504,13 +504,14 @@ fn locate(lattice: &Lattice, p_m: V3, label: u8) -> Option<Location> {
 
 /// The trilinear weight of element corner `corner` (VTK order) at `local` (0…1 per axis).
 #[inline]
-fn corner_weight(local: V3, corner: usize) -> f64 {
+pub(crate) fn corner_weight(local: V3, corner: usize) -> f64 {
     let bits = CORNER_BITS[corner];
     let w = |a: usize| if bits[a] { local[a] } else { 1.0 - local[a] };
     w(0) * w(1) * w(2)
 }
 
-fn weights(local: V3) -> [f32; 8] {
+/// The eight trilinear corner weights (VTK order) at `local` (0…1 per axis).
+pub(crate) fn weights(local: V3) -> [f32; 8] {
     let mut w = [0.0f32; 8];
     for (c, bits) in CORNER_BITS.iter().enumerate() {
         let mut v = 1.0;

@@ -34,6 +34,7 @@ use super::mesh_motion::MeshLattice;
 use super::PhaseMotion;
 use crate::math::V3;
 use crate::model::HexMesh;
+use crate::outputs::displacement_field::{corner_weight, weights, CORNER_BITS};
 use crate::volume::VolumeGeometry;
 use crate::{Error, Result};
 
@@ -51,17 +52,6 @@ const INVERSE_TOLERANCE_MM: f64 = 0.01;
 const PLAIN_ITERATIONS: usize = 40;
 /// Damped iterations (step ½) where the plain ones did not converge.
 const DAMPED_ITERATIONS: usize = 200;
-/// Corner offsets of a hexahedron in VTK order (along the element's axes 0, 1, 2).
-const CORNER_BITS: [[bool; 3]; 8] = [
-    [false, false, false],
-    [true, false, false],
-    [true, true, false],
-    [false, true, false],
-    [false, false, true],
-    [true, false, true],
-    [true, true, true],
-    [false, true, true],
-];
 
 /// How the motion over the CT is sampled and extended.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -187,10 +177,8 @@ impl CoarseGrid {
             t[a] = x - i as f64;
         }
         let mut out = V3::zeros();
-        for bits in &CORNER_BITS {
-            let w = (0..3)
-                .map(|a| if bits[a] { t[a] } else { 1.0 - t[a] })
-                .product::<f64>();
+        for (c, bits) in CORNER_BITS.iter().enumerate() {
+            let w = corner_weight(V3::from(t), c);
             if w == 0.0 {
                 continue;
             }
@@ -215,13 +203,7 @@ impl CoarseGrid {
 /// The element holding `p_m` in `lattice` and its eight corner weights (VTK order).
 fn locate(lattice: &MeshLattice, p_m: V3) -> Option<(u32, [f32; 8])> {
     let (e, local) = lattice.locate(p_m)?;
-    let mut w = [0.0f32; 8];
-    for (c, bits) in CORNER_BITS.iter().enumerate() {
-        w[c] = (0..3)
-            .map(|a| if bits[a] { local[a] } else { 1.0 - local[a] })
-            .product::<f64>() as f32;
-    }
-    Some((e, w))
+    Some((e, weights(local)))
 }
 
 impl CtMotionLayout {

@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use super::PhaseMotion;
 use crate::math::V3;
 use crate::model::HexMesh;
+use crate::outputs::displacement_field::corner_weight;
 use crate::{Error, Result};
 
 /// Fixed-point iterations of [`MeshMotion::source_lps_mm`] before it gives its best estimate.
@@ -115,27 +116,7 @@ impl<'a> MeshMotion<'a> {
         let mut u = V3::zeros();
         for (corner, &n) in self.mesh.elements[e as usize].iter().enumerate() {
             let n = n as usize;
-            // VTK corner order: bit pattern of (x, y, z) per corner.
-            let bits = [
-                [0, 0, 0],
-                [1, 0, 0],
-                [1, 1, 0],
-                [0, 1, 0],
-                [0, 0, 1],
-                [1, 0, 1],
-                [1, 1, 1],
-                [0, 1, 1],
-            ][corner];
-            let w = (0..3)
-                .map(|a| {
-                    if bits[a] == 1 {
-                        local[a]
-                    } else {
-                        1.0 - local[a]
-                    }
-                })
-                .product::<f64>();
-            u += (self.positions_m[n] - rest[n]) * w;
+            u += (self.positions_m[n] - rest[n]) * corner_weight(local, corner);
         }
         u
     }
