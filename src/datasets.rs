@@ -23,6 +23,13 @@ pub fn cip_chest_ct64() -> Option<PathBuf> {
         .filter(|d| d.is_dir())
 }
 
+/// The POPI full-resolution chest CT DICOM series (512 × 512 × 141), if present.
+pub fn popi_chest_ct() -> Option<PathBuf> {
+    shared_data_dir()
+        .map(|d| d.join("popi-chest-ct").join("dicom"))
+        .filter(|d| d.is_dir())
+}
+
 /// The TotalSegmentator abdomen case (JPEG 2000 DICOM and a RAS NIfTI), if present.
 pub fn totalseg_abdomen_ct() -> Option<PathBuf> {
     shared_data_dir()

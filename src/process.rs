@@ -107,6 +107,16 @@ fn cgroup_room(limit: &str, usage: &str, source: &'static str) -> Option<(u64, &
     Some((limit.saturating_sub(read(usage).unwrap_or(0)), source))
 }
 
+/// Hands the memory freed by worker threads back to the system: glibc keeps freed blocks in
+/// each thread's arena, which a run would otherwise carry through its solves.
+pub fn return_freed_memory() {
+    #[cfg(all(feature = "service", target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks and releases glibc's own free lists.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 
 use lungmotion::bench::ingest::{run_ingest_bench, IngestBenchOptions};
 use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
+use lungmotion::bench::scale::{run_scale_bench, ScaleBenchOptions};
 use lungmotion::bench::service::{run_service_bench, ServiceBenchOptions};
 use lungmotion::bench::{run_bench, BenchOptions};
 use lungmotion::durable::write_atomic;
@@ -18,13 +19,15 @@ pub enum BenchSuite {
     Ingest,
     Motion,
     Service,
+    Scale,
     All,
 }
 
 impl BenchSuite {
     /// Whether this choice runs `suite`.
     fn includes(self, suite: BenchSuite) -> bool {
-        self == suite || self == BenchSuite::All
+        // The element-size study takes hours in full: only asked for by name.
+        self == suite || (self == BenchSuite::All && suite != BenchSuite::Scale)
     }
 }
 
@@ -47,9 +50,17 @@ pub struct BenchArgs {
     /// Which benchmarks: `core` (mechanics), `ingest` (segmentation of the CIP case and of
     /// a 512×512×300 CT), `motion` (10-phase tidal cycle on the CIP case at 8 and 4 mm:
     /// cycle time, fields served per second, interpolation error), `service` (HTTP: upload of a
-    /// 300-slice DICOM zip, service against in-process run, requests per second) or `all`.
+    /// 300-slice DICOM zip, service against in-process run, requests per second), `scale`
+    /// (run time against error for element sizes 16 to 2 mm on the CIP and POPI CTs, with a
+    /// PNG plot; hours in full, not part of `all`) or `all`.
     #[arg(long, value_enum, default_value_t = BenchSuite::All)]
     suite: BenchSuite,
+    /// Element sizes of the scale suite, mm, on every case (default 16,12,10,8,6,5,4,3,2).
+    #[arg(long, value_delimiter = ',')]
+    scale_sizes: Vec<f64>,
+    /// Wall-clock budget of each size's cycle in the scale suite, seconds.
+    #[arg(long, default_value_t = 600.0)]
+    scale_budget: f64,
 }
 
 impl BenchArgs {
@@ -78,6 +89,24 @@ impl BenchArgs {
             };
             let report = run_motion_bench(&options)?;
             write_bench_report(out, "bench-motion", &report, &report.to_markdown())?;
+        }
+        if self.suite.includes(BenchSuite::Scale) {
+            let mut options = if self.quick {
+                ScaleBenchOptions::quick()
+            } else {
+                ScaleBenchOptions::full()
+            };
+            if !self.scale_sizes.is_empty() {
+                for case in &mut options.cases {
+                    case.element_sizes_mm = self.scale_sizes.clone();
+                }
+            }
+            if !self.quick {
+                options.budget_s = self.scale_budget;
+            }
+            let report = run_scale_bench(&options)?;
+            write_bench_report(out, "bench-scale", &report, &report.to_markdown())?;
+            report.write_plot(out)?;
         }
         if self.suite.includes(BenchSuite::Service) {
             let report = run_service_bench(&ServiceBenchOptions { quick: self.quick })?;

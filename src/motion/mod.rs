@@ -63,6 +63,13 @@ pub struct MotionSettings {
     pub progress: Option<crate::simulation::SolveProgressSink>,
 }
 
+/// Relative force residual at which a breathing solve stops. Measured on the CIP lungs
+/// (10-phase cycle of 500 mL, end-inhale frame against solves to 1e-8): 0.0006 mm largest
+/// node difference at 8 mm and 0.0008 mm at 4 mm, for 20 % and 28 % fewer Krylov
+/// iterations than 1e-6 (1e-4 gives 0.007 mm). The tolerance that matters is the
+/// interpolation's 0.1 mm.
+pub const BREATHING_SOLVER_TOLERANCE: f64 = 1e-5;
+
 impl Default for MotionSettings {
     fn default() -> Self {
         MotionSettings {
@@ -71,7 +78,10 @@ impl Default for MotionSettings {
             interpolation_tolerance_mm: 0.1,
             solve_every_frame: false,
             volume_tolerance_fraction: 0.005,
-            solver: QuasiStaticSettings::default(),
+            solver: QuasiStaticSettings {
+                tolerance: BREATHING_SOLVER_TOLERANCE,
+                ..QuasiStaticSettings::default()
+            },
             cancel: None,
             progress: None,
         }

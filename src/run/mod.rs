@@ -500,7 +500,7 @@ fn scene_of_scan<'a>(
     });
     *timings.entry("ingest".to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
     log_memory("ingested");
-    return_freed_memory();
+    crate::process::return_freed_memory();
     log_memory("ingested, freed memory returned");
     let t = Instant::now();
     let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
@@ -684,16 +684,6 @@ fn record_final_timings(summary: &mut RunSummary, finishing_start: Instant, run_
         .timings_s
         .insert("total".to_string(), run_start.elapsed().as_secs_f64());
     summary.peak_memory_mib = crate::process::peak_rss_bytes().map(|b| b as f64 / (1 << 20) as f64);
-}
-
-/// Hands the memory the ingest's workers freed back to the system: glibc keeps freed blocks in
-/// each thread's arena, which the run would otherwise carry through its solves.
-fn return_freed_memory() {
-    #[cfg(all(feature = "service", target_os = "linux", target_env = "gnu"))]
-    // SAFETY: malloc_trim only walks and releases glibc's own free lists.
-    unsafe {
-        libc::malloc_trim(0);
-    }
 }
 
 /// Logs the resident and peak memory at a stage boundary (`LUNGMOTION_LOG=debug`), to see

@@ -96,6 +96,8 @@ struct ScannedPiece {
     point_data: Vec<(String, DataArray)>,
     cell_data: Vec<(String, DataArray)>,
     seen_root: bool,
+    /// The root names VTK's zlib compressor: arrays are in its block layout.
+    zlib: bool,
 }
 
 /// Walks the tags in order (declarations and comments skipped), keeping the stack of open
@@ -135,7 +137,7 @@ fn scan_piece(text: &str, kind: Kind) -> std::result::Result<ScannedPiece, Strin
         }
         match tag.name {
             "VTKFile" => {
-                check_root(&tag, kind)?;
+                found.zlib = check_root(&tag, kind)?;
                 found.seen_root = true;
             }
             "Piece" => found.read_counts(&tag, kind)?,
@@ -169,9 +171,9 @@ fn scan_piece(text: &str, kind: Kind) -> std::result::Result<ScannedPiece, Strin
     Ok(found)
 }
 
-/// The root must be this writer's: dataset type, little endian, UInt64 headers, and no
-/// compression.
-fn check_root(tag: &Tag, kind: Kind) -> std::result::Result<(), String> {
+/// The root must be this writer's: dataset type, little endian, UInt64 headers, zlib or no
+/// compression; returns whether the arrays are zlib-compressed.
+fn check_root(tag: &Tag, kind: Kind) -> std::result::Result<bool, String> {
     let expect = [
         ("type", kind.file_type()),
         ("byte_order", "LittleEndian"),
@@ -186,10 +188,13 @@ fn check_root(tag: &Tag, kind: Kind) -> std::result::Result<(), String> {
             ));
         }
     }
-    if let Some(c) = tag.attr("compressor") {
-        return Err(format!("compressed data ({c}) is not supported"));
+    match tag.attr("compressor") {
+        None => Ok(false),
+        Some("vtkZLibDataCompressor") => Ok(true),
+        Some(c) => Err(format!(
+            "compressed data ({c}) is not supported (only vtkZLibDataCompressor)"
+        )),
     }
-    Ok(())
 }
 
 impl ScannedPiece {
@@ -227,7 +232,7 @@ impl ScannedPiece {
         kind: Kind,
     ) -> std::result::Result<(), String> {
         let name = tag.attr("Name").unwrap_or("");
-        let array = decode_array(tag, body).map_err(|m| format!("{name}: {m}"))?;
+        let array = decode_array(tag, body, self.zlib).map_err(|m| format!("{name}: {m}"))?;
         let section = kind.cell_section();
         match (parent, name) {
             ("Points", _) => self.points = Some(array),
@@ -380,7 +385,7 @@ impl Raw {
     }
 }
 
-fn decode_array(tag: &Tag, body: &str) -> std::result::Result<Raw, String> {
+fn decode_array(tag: &Tag, body: &str, zlib: bool) -> std::result::Result<Raw, String> {
     if tag.attr("format") != Some("binary") {
         return Err(format!(
             "format {:?} is not supported (only \"binary\")",
@@ -396,19 +401,24 @@ fn decode_array(tag: &Tag, body: &str) -> std::result::Result<Raw, String> {
         .filter(|&c| c == 1 || c == 3)
         .ok_or("NumberOfComponents must be 1 or 3")?;
     let b64: Vec<u8> = body.bytes().filter(|b| !b.is_ascii_whitespace()).collect();
-    // The 8-byte length header is its own base64 block of 12 characters.
-    if b64.len() < 12 {
-        return Err("binary data has no length header".into());
-    }
-    let header = base64_decode(&b64[..12]).ok_or("length header is not base64")?;
-    let byte_len = u64::from_le_bytes(header[..8].try_into().map_err(|_| "short header")?);
-    let data = base64_decode(&b64[12..]).ok_or("data are not base64")?;
-    if data.len() as u64 != byte_len {
-        return Err(format!(
-            "header announces {byte_len} bytes but {} are encoded",
-            data.len()
-        ));
-    }
+    let data = if zlib {
+        inflate_blocks(&b64)?
+    } else {
+        // The 8-byte length header is its own base64 block of 12 characters.
+        if b64.len() < 12 {
+            return Err("binary data has no length header".into());
+        }
+        let header = base64_decode(&b64[..12]).ok_or("length header is not base64")?;
+        let byte_len = u64::from_le_bytes(header[..8].try_into().map_err(|_| "short header")?);
+        let data = base64_decode(&b64[12..]).ok_or("data are not base64")?;
+        if data.len() as u64 != byte_len {
+            return Err(format!(
+                "header announces {byte_len} bytes but {} are encoded",
+                data.len()
+            ));
+        }
+        data
+    };
     let ty = tag.attr("type").unwrap_or("");
     let size = match ty {
         "Float32" | "Int32" => 4,
@@ -449,4 +459,139 @@ fn decode_array(tag: &Tag, body: &str) -> std::result::Result<Raw, String> {
         ),
         _ => Raw::U8(data, components),
     })
+}
+
+/// Largest uncompressed array accepted from a compressed file, bytes: a hostile header cannot
+/// make the reader allocate more (a 2 mm POPI mesh's connectivity is about 40 MB).
+const MAX_INFLATED_BYTES: u64 = 1 << 31;
+
+/// VTK's zlib layout: a base64 header of UInt64s (blocks, block size, partial last block
+/// size, compressed sizes) and the base64 of the concatenated zlib streams.
+fn inflate_blocks(b64: &[u8]) -> std::result::Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    // The first three UInt64s (24 bytes) are one 32-character base64 group.
+    if b64.len() < 32 {
+        return Err("compressed data have no block header".into());
+    }
+    let head = base64_decode(&b64[..32]).ok_or("block header is not base64")?;
+    let word =
+        |b: &[u8], i: usize| u64::from_le_bytes(b[8 * i..8 * i + 8].try_into().unwrap_or([0; 8]));
+    let (blocks, block_size, last) = (word(&head, 0), word(&head, 1), word(&head, 2));
+    let total = match (blocks, last) {
+        (0, _) => Some(0),
+        (n, 0) => n.checked_mul(block_size),
+        (n, l) => (n - 1)
+            .checked_mul(block_size)
+            .and_then(|t| t.checked_add(l)),
+    }
+    .filter(|&t| t <= MAX_INFLATED_BYTES && last <= block_size)
+    .ok_or_else(|| {
+        format!(
+            "block header ({blocks} blocks of {block_size} bytes, last {last}) is not plausible"
+        )
+    })?;
+    let header_bytes = 8 * (3 + blocks as usize);
+    let header_chars = header_bytes.div_ceil(3) * 4;
+    if b64.len() < header_chars {
+        return Err(format!(
+            "block header announces {blocks} blocks but is cut short"
+        ));
+    }
+    let header = base64_decode(&b64[..header_chars]).ok_or("block header is not base64")?;
+    let compressed = base64_decode(&b64[header_chars..]).ok_or("compressed data are not base64")?;
+    let mut out = Vec::with_capacity(total as usize);
+    let mut at = 0usize;
+    for i in 0..blocks as usize {
+        let size = word(&header, 3 + i) as usize;
+        let chunk = compressed
+            .get(at..at.saturating_add(size))
+            .ok_or_else(|| format!("block {i} runs past the end of the compressed data"))?;
+        at += size;
+        let want = if i + 1 == blocks as usize && last != 0 {
+            last
+        } else {
+            block_size
+        };
+        let before = out.len();
+        flate2::read::ZlibDecoder::new(chunk)
+            .take(want + 1)
+            .read_to_end(&mut out)
+            .map_err(|e| format!("block {i} is not a zlib stream: {e}"))?;
+        if (out.len() - before) as u64 != want {
+            return Err(format!(
+                "block {i} inflates to {} bytes, the header says {want}",
+                out.len() - before
+            ));
+        }
+    }
+    if at != compressed.len() {
+        return Err(format!(
+            "{} bytes of compressed data follow the last block",
+            compressed.len() - at
+        ));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write as _;
+
+    fn b64(bytes: &[u8]) -> String {
+        let mut s = String::new();
+        let mut w = super::super::base64::Base64Writer::new(&mut s);
+        w.push(bytes);
+        w.finish();
+        s
+    }
+
+    fn words(w: &[u64]) -> Vec<u8> {
+        w.iter().flat_map(|v| v.to_le_bytes()).collect()
+    }
+
+    fn zlib(bytes: &[u8]) -> Vec<u8> {
+        let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        z.write_all(bytes).unwrap();
+        z.finish().unwrap()
+    }
+
+    #[test]
+    fn uncompressed_and_zlib_layouts_give_the_same_bytes() {
+        let raw: Vec<u8> = (0..100u8).collect();
+        let plain = format!("{}{}", b64(&words(&[100])), b64(&raw));
+        // Two blocks of 64 bytes, the last one partial (36 bytes).
+        let (a, b) = (zlib(&raw[..64]), zlib(&raw[64..]));
+        let header = words(&[2, 64, 36, a.len() as u64, b.len() as u64]);
+        let packed = format!("{}{}", b64(&header), b64(&[a, b].concat()));
+        assert_eq!(inflate_blocks(packed.as_bytes()).unwrap(), raw);
+        let plain: Vec<u8> = plain.bytes().collect();
+        let data = base64_decode(&plain[12..]).unwrap();
+        assert_eq!(data, raw);
+    }
+
+    #[test]
+    fn hostile_or_inconsistent_block_headers_are_refused_by_what_is_wrong() {
+        let block = zlib(&[7u8; 64]);
+        let case = |header: &[u64], data: &[u8]| {
+            let text = format!("{}{}", b64(&words(header)), b64(data));
+            inflate_blocks(text.as_bytes()).unwrap_err()
+        };
+        let e = case(&[u64::MAX / 2, 1 << 20, 0], &block);
+        assert!(e.contains("not plausible"), "{e}");
+        let e = case(&[1, 64, 0, block.len() as u64 + 5], &block);
+        assert!(e.contains("runs past the end"), "{e}");
+        let e = case(&[1, 128, 0, block.len() as u64], &block);
+        assert!(
+            e.contains("inflates to 64 bytes, the header says 128"),
+            "{e}"
+        );
+        let e = case(&[1, 32, 0, block.len() as u64], &block);
+        assert!(e.contains("the header says 32"), "{e}");
+        let e = case(&[1, 64, 0, 3], &block);
+        assert!(
+            e.contains("not a zlib stream") || e.contains("inflates"),
+            "{e}"
+        );
+    }
 }

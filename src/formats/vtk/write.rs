@@ -1,7 +1,12 @@
 //! Writing one VTK XML piece: checks, then the XML with binary (base64) DataArrays.
 
 use std::fmt::Write as _;
+use std::io::Write as _;
 use std::path::Path;
+
+use flate2::write::ZlibEncoder;
+use flate2::Compression;
+use rayon::prelude::*;
 
 use super::base64::Base64Writer;
 use super::{DataArray, Kind, VTK_HEXAHEDRON};
@@ -91,7 +96,8 @@ fn open_piece(xml: &mut String, kind: Kind, n_points: usize, n_cells: usize) {
     xml.push_str("<!-- lungmotion: points in LPS millimetres (DICOM patient space) -->\n");
     let _ = writeln!(
         xml,
-        "<VTKFile type=\"{ft}\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">"
+        "<VTKFile type=\"{ft}\" version=\"1.0\" byte_order=\"LittleEndian\" \
+         header_type=\"UInt64\" compressor=\"vtkZLibDataCompressor\">"
     );
     let _ = writeln!(xml, "  <{ft}>");
     match kind {
@@ -134,7 +140,7 @@ fn write_points(xml: &mut String, points: &[[f64; 3]]) {
         points
             .iter()
             .flatten()
-            .for_each(|v| b.push(&v.to_le_bytes()))
+            .for_each(|v| b.extend(v.to_le_bytes()))
     });
     xml.push_str("      </Points>\n");
 }
@@ -149,43 +155,64 @@ fn write_cells(xml: &mut String, kind: Kind, cells: &[&[u32]]) {
         cells
             .iter()
             .flat_map(|c| c.iter())
-            .for_each(|&n| b.push(&i64::from(n).to_le_bytes()))
+            .for_each(|&n| b.extend(i64::from(n).to_le_bytes()))
     });
     data_array(xml, "Int64", "offsets", 1, cells.len() * 8, |b| {
         let mut end = 0i64;
         for c in cells {
             end += c.len() as i64;
-            b.push(&end.to_le_bytes());
+            b.extend(end.to_le_bytes());
         }
     });
     if kind == Kind::Unstructured {
         data_array(xml, "UInt8", "types", 1, cells.len(), |b| {
-            cells.iter().for_each(|_| b.push(&[VTK_HEXAHEDRON]))
+            b.resize(cells.len(), VTK_HEXAHEDRON)
         });
     }
     let _ = writeln!(xml, "      </{section}>");
 }
 
-/// Appends one binary DataArray element: the length header and the data are base64-encoded
-/// separately, as VTK's reader expects for uncompressed binary data.
+/// Uncompressed bytes per zlib block (VTK's own default).
+pub(super) const ZLIB_BLOCK_BYTES: usize = 1 << 15;
+
+/// Appends one binary DataArray element in VTK's zlib layout: the header (block count,
+/// block size, partial last block size, compressed sizes) and the concatenated zlib streams,
+/// each base64-encoded on its own as VTK's reader expects.
 fn data_array(
     xml: &mut String,
     ty: &str,
     name: &str,
     components: usize,
     byte_len: usize,
-    fill: impl FnOnce(&mut Base64Writer),
+    fill: impl FnOnce(&mut Vec<u8>),
 ) {
     let _ = write!(
         xml,
         "        <DataArray type=\"{ty}\" Name=\"{name}\" NumberOfComponents=\"{components}\" \
          format=\"binary\">\n          "
     );
+    let mut raw = Vec::with_capacity(byte_len);
+    fill(&mut raw);
+    debug_assert_eq!(raw.len(), byte_len);
+    let blocks: Vec<Vec<u8>> = raw
+        .par_chunks(ZLIB_BLOCK_BYTES)
+        .map(|block| {
+            let mut z = ZlibEncoder::new(Vec::with_capacity(block.len() / 2), Compression::new(6));
+            // Writing into a Vec cannot fail.
+            let _ = z.write_all(block);
+            z.finish().unwrap_or_default()
+        })
+        .collect();
     let mut header = Base64Writer::new(xml);
-    header.push(&(byte_len as u64).to_le_bytes());
+    header.push(&(blocks.len() as u64).to_le_bytes());
+    header.push(&(ZLIB_BLOCK_BYTES as u64).to_le_bytes());
+    header.push(&((raw.len() % ZLIB_BLOCK_BYTES) as u64).to_le_bytes());
+    for b in &blocks {
+        header.push(&(b.len() as u64).to_le_bytes());
+    }
     header.finish();
     let mut data = Base64Writer::new(xml);
-    fill(&mut data);
+    blocks.iter().for_each(|b| data.push(b));
     data.finish();
     xml.push_str("\n        </DataArray>\n");
 }

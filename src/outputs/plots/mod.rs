@@ -28,6 +28,7 @@ mod displacement_look;
 mod draw;
 mod scale;
 mod slice_look;
+mod trade_off;
 
 pub use breathing_curve::{
     render_breathing_curve, BreathingCurve, BreathingCurvePlot, PlotAxes, CURVE_HEIGHT_PX,
@@ -39,6 +40,9 @@ pub use displacement_look::{
 };
 pub use slice_look::{
     render_labelled_slice, LabelledSlice, LabelledSliceInput, LegendEntry, PixelRect,
+};
+pub use trade_off::{
+    render_trade_off, TradeOffPoint, TradeOffSeries, TRADE_OFF_HEIGHT_PX, TRADE_OFF_WIDTH_PX,
 };
 
 /// Colour of the breathing trace line.
