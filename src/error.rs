@@ -393,10 +393,13 @@ impl BudgetKind {
         }
     }
 
-    fn amount(self, value: f64) -> String {
+    /// `60.2 s used of 60 s allowed`, `4 equilibrium solves used of 4 allowed`.
+    fn usage(self, used: f64, limit: f64) -> String {
         match self {
-            BudgetKind::Time => format!("{value:.1} s"),
-            BudgetKind::Equilibria => format!("{value:.0} equilibrium solves"),
+            BudgetKind::Time => format!("{used:.1} s used of {limit} s allowed"),
+            BudgetKind::Equilibria => {
+                format!("{used:.0} equilibrium solves used of {limit:.0} allowed")
+            }
         }
     }
 }
@@ -404,10 +407,10 @@ impl BudgetKind {
 /// How a run was stopped by its budget (see [`Error::BudgetExceeded`]).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error(
-    "stopped by the {} budget: {} used of {} allowed, while {stage}; {equilibria} equilibria \
-     reached{}; no output was written. Try a larger element size, or raise {}",
+    "stopped by the {} budget: {}, while {stage}; {equilibria} equilibria reached{}; no output \
+     was written. Try a larger element size, or raise {}",
     match budget { BudgetKind::Time => "time", BudgetKind::Equilibria => "equilibrium" },
-    budget.amount(*used), budget.amount(*limit), volume_phrase(*volume_reached_ml, *target_ml),
+    budget.usage(*used, *limit), volume_phrase(*volume_reached_ml, *target_ml),
     budget.setting()
 )]
 pub struct BudgetStop {

@@ -141,7 +141,7 @@ fn a_run_stopped_by_its_budget_exits_3_naming_it_and_leaves_the_earlier_run_as_i
     assert_eq!(o.status.code(), Some(3), "{stderr}");
     for needle in [
         "equilibrium budget",
-        "1 equilibrium solves allowed",
+        "1 equilibrium solves used of 1 allowed",
         "--max-equilibria",
     ] {
         assert!(stderr.contains(needle), "{needle}: {stderr}");
@@ -199,7 +199,7 @@ fn the_time_budget_stops_a_long_run_on_the_cip_ct_with_the_named_error() {
     assert_eq!(o.status.code(), Some(3), "{stderr}");
     for needle in [
         "time budget",
-        "1.0 s allowed",
+        "of 1 s allowed",
         "[budget] time_s",
         "--time-budget",
     ] {
@@ -289,7 +289,7 @@ fn an_http_job_stopped_by_its_budget_fails_with_the_reason_and_bad_budgets_are_4
     for needle in [
         "equilibrium budget",
         "max_equilibria",
-        "1 equilibrium solves allowed",
+        "1 equilibrium solves used of 1 allowed",
     ] {
         assert!(error.contains(needle), "{needle}: {status}");
     }

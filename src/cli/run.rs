@@ -91,12 +91,12 @@ pub struct RunArgs {
     /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
     /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
     /// output and exits with status 3.
-    #[arg(long, value_name = "SECONDS", value_parser = parse_time_budget)]
+    #[arg(long, value_name = "SECONDS", value_parser = parse_time_budget, allow_negative_numbers = true)]
     time_budget: Option<f64>,
     /// Equilibrium solves the run may make (key volumes, their load-step halvings, per-frame
     /// solves; 1 – 1000000; default 10000, or the config's `[budget] max_equilibria`);
     /// reaching it stops the run like the time budget.
-    #[arg(long, value_name = "N", value_parser = parse_max_equilibria)]
+    #[arg(long, value_name = "N", value_parser = parse_max_equilibria, allow_negative_numbers = true)]
     max_equilibria: Option<i64>,
     /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]

@@ -129,7 +129,7 @@ impl BudgetConfig {
             ))
         } else if time_s < 1.0 {
             Some(format!("{time_s} s is below the 1 s minimum"))
-        } else if !(time_s <= MAX_TIME_BUDGET_S) {
+        } else if time_s > MAX_TIME_BUDGET_S {
             Some(format!(
                 "{time_s} s is beyond the {MAX_TIME_BUDGET_S} s (7 days) maximum"
             ))
