@@ -89,7 +89,7 @@ pub struct RunConfig {
 pub const DEFAULT_TIME_BUDGET_S: f64 = 1800.0;
 /// Largest wall-clock budget accepted, s (a week): beyond it a value is a unit mistake.
 pub const MAX_TIME_BUDGET_S: f64 = 7.0 * 24.0 * 3600.0;
-/// Default budget of equilibrium solves: a 10-phase cycle takes about 10, a trace solved
+/// Default budget of equilibrium solves: a cycle interpolated from key volumes needs only those, a trace solved
 /// frame by frame at every sample of a few minutes a few thousand.
 pub const DEFAULT_MAX_EQUILIBRIA: i64 = 10_000;
 /// Largest equilibrium budget accepted.
