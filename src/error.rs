@@ -54,6 +54,11 @@ pub enum Error {
     #[error("{0}")]
     VolumeUnreachable(Box<UnreachableVolume>),
 
+    /// A run reached its time or equilibrium budget and was stopped (nothing was published).
+    /// Names the budget, what was used, the stage and how far the solves got.
+    #[error("{0}")]
+    BudgetExceeded(Box<BudgetStop>),
+
     /// A scan (DICOM series, NIfTI, NRRD, zip) is unreadable, inconsistent or implausible.
     #[error("invalid scan: {}: {reason}", scan.display())]
     InvalidScan {
@@ -367,6 +372,73 @@ pub struct UnreachableVolume {
     pub cause: String,
     /// What to try.
     pub remedy: String,
+}
+
+/// Which budget of a run stopped it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BudgetKind {
+    /// Wall-clock time (`[budget] time_s`, `--time-budget`), counted in seconds.
+    Time,
+    /// Equilibrium solves (`[budget] max_equilibria`, `--max-equilibria`), counted in solves.
+    Equilibria,
+}
+
+impl BudgetKind {
+    /// The configuration key and the command-line flag that set it.
+    pub fn setting(self) -> &'static str {
+        match self {
+            BudgetKind::Time => "`[budget] time_s` (--time-budget)",
+            BudgetKind::Equilibria => "`[budget] max_equilibria` (--max-equilibria)",
+        }
+    }
+
+    /// `60.2 s used of 60 s allowed`, `4 equilibrium solves used of 4 allowed`.
+    fn usage(self, used: f64, limit: f64) -> String {
+        match self {
+            BudgetKind::Time => format!("{used:.1} s used of {limit} s allowed"),
+            BudgetKind::Equilibria => {
+                format!("{used:.0} equilibrium solves used of {limit:.0} allowed")
+            }
+        }
+    }
+}
+
+/// How a run was stopped by its budget (see [`Error::BudgetExceeded`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "stopped by the {} budget: {}, while {stage}; {equilibria} equilibria reached{}; no output \
+     was written. Try a larger element size, or raise {}",
+    match budget { BudgetKind::Time => "time", BudgetKind::Equilibria => "equilibrium" },
+    budget.usage(*used, *limit), volume_phrase(*volume_reached_ml, *target_ml),
+    budget.setting()
+)]
+pub struct BudgetStop {
+    /// The budget that stopped the run.
+    pub budget: BudgetKind,
+    /// Its limit (seconds, or equilibrium solves).
+    pub limit: f64,
+    /// What the run had used when it stopped (same unit).
+    pub used: f64,
+    /// The stage it was in (`solving the breathing cycle`, …).
+    pub stage: String,
+    /// Equilibria reached by the solves before the stop.
+    pub equilibria: usize,
+    /// Volume change from the scan of the last equilibrium reached, mL (none before the first).
+    pub volume_reached_ml: Option<f64>,
+    /// The volume change of the trace farthest from the scan, mL: where the solves were headed.
+    pub target_ml: Option<f64>,
+}
+
+/// `, the last at +231 mL of the +500 mL the trace reaches` as far as known.
+fn volume_phrase(reached: Option<f64>, target: Option<f64>) -> String {
+    match (reached, target) {
+        (Some(r), Some(t)) => {
+            format!(", the last at {r:+.0} mL of the {t:+.0} mL the trace reaches")
+        }
+        (Some(r), None) => format!(", the last at {r:+.0} mL"),
+        _ => String::new(),
+    }
 }
 
 fn group_suffix(group: &Option<String>) -> String {

@@ -69,4 +69,4 @@ pub mod simulation;
 pub mod validation;
 pub mod volume;
 
-pub use error::{Error, IoContext, IoOp, Result, UnreachableVolume};
+pub use error::{BudgetKind, BudgetStop, Error, IoContext, IoOp, Result, UnreachableVolume};

@@ -1,5 +1,6 @@
 //! The exit status of every subcommand: 0 success, 2 the usage or the input was refused,
-//! 1 a failure while working, 130 interrupted. The one place that decides between them.
+//! 1 a failure while working, 3 stopped by its budget, 130 interrupted. The one place that
+//! decides between them.
 
 use std::process::ExitCode;
 
@@ -13,6 +14,9 @@ Exit status (the same for every subcommand):
      unusable configuration, breathing trace, points file, scan, material or output
      directory; no usable lungs in the CT; service settings it cannot serve with (such as
      an address it cannot listen on)
+  3  stopped by its budget: `run` or `demo` reached its time (--time-budget, [budget]
+     time_s, default 1800 s) or equilibrium budget (--max-equilibria, [budget]
+     max_equilibria); the message names which; the output directory is as it was
   130  interrupted: `run` or `demo` stopped by Ctrl-C, SIGTERM or SIGHUP; the output
      directory is as it was and the partial output was removed";
 
@@ -21,6 +25,11 @@ pub const REFUSED: u8 = 2;
 
 /// Exit status of a failure while working.
 pub const FAILED: u8 = 1;
+
+/// Exit status of a run stopped by its time or equilibrium budget: neither refused (the input
+/// was usable) nor failed (the solver did not give up): a larger element size or a larger
+/// budget finishes it, which a script may want to tell apart.
+pub const BUDGET: u8 = 3;
 
 /// Exit status of a run stopped by Ctrl-C, SIGTERM or SIGHUP (128 + SIGINT, as shells report
 /// Ctrl-C), whichever signal it was.
@@ -56,6 +65,7 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::VolumeUnreachable(_)
         | Error::External(_)
         | Error::Cancelled(_)
+        | Error::BudgetExceeded(_)
         | Error::Store { .. } => false,
     }
 }
@@ -64,6 +74,8 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
 pub fn exit_code(error: &lungmotion::Error) -> ExitCode {
     ExitCode::from(if matches!(error, lungmotion::Error::Cancelled(_)) {
         INTERRUPTED
+    } else if matches!(error, lungmotion::Error::BudgetExceeded(_)) {
+        BUDGET
     } else if is_refusal(error) {
         REFUSED
     } else {

@@ -88,9 +88,43 @@ pub struct RunArgs {
     /// `[outputs] virtual_ct`).
     #[arg(long, value_name = "off|nifti|dicom|both")]
     virtual_ct: Option<VirtualCtOutput>,
+    /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
+    /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
+    /// output and exits with status 3.
+    #[arg(long, value_name = "SECONDS", value_parser = parse_time_budget, allow_negative_numbers = true)]
+    time_budget: Option<f64>,
+    /// Equilibrium solves the run may make (key volumes, their load-step halvings, per-frame
+    /// solves; 1 – 1000000; default 10000, or the config's `[budget] max_equilibria`);
+    /// reaching it stops the run like the time budget.
+    #[arg(long, value_name = "N", value_parser = parse_max_equilibria, allow_negative_numbers = true)]
+    max_equilibria: Option<i64>,
     /// No progress (the bar on a terminal, the progress lines otherwise).
     #[arg(long, short)]
     quiet: bool,
+}
+
+/// `--time-budget`: a number of seconds the configuration accepts.
+fn parse_time_budget(text: &str) -> Result<f64, String> {
+    let s: f64 = text
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a number of seconds"))?;
+    match lungmotion::run::BudgetConfig::time_problem(s) {
+        Some(reason) => Err(reason),
+        None => Ok(s),
+    }
+}
+
+/// `--max-equilibria`: a count the configuration accepts.
+fn parse_max_equilibria(text: &str) -> Result<i64, String> {
+    let n: i64 = text
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a whole number of equilibrium solves"))?;
+    match lungmotion::run::BudgetConfig::equilibria_problem(n) {
+        Some(reason) => Err(reason),
+        None => Ok(n),
+    }
 }
 
 /// Options of `lungmotion demo`.
@@ -182,6 +216,12 @@ impl RunArgs {
         }
         if let Some(window) = self.trace_window {
             config.trace.window_s = Some(window);
+        }
+        if let Some(s) = self.time_budget {
+            config.budget.time_s = s;
+        }
+        if let Some(n) = self.max_equilibria {
+            config.budget.max_equilibria = n;
         }
         let reading = BreathingTrace::read_with_notes(&self.trace, &config.trace)?;
         // What was done to the file's columns goes to the console and, with the file's name,

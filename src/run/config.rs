@@ -36,6 +36,10 @@
 //! registration_spacing_mm = 3.0        # its grid spacing over the lungs (0.5–20 mm)
 //! virtual_ct = "off"                   # "nifti", "dicom" or "both": the CT at each frame
 //! outside_lung_decay_mm = 15.0         # how far the motion reaches beyond the lungs
+//! [budget]                             # what a run may spend before it is stopped
+//! time_s = 1800.0                      # wall clock, reading the CT to summary.json (1 s – 7 days)
+//! max_equilibria = 10000               # equilibrium solves: key volumes, their load-step
+//!                                      # halvings and per-frame solves (1 – 1 000 000)
 //! ```
 
 use std::path::Path;
@@ -76,6 +80,79 @@ pub struct RunConfig {
     pub motion: MotionConfig,
     /// Which optional files are written.
     pub outputs: OutputConfig,
+    /// What the run may spend before it is stopped.
+    pub budget: BudgetConfig,
+}
+
+/// Default wall-clock budget of a run, s: half an hour, well beyond a clinical run (seconds to
+/// a minute) and short enough that a run that cannot finish is not left grinding for hours.
+pub const DEFAULT_TIME_BUDGET_S: f64 = 1800.0;
+/// Largest wall-clock budget accepted, s (a week): beyond it a value is a unit mistake.
+pub const MAX_TIME_BUDGET_S: f64 = 7.0 * 24.0 * 3600.0;
+/// Default budget of equilibrium solves: a cycle interpolated from key volumes needs only those, a trace solved
+/// frame by frame at every sample of a few minutes a few thousand.
+pub const DEFAULT_MAX_EQUILIBRIA: i64 = 10_000;
+/// Largest equilibrium budget accepted.
+pub const MAX_EQUILIBRIA_LIMIT: i64 = 1_000_000;
+
+/// What a run may spend: wall-clock time and equilibrium solves. Every run has both; a run
+/// that reaches one stops (inside a solve, within about a second) with
+/// [`Error::BudgetExceeded`], leaving no output.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BudgetConfig {
+    /// Wall-clock time of the whole run, reading the CT to `summary.json`, s.
+    pub time_s: f64,
+    /// Equilibrium solves (key volumes, their load-step halvings, per-frame solves).
+    pub max_equilibria: i64,
+}
+
+impl Default for BudgetConfig {
+    fn default() -> Self {
+        BudgetConfig {
+            time_s: DEFAULT_TIME_BUDGET_S,
+            max_equilibria: DEFAULT_MAX_EQUILIBRIA,
+        }
+    }
+}
+
+impl BudgetConfig {
+    /// Why `time_s` cannot be a time budget, if it cannot (shared by the configuration, the
+    /// command line and HTTP requests).
+    pub fn time_problem(time_s: f64) -> Option<String> {
+        if time_s.is_nan() {
+            Some("NaN is not a number of seconds".into())
+        } else if time_s <= 0.0 {
+            Some(format!(
+                "{time_s} s would stop the run before it starts; every run has a time budget \
+                 (leave it out for the default {DEFAULT_TIME_BUDGET_S} s)"
+            ))
+        } else if time_s < 1.0 {
+            Some(format!("{time_s} s is below the 1 s minimum"))
+        } else if time_s > MAX_TIME_BUDGET_S {
+            Some(format!(
+                "{time_s} s is beyond the {MAX_TIME_BUDGET_S} s (7 days) maximum"
+            ))
+        } else {
+            None
+        }
+    }
+
+    /// Why `count` cannot be an equilibrium budget, if it cannot.
+    pub fn equilibria_problem(count: i64) -> Option<String> {
+        if count < 1 {
+            Some(format!(
+                "{count} allows no equilibrium solve; at least 1 (leave it out for the default \
+                 {DEFAULT_MAX_EQUILIBRIA})"
+            ))
+        } else if count > MAX_EQUILIBRIA_LIMIT {
+            Some(format!(
+                "{count} is beyond the {MAX_EQUILIBRIA_LIMIT} maximum"
+            ))
+        } else {
+            None
+        }
+    }
 }
 
 /// Driver, output instants and accuracy of a run.
@@ -169,6 +246,7 @@ impl Default for RunConfig {
             trace: TraceOptions::default(),
             motion: MotionConfig::default(),
             outputs: OutputConfig::default(),
+            budget: BudgetConfig::default(),
         }
     }
 }
@@ -288,6 +366,12 @@ impl RunConfig {
         let h = self.element_size_mm;
         if !(h.is_finite() && (2.0..=16.0).contains(&h)) {
             return bad("element_size_mm", format!("{h} mm is not within 2–16 mm"));
+        }
+        if let Some(reason) = BudgetConfig::time_problem(self.budget.time_s) {
+            return bad("budget.time_s", reason);
+        }
+        if let Some(reason) = BudgetConfig::equilibria_problem(self.budget.max_equilibria) {
+            return bad("budget.max_equilibria", reason);
         }
         self.material.validate()?;
         if let Err(e) = crate::outputs::radiotherapy::registration::check_spacing(

@@ -20,6 +20,7 @@
 //!   for a trace that never rises above the scanned volume): quick looks.
 //! * `ingest/`: the ingest outputs (lung mask, groups, mesh, `ingest.json`).
 
+mod budget;
 pub mod config;
 pub mod demo;
 mod frames;
@@ -32,10 +33,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 pub use crate::outputs::trajectories::TrackedPoint;
-pub use config::{MotionConfig, OutputConfig, RunConfig};
+pub use config::{BudgetConfig, MotionConfig, OutputConfig, RunConfig};
 pub use summary::{
-    BreathExtreme, BreathExtremeSummary, FrameFiles, FrameRecord, ModelSummary, PointTrajectory,
-    RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM, SCANNED_STATE_TOLERANCE_ML,
+    BreathExtreme, BreathExtremeSummary, BudgetUsage, FrameFiles, FrameRecord, ModelSummary,
+    PointTrajectory, RunSummary, TraceSummary, COSTAL_WALL_GAP_WARNING_MIN_MM,
+    SCANNED_STATE_TOLERANCE_ML,
 };
 
 use crate::breathing::{BreathingTrace, InstantPlan};
@@ -258,12 +260,37 @@ pub fn run_breathing_with(
 /// [`run_breathing_with`] on `prepared`: the CT of `inputs.ct_path` already read and ingested
 /// with `config`'s settings (the caller's promise), with the wall times of that reading to
 /// report (none when it was read for an earlier run); or reading and ingesting it when `None`.
+///
+/// The run's budgets (`config.budget`) hold from here: one reached stops the run, inside a
+/// solve if one is under way, with [`Error::BudgetExceeded`] and nothing published.
 pub fn run_breathing_on(
     inputs: &RunInputs,
     config: &RunConfig,
     out_dir: &Path,
     overwrite: Overwrite,
     observer: &mut dyn RunObserver,
+    prepared: Option<(&IngestedScan, BTreeMap<String, f64>)>,
+) -> Result<RunSummary> {
+    let farthest_ml = inputs
+        .trace
+        .volume_change_ml
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .max_by(|a, b| a.abs().total_cmp(&b.abs()));
+    let mut budgeted = budget::Budgeted::new(observer, config.budget, farthest_ml);
+    let result = run_within_budget(inputs, config, out_dir, overwrite, &mut budgeted, prepared);
+    // The staging directory went with the failed run; the error says which budget, if one.
+    result.map_err(|e| budgeted.explain(e))
+}
+
+/// [`run_breathing_on`] under its budgets.
+fn run_within_budget(
+    inputs: &RunInputs,
+    config: &RunConfig,
+    out_dir: &Path,
+    overwrite: Overwrite,
+    observer: &mut budget::Budgeted<'_>,
     prepared: Option<(&IngestedScan, BTreeMap<String, f64>)>,
 ) -> Result<RunSummary> {
     let t_total = Instant::now();
@@ -403,6 +430,12 @@ pub fn run_breathing_on(
         summary.output_instants_note = Some(note);
     }
     log_memory("summary and quick looks");
+    check_cancel(observer, "publishing")?;
+    summary.budget = BudgetUsage {
+        limits: config.budget,
+        elapsed_s: observer.elapsed_s(),
+        equilibria: observer.equilibria(),
+    };
     record_final_timings(&mut summary, t, t_total);
     write_summary(staging.dir(), &summary)?;
     staging.publish()?;

@@ -64,8 +64,22 @@ pub struct RunSummary {
     pub timings_s: BTreeMap<String, f64>,
     /// Peak resident memory of the process, MiB.
     pub peak_memory_mib: Option<f64>,
+    /// The run's budgets and what it used of them.
+    pub budget: BudgetUsage,
     /// Everything the user should know.
     pub warnings: Vec<String>,
+}
+
+/// The run's budgets beside what it used of them (`summary.json`'s `budget`).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct BudgetUsage {
+    /// The limits: `time_s` and `max_equilibria`.
+    #[serde(flatten)]
+    pub limits: crate::run::BudgetConfig,
+    /// Wall-clock seconds from the start of the run to writing the summary.
+    pub elapsed_s: f64,
+    /// Equilibrium solves reached.
+    pub equilibria: usize,
 }
 
 /// Where the displacement fields lie on the CT grid.
@@ -463,6 +477,7 @@ impl RunSummary {
             virtual_ct: None,
             timings_s,
             peak_memory_mib: None,
+            budget: BudgetUsage::default(),
             output_instants_note: None,
             warnings,
         }

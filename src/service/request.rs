@@ -104,7 +104,7 @@ pub struct SimulationRequest {
     #[serde(default)]
     pub target: Option<String>,
     /// Any key of the CLI's configuration (`element_size_mm`, `material`, `diaphragm`,
-    /// `trace`, `motion`, `outputs`), merged over the server's defaults.
+    /// `trace`, `motion`, `outputs`, `budget`), merged over the server's defaults.
     #[serde(flatten)]
     #[schema(value_type = Object)]
     pub options: serde_json::Map<String, Value>,

@@ -205,6 +205,23 @@ fn without_defaults() -> Value {
                         "description": "Decay length of the motion outside the lungs under \
                             the virtual CT, mm"}
                 }
+            },
+            "budget": {
+                "type": "object",
+                "description": "What the run may spend: a run that reaches a budget stops \
+                    (inside a solve, within about a second) and the job fails with a reason \
+                    naming the budget, its limit, what was used, the stage and the volume \
+                    reached; it leaves no outputs",
+                "additionalProperties": false,
+                "properties": {
+                    "time_s": {"type": "number", "minimum": 1, "maximum": 604800,
+                        "description": "Wall-clock seconds for the run, from its start (after \
+                            the scan is read and ingested, which the server's cache often \
+                            skips) to its summary"},
+                    "max_equilibria": {"type": "integer", "minimum": 1, "maximum": 1000000,
+                        "description": "Equilibrium solves: key volumes, their load-step \
+                            halvings and per-frame solves"}
+                }
             }
         }
     })
