@@ -625,7 +625,11 @@ fn check_fits_int16(ct: &Volume<f32>) -> Result<()> {
         format!(
             "the CT's values span {lo}…{hi} HU{}; the virtual CT stores whole HU as int16 \
              (−32768…32767): rescale the CT or set virtual_ct = \"off\"",
-            if finite { "" } else { " and include non-finite values" }
+            if finite {
+                ""
+            } else {
+                " and include non-finite values"
+            }
         ),
     ))
 }
