@@ -25,7 +25,7 @@ use crate::volume::Volume;
 pub(crate) use read::read_single_object;
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
 pub use study::{DicomStudyContext, SliceReference};
-pub use write::{write_ct_series, DerivedSeries, RespiratoryPhase};
+pub use write::{write_ct_series, DerivedSeries, HuSample, RespiratoryPhase};
 
 /// Choices for [`read_dicom_series_with`].
 #[derive(Debug, Clone, Default)]

@@ -21,8 +21,8 @@ use crate::{Error, Result};
 /// Storage, Explicit VR Little Endian, signed 16-bit pixels holding the rounded HU minus a
 /// RescaleIntercept shared by all slices (0 whenever the values fit in int16). Each file is
 /// written to a temporary sibling and renamed. Returns the paths in k order.
-pub fn write_ct_series(
-    volume: &Volume<f32>,
+pub fn write_ct_series<T: HuSample>(
+    volume: &Volume<T>,
     dir: &Path,
     meta: &CtSeriesMetadata,
 ) -> Result<Vec<PathBuf>> {
@@ -50,6 +50,25 @@ pub fn write_ct_series(
             Ok(path)
         })
         .collect()
+}
+
+/// A voxel type a CT series is written from: HU as f32 (rounded on writing) or whole HU as
+/// int16 (the virtual CT's phases, half the memory of f32).
+pub trait HuSample: Copy + Send + Sync {
+    /// The value in HU.
+    fn hu(self) -> f32;
+}
+
+impl HuSample for f32 {
+    fn hu(self) -> f32 {
+        self
+    }
+}
+
+impl HuSample for i16 {
+    fn hu(self) -> f32 {
+        f32::from(self)
+    }
 }
 
 /// What makes a series derived from a planning CT: its study, which series it is, and the
@@ -188,7 +207,7 @@ fn series_error(what: &str, m: String) -> Error {
 
 /// Refuses an invalid grid, a volume that does not fill it, and slices larger than DICOM's
 /// 16-bit Rows/Columns can describe.
-fn check_volume_fits(volume: &Volume<f32>, what: &str) -> Result<()> {
+fn check_volume_fits<T: HuSample>(volume: &Volume<T>, what: &str) -> Result<()> {
     let g = volume.geometry;
     g.validate(&format!("DICOM series {what}"))?;
     if volume.as_slice().len() != g.voxel_count() {
@@ -213,13 +232,16 @@ fn check_volume_fits(volume: &Volume<f32>, what: &str) -> Result<()> {
 
 /// The RescaleIntercept shared by all slices: 0 when the rounded HU fit in int16, else the
 /// shift that puts the minimum at −32768; values must be finite and span at most 16 bits.
-fn shared_rescale_intercept(volume: &Volume<f32>, what: &str) -> Result<f64> {
+fn shared_rescale_intercept<T: HuSample>(volume: &Volume<T>, what: &str) -> Result<f64> {
     let (min_hu, max_hu) = volume
         .as_slice()
         .par_iter()
         .try_fold(
             || (f32::INFINITY, f32::NEG_INFINITY),
-            |(lo, hi), &v| v.is_finite().then(|| (lo.min(v), hi.max(v))),
+            |(lo, hi), &v| {
+                let v = v.hu();
+                v.is_finite().then(|| (lo.min(v), hi.max(v)))
+            },
         )
         .try_reduce(
             || (f32::INFINITY, f32::NEG_INFINITY),
@@ -257,7 +279,7 @@ struct SeriesLayout {
 
 impl SeriesLayout {
     /// The layout of `volume` written with `meta`'s UID seed and the shared `intercept`.
-    fn new(volume: &Volume<f32>, meta: &CtSeriesMetadata, intercept: f64) -> Self {
+    fn new<T: HuSample>(volume: &Volume<T>, meta: &CtSeriesMetadata, intercept: f64) -> Self {
         let direction = volume.geometry.direction();
         let row_direction: Vector3<f64> = direction.column(0).into();
         let column_direction: Vector3<f64> = direction.column(1).into();
@@ -297,7 +319,7 @@ impl SeriesLayout {
     }
 
     /// ImagePositionPatient of slice `k`, LPS mm.
-    fn position_lps_mm(&self, volume: &Volume<f32>, k: usize) -> Vector3<f64> {
+    fn position_lps_mm<T>(&self, volume: &Volume<T>, k: usize) -> Vector3<f64> {
         let g = &volume.geometry;
         g.origin() + self.k_axis * (k as f64 * g.spacing_mm[2])
     }
@@ -310,9 +332,9 @@ fn put_text(obj: &mut InMemDicomObject, tag: Tag, vr: VR, value: String) {
 
 /// SOP, study, series, patient and instance elements of slice `k` (the patient's are
 /// fictitious, from `meta`).
-fn put_identity_elements(
+fn put_identity_elements<T>(
     obj: &mut InMemDicomObject,
-    volume: &Volume<f32>,
+    volume: &Volume<T>,
     meta: &CtSeriesMetadata,
     series: &SeriesLayout,
     k: usize,
@@ -389,9 +411,9 @@ fn put_identity_elements(
 
 /// Image plane elements of slice `k`: position, orientation, frame of reference and
 /// SliceLocation.
-fn put_image_plane_elements(
+fn put_image_plane_elements<T>(
     obj: &mut InMemDicomObject,
-    volume: &Volume<f32>,
+    volume: &Volume<T>,
     series: &SeriesLayout,
     k: usize,
 ) {
@@ -423,9 +445,9 @@ fn put_image_plane_elements(
 
 /// Image pixel elements of slice `k`: spacing, rescale, window, the int16 layout and the
 /// pixels (rounded HU minus the shared intercept).
-fn put_image_pixel_elements(
+fn put_image_pixel_elements<T: HuSample>(
     obj: &mut InMemDicomObject,
-    volume: &Volume<f32>,
+    volume: &Volume<T>,
     series: &SeriesLayout,
     k: usize,
 ) {
@@ -434,7 +456,7 @@ fn put_image_pixel_elements(
     let intercept = series.intercept;
     let pixels: Vec<u16> = volume.as_slice()[k * frame_len..(k + 1) * frame_len]
         .iter()
-        .map(|&hu| ((hu.round() as f64 - intercept) as i16) as u16)
+        .map(|&v| ((v.hu().round() as f64 - intercept) as i16) as u16)
         .collect();
     let mut put = |tag: Tag, vr: VR, value: String| put_text(obj, tag, vr, value);
     put(
@@ -470,9 +492,9 @@ fn put_image_pixel_elements(
 }
 
 /// Adds the file meta group (Explicit VR Little Endian) and encodes slice `k` to bytes.
-fn encode_slice_file(
+fn encode_slice_file<T>(
     obj: InMemDicomObject,
-    volume: &Volume<f32>,
+    volume: &Volume<T>,
     k: usize,
     what: &str,
 ) -> Result<Vec<u8>> {
@@ -506,7 +528,7 @@ struct UidRoot {
 }
 
 impl UidRoot {
-    fn new(seed: u64, volume: &Volume<f32>) -> Self {
+    fn new<T: HuSample>(seed: u64, volume: &Volume<T>) -> Self {
         // FNV-1a over the voxel bits: identical volumes share UIDs, different ones do not.
         let mut h: u64 = 0xcbf2_9ce4_8422_2325 ^ seed;
         let mut mix = |x: u64| {
@@ -523,7 +545,7 @@ impl UidRoot {
         volume
             .as_slice()
             .iter()
-            .for_each(|v| mix(u64::from(v.to_bits())));
+            .for_each(|v| mix(u64::from(v.hu().to_bits())));
         UidRoot { key: h }
     }
 

@@ -61,7 +61,10 @@ pub use read::{
     read_nifti, read_nifti_bytes, read_nifti_bytes_within, read_nifti_labels,
     read_nifti_labels_bytes, read_nifti_vector_field, read_nifti_vector_field_bytes,
 };
-pub use write::{write_nifti_ct, write_nifti_labels, write_nifti_vector_field, FIELD_GZIP_LEVEL};
+pub use write::{
+    write_nifti_ct, write_nifti_ct_int16, write_nifti_labels, write_nifti_vector_field,
+    CT_INT16_GZIP_LEVEL, FIELD_GZIP_LEVEL,
+};
 
 use rayon::prelude::*;
 

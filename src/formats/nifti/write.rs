@@ -7,7 +7,7 @@ use std::time::Instant;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::block_gzip::{gzip_blocks, BLOCK_BYTES};
+use super::block_gzip::{gzip_blocks, gzip_blocks_into, BLOCK_BYTES};
 use super::extension::{geometry_text, ECODE_COMMENT};
 use super::geometry::rotation_to_quaternion;
 use super::header::{DataType, NIFTI1_HEADER_BYTES};
@@ -15,7 +15,7 @@ use super::{
     first_position, refuse_non_finite, voxel_ijk, CHUNK_VOXELS, CT_DESCRIPTION, INTENT_LABEL,
     INTENT_VECTOR, LABELS_DESCRIPTION, VECTOR_FIELD_CONVENTION,
 };
-use crate::durable::write_atomic;
+use crate::durable::{temporary_sibling, write_atomic};
 use crate::error::{IoContext, IoOp};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
@@ -65,6 +65,60 @@ pub fn write_nifti_ct(path: &Path, volume: &Volume<f32>) -> Result<()> {
         encode(volume.as_slice(), &mut bytes[start..], |v| v.to_le_bytes());
     }
     write_file(path, bytes)
+}
+
+/// Gzip level of the virtual CT's int16 phases: on a POPI phase (74 MB raw) level 1 gives
+/// 37.8 MB, level 6 36.8 MB in three times the time (README, Virtual 4D-CT).
+pub const CT_INT16_GZIP_LEVEL: u32 = 1;
+
+/// Writes a CT of whole HU held as int16 (the virtual CT's phases) as int16 NIfTI-1; gzipped
+/// at `gzip_level` when the name ends in `.gz`, block by block straight from the voxels (the
+/// raw file is never held).
+pub fn write_nifti_ct_int16(path: &Path, volume: &Volume<i16>, gzip_level: u32) -> Result<()> {
+    let what = path.display().to_string();
+    check_volume(&volume.geometry, volume.as_slice().len(), &what)?;
+    let header = nifti1_header(&HeaderSpec {
+        geometry: &volume.geometry,
+        components: 1,
+        datatype: DataType::I16,
+        intent_code: 0,
+        intent_name: "",
+        description: CT_DESCRIPTION,
+    });
+    let voxels = volume.as_slice();
+    if !is_gzip_name(path) {
+        let mut bytes = header;
+        let start = bytes.len();
+        bytes.resize(start + voxels.len() * 2, 0);
+        encode(voxels, &mut bytes[start..], i16::to_le_bytes);
+        return write_atomic(path, &bytes);
+    }
+    let per_block = BLOCK_BYTES / 2;
+    let blocks = 1 + voxels.len().div_ceil(per_block);
+    let fill = |k: usize, raw: &mut Vec<u8>| {
+        if k == 0 {
+            raw.extend_from_slice(&header);
+            return;
+        }
+        let first = (k - 1) * per_block;
+        let chunk = &voxels[first..(first + per_block).min(voxels.len())];
+        raw.extend(chunk.iter().flat_map(|v| v.to_le_bytes()));
+    };
+    // Streamed into a temporary sibling, renamed when complete (as write_atomic does).
+    let tmp = temporary_sibling(path);
+    let result = (|| {
+        let file = std::fs::File::create(&tmp).at(IoOp::Write, path)?;
+        let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
+        gzip_blocks_into(blocks, gzip_level.min(9), fill, &mut out).at(IoOp::Write, path)?;
+        out.into_inner()
+            .map_err(|e| e.into_error())
+            .at(IoOp::Write, path)?;
+        std::fs::rename(&tmp, path).at(IoOp::Replace, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
 }
 
 /// Writes a label map as uint8 NIfTI-1 with the label intent.

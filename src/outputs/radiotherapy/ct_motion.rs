@@ -662,6 +662,123 @@ impl CtGridMotion {
     }
 }
 
+/// The resampler's source map ([`refined_source`]) worked in index units for the CT voxels
+/// of one row, for warping a whole CT: the CT and the motion grid share their axes, so LPS
+/// never needs to be formed, the interpolated inverse is collapsed once per row to a line of
+/// nodes along i, and mm turn into index units by one fixed 3 × 3 map.
+#[derive(Debug, Clone, Copy)]
+pub struct RowSourceMap {
+    grid_dims: [usize; 3],
+    step_voxels: [f64; 3],
+    /// LPS mm → motion-grid index units (D^T over the grid spacing per axis).
+    mm_to_grid: [[f64; 3]; 3],
+    /// LPS mm → CT voxel index units (D^T over the CT spacing per axis).
+    mm_to_voxel: [[f64; 3]; 3],
+}
+
+/// The cell of a clamped coordinate `x` along an axis of `n` ≥ 2 nodes, and the fraction
+/// into it (as [`CoarseGrid::interpolate`] clamps).
+#[inline]
+fn cell_of(x: f64, n: usize) -> (usize, f64) {
+    let x = x.clamp(0.0, (n - 1) as f64);
+    let i = (x.floor() as usize).min(n - 2);
+    (i, x - i as f64)
+}
+
+/// `m · v` for a row-major 3 × 3 `m`.
+#[inline]
+fn apply(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+    m.map(|r| r[0] * v[0] + r[1] * v[1] + r[2] * v[2])
+}
+
+/// Clamped trilinear interpolation of a node field (i fastest) at grid point `g`, in the
+/// lerp form (the same value as [`CoarseGrid::interpolate`] up to rounding, at a fraction of
+/// its cost: this runs twice per CT voxel).
+#[inline]
+fn interpolate_nodes(field: &[[f32; 3]], dims: [usize; 3], g: [f64; 3]) -> [f64; 3] {
+    let (a, ta) = cell_of(g[0], dims[0]);
+    let (b, tb) = cell_of(g[1], dims[1]);
+    let (c, tc) = cell_of(g[2], dims[2]);
+    let (sy, sz) = (dims[0], dims[0] * dims[1]);
+    let n = a + sy * b + sz * c;
+    let at = |m: usize, axis: usize| f64::from(field[m][axis]);
+    let lerp = |p: f64, q: f64, t: f64| p + (q - p) * t;
+    [0, 1, 2].map(|x| {
+        let l00 = lerp(at(n, x), at(n + 1, x), ta);
+        let l10 = lerp(at(n + sy, x), at(n + sy + 1, x), ta);
+        let l01 = lerp(at(n + sz, x), at(n + sz + 1, x), ta);
+        let l11 = lerp(at(n + sy + sz, x), at(n + sy + sz + 1, x), ta);
+        lerp(lerp(l00, l10, tb), lerp(l01, l11, tb), tc)
+    })
+}
+
+impl RowSourceMap {
+    /// Nodes of the motion grid along i (the length of the line [`Self::sources_of_row`]
+    /// collapses the inverse to).
+    pub fn line_len(&self) -> usize {
+        self.grid_dims[0]
+    }
+
+    /// The sources of the CT voxels (0…, j, k) of one row, in CT voxel index units, into
+    /// `sources` (one per voxel of the row); `line` is scratch of [`Self::line_len`] nodes.
+    pub fn sources_of_row(
+        &self,
+        motion: &CtGridMotion,
+        j: usize,
+        k: usize,
+        line: &mut [[f64; 3]],
+        sources: &mut [[f64; 3]],
+    ) {
+        let dims = self.grid_dims;
+        let gy = j as f64 / self.step_voxels[1] + 1.0;
+        let gz = k as f64 / self.step_voxels[2] + 1.0;
+        let (b, tb) = cell_of(gy, dims[1]);
+        let (c, tc) = cell_of(gz, dims[2]);
+        let inverse = &motion.inverse_mm;
+        for (a, node) in line.iter_mut().enumerate() {
+            let n = a + dims[0] * (b + dims[1] * c);
+            let (sy, sz) = (dims[0], dims[0] * dims[1]);
+            *node = [0, 1, 2].map(|x| {
+                let at = |m: usize| f64::from(inverse[m][x]);
+                let l0 = at(n) + (at(n + sy) - at(n)) * tb;
+                let l1 = at(n + sz) + (at(n + sy + sz) - at(n + sz)) * tb;
+                l0 + (l1 - l0) * tc
+            });
+        }
+        for (i, source) in sources.iter_mut().enumerate() {
+            let gx = i as f64 / self.step_voxels[0] + 1.0;
+            let (a, ta) = cell_of(gx, dims[0]);
+            let v = [0, 1, 2].map(|x| line[a][x] + (line[a + 1][x] - line[a][x]) * ta);
+            let dg = apply(&self.mm_to_grid, v);
+            let g0 = [gx + dg[0], gy + dg[1], gz + dg[2]];
+            let u = interpolate_nodes(&motion.forward_mm, dims, g0);
+            let dv = apply(&self.mm_to_voxel, u);
+            *source = [i as f64 - dv[0], j as f64 - dv[1], k as f64 - dv[2]];
+        }
+    }
+}
+
+impl CtGridMotion {
+    /// The index-space form of [`PhaseMotion::source_lps_mm`] over the CT the motion was
+    /// laid on.
+    pub fn row_source_map(&self) -> RowSourceMap {
+        let g = &self.grid;
+        let d = g.ct.direction();
+        let row = |a: usize, per_mm: f64| [d[(0, a)], d[(1, a)], d[(2, a)]].map(|x| x * per_mm);
+        RowSourceMap {
+            grid_dims: g.dims,
+            step_voxels: g.step_voxels,
+            mm_to_grid: [0, 1, 2].map(|a| row(a, 1.0 / (g.ct.spacing_mm[a] * g.step_voxels[a]))),
+            mm_to_voxel: [0, 1, 2].map(|a| row(a, 1.0 / g.ct.spacing_mm[a])),
+        }
+    }
+
+    /// The CT grid the motion was laid on.
+    pub fn ct_geometry(&self) -> &VolumeGeometry {
+        &self.grid.ct
+    }
+}
+
 impl PhaseMotion for CtGridMotion {
     fn moved_lps_mm(&self, rest_lps_mm: [f64; 3]) -> [f64; 3] {
         let x = V3::from(rest_lps_mm);

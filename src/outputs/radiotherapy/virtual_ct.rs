@@ -9,13 +9,15 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::ct_motion::{CtMotionLayout, CtMotionSettings, InverseReport, ABDOMEN_DECAY_FACTOR};
+use super::ct_motion::{
+    CtGridMotion, CtMotionLayout, CtMotionSettings, InverseReport, ABDOMEN_DECAY_FACTOR,
+};
 use super::PhaseMotion;
 use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::formats::dicom::{
     write_ct_series, CtSeriesMetadata, DerivedSeries, DicomStudyContext, RespiratoryPhase,
 };
-use crate::formats::nifti::write_nifti_ct;
+use crate::formats::nifti::{write_nifti_ct_int16, CT_INT16_GZIP_LEVEL};
 use crate::math::V3;
 use crate::model::HexMesh;
 use crate::volume::Volume;
@@ -225,6 +227,60 @@ pub fn warp_ct_into(ct: &Volume<f32>, motion: &dyn PhaseMotion, out: &mut [f32])
         });
 }
 
+/// [`warp_ct_into`] for a motion over the CT's own grid, the way a run does it: the same
+/// sources (worked in index units, [`CtGridMotion::row_source_map`]) and the same trilinear
+/// HU, rounded to whole HU and stored as int16 (the CT's values must fit, which
+/// [`VirtualCtWriter::new`] checks). Parallel over rows, scratch per worker, none per voxel.
+pub fn warp_ct_int16(ct: &Volume<f32>, motion: &CtGridMotion, out: &mut [i16]) {
+    let g = ct.geometry;
+    let [nx, ny, nz] = g.dims;
+    assert_eq!(out.len(), g.voxel_count(), "one output per CT voxel");
+    assert_eq!(
+        motion.ct_geometry().dims,
+        g.dims,
+        "the motion is laid over this CT"
+    );
+    let map = motion.row_source_map();
+    let data = ct.as_slice();
+    out.par_chunks_mut(nx).enumerate().for_each_init(
+        || (vec![[0.0f64; 3]; map.line_len()], vec![[0.0f64; 3]; nx]),
+        |(line, sources), (row, voxels)| {
+            let (j, k) = (row % ny, row / ny);
+            map.sources_of_row(motion, j, k, line, sources);
+            for (v, s) in voxels.iter_mut().zip(sources.iter()) {
+                // Saturating: the CT's values were checked to fit.
+                *v = trilinear_at(data, [nx, ny, nz], *s).round() as i16;
+            }
+        },
+    );
+}
+
+/// [`trilinear`] with the corner offsets worked once (an axis of one voxel has none).
+#[inline]
+fn trilinear_at(data: &[f32], dims: [usize; 3], v: [f64; 3]) -> f32 {
+    let mut n = 0usize;
+    let mut t = [0.0f32; 3];
+    let mut offset = [0usize; 3];
+    let mut stride = 1usize;
+    for a in 0..3 {
+        if dims[a] > 1 {
+            let x = v[a].clamp(0.0, (dims[a] - 1) as f64);
+            let i = (x.floor() as usize).min(dims[a] - 2);
+            n += i * stride;
+            t[a] = (x - i as f64) as f32;
+            offset[a] = stride;
+        }
+        stride *= dims[a];
+    }
+    let [ox, oy, oz] = offset;
+    let lerp = |p: f32, q: f32, w: f32| p + (q - p) * w;
+    let x00 = lerp(data[n], data[n + ox], t[0]);
+    let x10 = lerp(data[n + oy], data[n + oy + ox], t[0]);
+    let x01 = lerp(data[n + oz], data[n + oz + ox], t[0]);
+    let x11 = lerp(data[n + oz + oy], data[n + oz + oy + ox], t[0]);
+    lerp(lerp(x00, x10, t[1]), lerp(x01, x11, t[1]), t[2])
+}
+
 /// Trilinear interpolation of `data` (i fastest) at voxel coordinates `v`, clamped.
 fn trilinear(data: &[f32], dims: [usize; 3], v: V3) -> f32 {
     let mut base = [0usize; 3];
@@ -315,9 +371,12 @@ pub struct VirtualCtWriter<'a> {
     output: VirtualCtOutput,
     labels: Vec<PhaseLabel>,
     out_dir: PathBuf,
-    phase: Volume<f32>,
-    mip: Vec<f32>,
-    sum: Vec<f32>,
+    /// The phase being written, whole HU (int16: half of f32's 148 MB on a POPI CT).
+    phase: Volume<i16>,
+    /// Running maximum over the phases.
+    mip: Vec<i16>,
+    /// Running sum over the phases (exact: 40 phases of int16 fit in i32).
+    sum: Vec<i32>,
     phases: Vec<VirtualPhaseRecord>,
     bytes_written: u64,
     time_s: f64,
@@ -337,6 +396,7 @@ impl<'a> VirtualCtWriter<'a> {
         out_dir: &Path,
     ) -> Result<Self> {
         let t = Instant::now();
+        check_fits_int16(ct)?;
         let layout = CtMotionLayout::new(&ct.geometry, mesh, settings)?;
         let n = ct.geometry.voxel_count();
         Ok(VirtualCtWriter {
@@ -346,9 +406,9 @@ impl<'a> VirtualCtWriter<'a> {
             output,
             labels,
             out_dir: out_dir.to_path_buf(),
-            phase: Volume::filled(ct.geometry, 0.0f32)?,
-            mip: vec![f32::NEG_INFINITY; n],
-            sum: vec![0.0f32; n],
+            phase: Volume::filled(ct.geometry, 0i16)?,
+            mip: vec![i16::MIN; n],
+            sum: vec![0i32; n],
             phases: Vec::new(),
             bytes_written: 0,
             time_s: t.elapsed().as_secs_f64(),
@@ -379,17 +439,19 @@ impl<'a> VirtualCtWriter<'a> {
             )
         })?;
         let motion = self.layout.motion(mesh, positions_m)?;
-        warp_ct_into(self.ct, &motion, self.phase.as_slice_mut());
+        warp_ct_int16(self.ct, &motion, self.phase.as_slice_mut());
         also(&motion)?;
         let report = *motion.inverse_report();
         drop(motion);
         self.mip
-            .par_iter_mut()
-            .zip(self.sum.par_iter_mut())
-            .zip(self.phase.as_slice().par_iter())
-            .for_each(|((m, s), &v)| {
-                *m = m.max(v);
-                *s += v;
+            .par_chunks_mut(ACCUMULATE_CHUNK)
+            .zip(self.sum.par_chunks_mut(ACCUMULATE_CHUNK))
+            .zip(self.phase.as_slice().par_chunks(ACCUMULATE_CHUNK))
+            .for_each(|((m, s), p)| {
+                for ((m, s), &v) in m.iter_mut().zip(s.iter_mut()).zip(p) {
+                    *m = (*m).max(v);
+                    *s += i32::from(v);
+                }
             });
         let dir = self.out_dir.join("frames").join(frame.to_string());
         let mut record = VirtualPhaseRecord {
@@ -403,7 +465,7 @@ impl<'a> VirtualCtWriter<'a> {
         };
         if self.output.nifti() {
             let path = dir.join("virtual-ct.nii.gz");
-            write_nifti_ct(&path, &self.phase)?;
+            write_nifti_ct_int16(&path, &self.phase, CT_INT16_GZIP_LEVEL)?;
             self.bytes_written += file_bytes(&path);
             record.nifti = Some(format!("frames/{frame}/virtual-ct.nii.gz"));
         }
@@ -468,10 +530,11 @@ impl<'a> VirtualCtWriter<'a> {
         if count > 0 {
             let mip = std::mem::take(&mut self.mip);
             self.write_projection("mip", "MIP", 8001, mip, &mut summary)?;
-            let inv = 1.0 / count as f32;
-            let aip: Vec<f32> = std::mem::take(&mut self.sum)
+            // Rounded half away from zero, as f32::round does; the mean of int16 fits int16.
+            let n = count as f64;
+            let aip: Vec<i16> = std::mem::take(&mut self.sum)
                 .into_par_iter()
-                .map(|s| (s * inv).round())
+                .map(|s| (f64::from(s) / n).round() as i16)
                 .collect();
             self.write_projection("aip", "AIP", 8002, aip, &mut summary)?;
         }
@@ -488,7 +551,7 @@ impl<'a> VirtualCtWriter<'a> {
         stem: &str,
         name: &str,
         series_number: u32,
-        voxels: Vec<f32>,
+        voxels: Vec<i16>,
         summary: &mut VirtualCtSummary,
     ) -> Result<()> {
         let volume = Volume::from_data(self.ct.geometry, voxels)?;
@@ -496,7 +559,7 @@ impl<'a> VirtualCtWriter<'a> {
         if self.output.nifti() {
             let file = format!("{stem}-ct.nii.gz");
             let path = self.out_dir.join(&file);
-            write_nifti_ct(&path, &volume)?;
+            write_nifti_ct_int16(&path, &volume, CT_INT16_GZIP_LEVEL)?;
             self.bytes_written += file_bytes(&path);
             *if stem == "mip" {
                 &mut summary.mip_nifti
@@ -533,6 +596,42 @@ impl<'a> VirtualCtWriter<'a> {
         }
         Ok(())
     }
+}
+
+/// Voxels per task of the MIP/AIP update.
+const ACCUMULATE_CHUNK: usize = 1 << 16;
+
+/// Refuses a CT whose rounded values do not fit int16, the virtual CT's voxel type (HU of a
+/// real CT lie within −1024…+3071, or a few ten thousands on an extended scale).
+fn check_fits_int16(ct: &Volume<f32>) -> Result<()> {
+    let (lo, hi) = ct
+        .as_slice()
+        .par_iter()
+        .fold(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |(lo, hi), &v| (lo.min(v), hi.max(v)),
+        )
+        .reduce(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |a, b| (a.0.min(b.0), a.1.max(b.1)),
+        );
+    let fits = |v: f32| (f32::from(i16::MIN)..=f32::from(i16::MAX)).contains(&v.round());
+    let finite = ct.as_slice().par_iter().all(|v| v.is_finite());
+    if finite && (ct.as_slice().is_empty() || (fits(lo) && fits(hi))) {
+        return Ok(());
+    }
+    Err(Error::argument(
+        "virtual CT",
+        format!(
+            "the CT's values span {lo}…{hi} HU{}; the virtual CT stores whole HU as int16 \
+             (−32768…32767): rescale the CT or set virtual_ct = \"off\"",
+            if finite {
+                ""
+            } else {
+                " and include non-finite values"
+            }
+        ),
+    ))
 }
 
 /// Size of a file just written (0 if it cannot be read back, which the writer would have
