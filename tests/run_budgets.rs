@@ -314,7 +314,7 @@ fn an_http_job_stopped_by_its_budget_fails_with_the_reason_and_bad_budgets_are_4
         request["budget"] = budget.clone();
         assert_problem(server.post_simulation(&scan_id, &request), 422, &words);
     }
-    let schema = server.get_json("/v1/openapi.json");
+    let schema = server.get_json("/openapi.json");
     let text = schema.to_string();
     assert!(
         text.contains("max_equilibria") && text.contains("time_s"),
