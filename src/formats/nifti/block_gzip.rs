@@ -31,37 +31,8 @@ pub(super) fn gzip_blocks<F>(block_count: usize, level: u32, fill: F) -> std::io
 where
     F: Fn(usize, &mut Vec<u8>) + Sync,
 {
-    let blocks: Vec<Deflated> = (0..block_count)
-        .into_par_iter()
-        .map_init(
-            || {
-                (
-                    Vec::with_capacity(BLOCK_BYTES),
-                    Compress::new(Compression::new(level), false),
-                )
-            },
-            |(raw, deflater), k| {
-                raw.clear();
-                fill(k, raw);
-                deflater.reset();
-                deflate_block(deflater, raw)
-            },
-        )
-        .collect::<std::io::Result<_>>()?;
-    let compressed: usize = blocks.iter().map(|b| b.bytes.len()).sum();
-    let mut gz = Vec::with_capacity(GZIP_HEADER.len() + compressed + FINAL_EMPTY_BLOCK.len() + 8);
-    gz.extend_from_slice(&GZIP_HEADER);
-    let mut crc = crc32fast::Hasher::new();
-    let mut raw_len: u64 = 0;
-    for block in &blocks {
-        gz.extend_from_slice(&block.bytes);
-        crc.combine(&block.crc);
-        raw_len += block.raw_len;
-    }
-    gz.extend_from_slice(&FINAL_EMPTY_BLOCK);
-    gz.extend_from_slice(&crc.finalize().to_le_bytes());
-    // ISIZE is the raw length modulo 2³² (RFC 1952).
-    gz.extend_from_slice(&(raw_len as u32).to_le_bytes());
+    let mut gz = Vec::new();
+    gzip_blocks_into(block_count, level, fill, &mut gz)?;
     Ok(gz)
 }
 
@@ -84,8 +55,10 @@ where
     out.write_all(&GZIP_HEADER)?;
     let mut crc = crc32fast::Hasher::new();
     let mut raw_len: u64 = 0;
-    for first in (0..block_count).step_by(BLOCKS_PER_BATCH) {
-        let end = (first + BLOCKS_PER_BATCH).min(block_count);
+    // At least four blocks per worker per batch, so many cores stay busy too.
+    let batch = BLOCKS_PER_BATCH.max(4 * rayon::current_num_threads());
+    for first in (0..block_count).step_by(batch) {
+        let end = (first + batch).min(block_count);
         let blocks: Vec<Deflated> = (first..end)
             .into_par_iter()
             .map_init(
