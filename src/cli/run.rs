@@ -88,6 +88,11 @@ pub struct RunArgs {
     /// `[outputs] virtual_ct`).
     #[arg(long, value_name = "off|nifti|dicom|both")]
     virtual_ct: Option<VirtualCtOutput>,
+    /// Share of each breath the chest wall makes by moving out (0 – 0.8; 0 a rigid wall, the
+    /// diaphragm doing all of it; default 1/3, physiological in supine quiet breathing, or the
+    /// config's `[motion] rib_cage_share`).
+    #[arg(long, value_name = "FRACTION", value_parser = parse_rib_cage_share, allow_negative_numbers = true)]
+    rib_cage_share: Option<f64>,
     /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
     /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
     /// output and exits with status 3.
@@ -113,6 +118,17 @@ fn parse_time_budget(text: &str) -> Result<f64, String> {
         Some(reason) => Err(reason),
         None => Ok(s),
     }
+}
+
+/// `--rib-cage-share`: a fraction the configuration accepts.
+fn parse_rib_cage_share(text: &str) -> Result<f64, String> {
+    let s: f64 = text
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a fraction of the tidal volume"))?;
+    lungmotion::motion::chest_wall::check_rib_cage_share(s)
+        .map(|()| s)
+        .map_err(|e| e.to_string())
 }
 
 /// `--max-equilibria`: a count the configuration accepts.
@@ -219,6 +235,9 @@ impl RunArgs {
         }
         if let Some(s) = self.time_budget {
             config.budget.time_s = s;
+        }
+        if let Some(s) = self.rib_cage_share {
+            config.motion.rib_cage_share = s;
         }
         if let Some(n) = self.max_equilibria {
             config.budget.max_equilibria = n;

@@ -194,6 +194,57 @@ impl ConstraintSet {
             .collect()
     }
 
+    /// Whether a constraint moves its node away from `rest_positions_m`: a fixed target off
+    /// the rest position, or a plane that does not pass through it. Such a constraint is an
+    /// imposed displacement, applied in proportion to the load factor
+    /// ([`ConstraintSet::at_load_factor`]).
+    pub fn imposes_motion(&self, rest_positions_m: &[Vector3<f64>]) -> bool {
+        self.entries
+            .iter()
+            .any(|(node, c)| imposed_offset(c, rest_positions_m[*node as usize]).is_some())
+    }
+
+    /// The set with every imposed displacement scaled by `factor` (0: every moving constraint
+    /// passes through its node's rest position; 1: the set itself). Planes move along their
+    /// normal only, so a plane through its node's rest position never moves.
+    pub fn at_load_factor<'s>(
+        &'s self,
+        rest_positions_m: &[Vector3<f64>],
+        factor: f64,
+    ) -> std::borrow::Cow<'s, ConstraintSet> {
+        // Most scenes (a lung on a rigid wall with a fixed hilum) impose no displacement:
+        // borrow rather than copy the sliding surfaces' distance fields on every solve.
+        if factor == 1.0 || !self.imposes_motion(rest_positions_m) {
+            return std::borrow::Cow::Borrowed(self);
+        }
+        let mut out = self.clone();
+        self.write_at_load_factor(rest_positions_m, factor, &mut out);
+        std::borrow::Cow::Owned(out)
+    }
+
+    /// Writes [`ConstraintSet::at_load_factor`] into `out`, a clone of this set, without
+    /// allocating (the explicit integrator moves the wall on every time step).
+    pub fn write_at_load_factor(
+        &self,
+        rest_positions_m: &[Vector3<f64>],
+        factor: f64,
+        out: &mut ConstraintSet,
+    ) {
+        for ((node, c), (_, o)) in self.entries.iter().zip(out.entries.iter_mut()) {
+            let r = rest_positions_m[*node as usize];
+            *o = match *c {
+                NodeConstraint::Fixed { target_m } => NodeConstraint::Fixed {
+                    target_m: r + (target_m - r) * factor,
+                },
+                NodeConstraint::Plane { point_m, normal } => NodeConstraint::Plane {
+                    point_m: r + normal * ((point_m - r).dot(&normal) * factor),
+                    normal,
+                },
+                other => other,
+            };
+        }
+    }
+
     /// Checks that every surface field covers its constrained nodes' rest positions.
     pub fn validate(&self, rest_positions_m: &[Vector3<f64>]) -> Result<()> {
         if rest_positions_m.len() != self.slot.len() {
@@ -223,6 +274,31 @@ impl ConstraintSet {
         }
         Ok(())
     }
+}
+
+/// The displacement `c` imposes on a node resting at `rest` (at load factor 1), if any.
+fn imposed_offset(c: &NodeConstraint, rest: Vector3<f64>) -> Option<Vector3<f64>> {
+    let offset = match *c {
+        NodeConstraint::Fixed { target_m } => target_m - rest,
+        NodeConstraint::Plane { point_m, normal } => normal * (point_m - rest).dot(&normal),
+        NodeConstraint::Line { .. } | NodeConstraint::Surface { .. } => return None,
+    };
+    (offset != Vector3::zeros()).then_some(offset)
+}
+
+/// Displacement imposed on each constrained node at load factor 1, with its node: what a
+/// moving wall or a prescribed motion sweeps per unit of load.
+pub fn imposed_displacements(
+    constraints: &ConstraintSet,
+    rest_positions_m: &[Vector3<f64>],
+) -> Vec<(u32, Vector3<f64>)> {
+    constraints
+        .entries
+        .iter()
+        .filter_map(|(node, c)| {
+            imposed_offset(c, rest_positions_m[*node as usize]).map(|o| (*node, o))
+        })
+        .collect()
 }
 
 fn finite(v: &Vector3<f64>, node: u32, what: &str) -> Result<()> {
@@ -268,6 +344,50 @@ mod tests {
         let f = vec![Vector3::zeros(), Vector3::new(1.0, 1.0, 5.0)];
         let r = cs.reactions(&p, &f);
         assert_eq!(r, vec![(1, Vector3::new(0.0, 0.0, -5.0))]);
+    }
+
+    #[test]
+    fn imposed_motion_scales_with_the_load_factor_and_planes_move_along_their_normal() {
+        let rest = vec![Vector3::new(1.0, 2.0, 0.0), Vector3::new(0.0, 0.0, 0.0)];
+        let mut cs = ConstraintSet::new(2);
+        // A plane through node 0's rest position, given by another point: no motion.
+        let normal = Vector3::z();
+        cs.set(
+            0,
+            NodeConstraint::Plane {
+                point_m: Vector3::new(5.0, -3.0, 0.0),
+                normal,
+            },
+        )
+        .unwrap();
+        assert!(!cs.imposes_motion(&rest));
+        assert!(matches!(
+            cs.at_load_factor(&rest, 0.5),
+            std::borrow::Cow::Borrowed(_)
+        ));
+        // Moved 2 along its normal and 7 within itself: only the normal offset is imposed.
+        cs.set(
+            1,
+            NodeConstraint::Plane {
+                point_m: Vector3::new(7.0, 0.0, 2.0),
+                normal,
+            },
+        )
+        .unwrap();
+        assert!(cs.imposes_motion(&rest));
+        assert_eq!(
+            imposed_displacements(&cs, &rest),
+            vec![(1, Vector3::new(0.0, 0.0, 2.0))]
+        );
+        let half = cs.at_load_factor(&rest, 0.5);
+        let mut x = rest.clone();
+        half.project_positions(&mut x);
+        assert_eq!(x[0], rest[0]);
+        assert_eq!(x[1], Vector3::new(0.0, 0.0, 1.0));
+        let zero = cs.at_load_factor(&rest, 0.0);
+        let mut x = rest.clone();
+        zero.project_positions(&mut x);
+        assert_eq!(x, rest);
     }
 
     #[test]

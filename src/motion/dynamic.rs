@@ -24,7 +24,9 @@ use super::{displacement_extent_mm, elastic_compliance_ml_per_pa, REFERENCE_PRES
 use crate::breathing::BreathingTrace;
 use crate::math::V3;
 use crate::simulation::explicit::BlowUpGuard;
-use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene, TimeStepBound};
+use crate::simulation::{
+    BreathingDriver, ImposedMotionShare, QuasiStaticSettings, Scene, TimeStepBound,
+};
 use crate::{Error, Result};
 
 /// Settings of a dynamic breathing run.
@@ -49,6 +51,8 @@ pub struct DynamicSettings {
     pub check_every: usize,
     /// Give up beyond this many steps.
     pub max_steps: usize,
+    /// Share of every volume change the moving chest wall makes (0: a rigid wall).
+    pub rib_cage_share: f64,
     /// Quasi-static solver for the compliance and the initial equilibrium.
     pub solver: QuasiStaticSettings,
 }
@@ -65,6 +69,7 @@ impl Default for DynamicSettings {
             derivative_half_window_s: 0.05,
             check_every: 50,
             max_steps: 10_000_000,
+            rib_cage_share: 0.0,
             solver: QuasiStaticSettings::default(),
         }
     }
@@ -160,6 +165,8 @@ pub struct DynamicFrame {
     pub bellows: BellowsState,
     /// Surface pressure applied, Pa (−P; negative inflates).
     pub surface_pressure_pa: f64,
+    /// Volume the moving chest wall swept, mL (0 with a rigid wall).
+    pub chest_wall_volume_ml: f64,
     /// Volume change of the simulated lung surface, mL.
     pub simulated_volume_ml: f64,
     /// Largest node displacement, mm.
@@ -181,6 +188,8 @@ pub struct DynamicReport {
     pub compliance_ml_per_pa: f64,
     /// Whether C was measured on the scene (else given).
     pub compliance_calibrated: bool,
+    /// How the moving chest wall was scaled to its share of the volume changes.
+    pub chest_wall: ImposedMotionShare,
     /// Volume enclosed by the mesh surface at rest, mL.
     pub rest_volume_ml: f64,
     /// Time step bound of the damped scene (the step used is its `step_s`).
@@ -229,6 +238,8 @@ pub fn run_dynamic(
         elastic_compliance_ml_per_pa(rest_volume_m3 * 1e6, &c.material)
     });
     let mut driver = BreathingDriver::new(&damped, p_ref, seed, settings.solver.clone())?;
+    super::chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
+    let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     let (compliance, calibrated) = bellows_compliance(&mut driver, trace, settings)?;
     let bellows = |t: f64| {
         bellows_state(
@@ -252,11 +263,14 @@ pub fn run_dynamic(
     let start = Instant::now();
     let load_factor = |t: f64| -bellows(t).pressure_pa / p_ref;
     let mut state = ExplicitState::start(&damped, x, t_start, load_factor(t_start));
+    state.wall_scale = chest_wall.scale;
     let mut frames = Vec::with_capacity(output_times_s.len());
     let mut max_volume_difference: f64 = 0.0;
     for (index, &t_out) in output_times_s.iter().enumerate() {
         state.advance_to(t_out, h_max, &load_factor, settings)?;
-        let frame = state.frame(index, t_out, bellows(t_out), rest_volume_m3)?;
+        let mut frame = state.frame(index, t_out, bellows(t_out), rest_volume_m3)?;
+        frame.chest_wall_volume_ml =
+            load_factor(t_out) * chest_wall.scale * chest_wall.sweep_ml_per_unit;
         max_volume_difference =
             max_volume_difference.max((frame.simulated_volume_ml - frame.bellows.volume_ml).abs());
         on_frame(&frame, &state.x)?;
@@ -266,6 +280,7 @@ pub fn run_dynamic(
         settings: settings.clone(),
         compliance_ml_per_pa: compliance,
         compliance_calibrated: calibrated,
+        chest_wall,
         rest_volume_ml: rest_volume_m3 * 1e6,
         time_step,
         start_time_s: t_start,
@@ -341,7 +356,14 @@ fn initial_equilibrium(
     initial_pressure_pa: f64,
 ) -> Result<Vec<V3>> {
     Ok(if initial_pressure_pa == 0.0 {
-        damped.initial_positions()
+        // Unloaded, a moving wall is at rest too.
+        let rest = &damped.mesh.rest_positions_m;
+        let mut x = rest.clone();
+        damped
+            .constraints
+            .at_load_factor(rest, 0.0)
+            .project_positions(&mut x);
+        x
     } else {
         driver
             .solve_pressure(-initial_pressure_pa)
@@ -377,6 +399,8 @@ struct ExplicitState<'s> {
     external: Vec<V3>,
     inv_mass: Vec<f64>,
     guard: BlowUpGuard,
+    /// Imposed displacements (a moving chest wall) follow the load factor times this.
+    wall_scale: f64,
     t_s: f64,
     /// Time steps taken since the start of the run.
     steps: usize,
@@ -395,6 +419,7 @@ impl<'s> ExplicitState<'s> {
             external: vec![V3::zeros(); n],
             inv_mass: scene.mesh.node_mass_kg.iter().map(|m| 1.0 / m).collect(),
             guard: BlowUpGuard::new(&scene.mesh.rest_positions_m),
+            wall_scale: 1.0,
             t_s,
             steps: 0,
         };
@@ -412,6 +437,11 @@ impl<'s> ExplicitState<'s> {
         settings: &DynamicSettings,
     ) -> Result<()> {
         let constraints = &self.scene.constraints;
+        let rest = &self.scene.mesh.rest_positions_m;
+        // A moving wall: one copy of the constraints per output frame, moved on every step.
+        let mut moved = constraints
+            .imposes_motion(rest)
+            .then(|| constraints.clone());
         while t_out - self.t_s > 1e-9 * h_max {
             let t = self.t_s;
             let h = h_max.min(t_out - t);
@@ -419,13 +449,20 @@ impl<'s> ExplicitState<'s> {
                 *vi += ai * (0.5 * h);
                 *xi += *vi * h;
             }
-            constraints.project_positions(&mut self.x);
-            constraints.project_field(&self.x, &mut self.v);
             self.t_s = if t_out - (t + h) <= 1e-9 * h_max {
                 t_out
             } else {
                 t + h
             };
+            match moved.as_mut() {
+                Some(m) => {
+                    let factor = load_factor(self.t_s) * self.wall_scale;
+                    constraints.write_at_load_factor(rest, factor, m);
+                    m.project_positions(&mut self.x);
+                }
+                None => constraints.project_positions(&mut self.x),
+            }
+            constraints.project_field(&self.x, &mut self.v);
             self.update_accelerations(load_factor(self.t_s));
             for (vi, ai) in self.v.iter_mut().zip(&self.a) {
                 *vi += ai * (0.5 * h);
@@ -468,6 +505,7 @@ impl<'s> ExplicitState<'s> {
             time_s,
             bellows,
             surface_pressure_pa: -bellows.pressure_pa,
+            chest_wall_volume_ml: 0.0,
             simulated_volume_ml: simulated,
             max_displacement_mm: max_d,
             mean_displacement_mm: sum_d / scene.node_count() as f64,
@@ -561,6 +599,7 @@ impl DynamicFrame {
             target_volume_ml: self.bellows.volume_ml,
             simulated_volume_ml: self.simulated_volume_ml,
             pressure_pa: self.surface_pressure_pa,
+            chest_wall_volume_ml: self.chest_wall_volume_ml,
             max_displacement_mm: self.max_displacement_mm,
             mean_displacement_mm: self.mean_displacement_mm,
             interpolated: false,
@@ -593,6 +632,7 @@ impl DynamicReport {
             settings: settings.clone(),
             material: *material,
             compliance_ml_per_pa: self.compliance_ml_per_pa,
+            chest_wall: self.chest_wall,
             rest_volume_ml: self.rest_volume_ml,
             tidal_volume_ml: hi - lo,
             volume_tolerance_ml: f64::NAN,

@@ -7,9 +7,11 @@
 //! [`crate::simulation::keyframes`]); every frame's simulated volume is still computed from
 //! its own node positions and reported beside the target.
 
+pub mod chest_wall;
 pub mod dynamic;
 mod lung_scene;
 
+pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
 pub use lung_scene::lung_scene;
 
 use std::time::Instant;
@@ -20,7 +22,7 @@ use crate::breathing::{BreathingTrace, OutputInstants};
 use crate::math::V3;
 use crate::model::Material;
 use crate::simulation::keyframes::{KeyframeReport, VolumeKeyframes};
-use crate::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
+use crate::simulation::{BreathingDriver, ImposedMotionShare, QuasiStaticSettings, Scene};
 use crate::{Error, Result};
 
 /// The pressure the scene's surface load is built with (λ = 1); frames scale it.
@@ -53,6 +55,9 @@ pub struct MotionSettings {
     pub solve_every_frame: bool,
     /// Volume driver tolerance as a fraction of the tidal volume.
     pub volume_tolerance_fraction: f64,
+    /// Share of every volume change the moving chest wall makes (0: a rigid wall); needs a
+    /// scene whose costal wall moves ([`move_costal_wall`]).
+    pub rib_cage_share: f64,
     /// Equilibrium solver settings.
     pub solver: QuasiStaticSettings,
     /// Raised by another thread to stop the run before its next equilibrium solve.
@@ -78,6 +83,7 @@ impl Default for MotionSettings {
             interpolation_tolerance_mm: 0.1,
             solve_every_frame: false,
             volume_tolerance_fraction: 0.005,
+            rib_cage_share: 0.0,
             solver: QuasiStaticSettings {
                 tolerance: BREATHING_SOLVER_TOLERANCE,
                 ..QuasiStaticSettings::default()
@@ -104,6 +110,8 @@ pub struct FrameSummary {
     pub simulated_volume_ml: f64,
     /// Surface pressure, Pa (negative inflates).
     pub pressure_pa: f64,
+    /// Volume the moving chest wall swept at this frame, mL (0 with a rigid wall).
+    pub chest_wall_volume_ml: f64,
     /// Largest node displacement, mm.
     pub max_displacement_mm: f64,
     /// Mean node displacement, mm.
@@ -131,6 +139,8 @@ pub struct MotionReport {
     pub material: Material,
     /// Compliance used or implied, mL/Pa.
     pub compliance_ml_per_pa: f64,
+    /// How the moving chest wall was scaled to its share of the volume changes.
+    pub chest_wall: ImposedMotionShare,
     /// Volume enclosed by the mesh surface at rest, mL.
     pub rest_volume_ml: f64,
     /// Peak-to-peak volume of the requested frames, mL.
@@ -190,6 +200,8 @@ pub fn run_motion(
     if let Some(sink) = &settings.progress {
         driver.set_progress(sink.clone());
     }
+    chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
+    let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     let rest = scene.mesh.rest_positions_m.clone();
     let keyframes = solve_key_volumes(
         &mut driver,
@@ -233,6 +245,9 @@ pub fn run_motion(
             target_volume_ml: target,
             simulated_volume_ml: simulated,
             pressure_pa: solve.pressure_pa,
+            chest_wall_volume_ml: solver
+                .driver
+                .imposed_sweep_ml(solve.pressure_pa / REFERENCE_PRESSURE_PA),
             max_displacement_mm: max_d,
             mean_displacement_mm: sum_d / rest.len() as f64,
             interpolated: solve.interpolated,
@@ -255,6 +270,7 @@ pub fn run_motion(
         settings: settings.clone(),
         material: *material,
         compliance_ml_per_pa: compliance,
+        chest_wall,
         rest_volume_ml,
         tidal_volume_ml: tidal,
         volume_tolerance_ml,

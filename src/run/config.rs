@@ -22,6 +22,7 @@
 //! instants = { kind = "phases", count = 10 }   # every_sample | every_kth k | frame_rate hz
 //! interpolation_tolerance_mm = 0.1
 //! solve_every_frame = false
+//! rib_cage_share = 0.333               # share of each breath the chest wall makes (0: rigid)
 //! # [motion.dynamic]                 # optional: bellows law, explicit dynamics (hysteresis)
 //! # resistance_pa_s_per_ml = 0.05
 //! # inertance_pa_s2_per_ml = 0.001
@@ -169,6 +170,9 @@ pub struct MotionConfig {
     pub solve_every_frame: bool,
     /// Volume driver tolerance as a fraction of the tidal volume.
     pub volume_tolerance_fraction: f64,
+    /// Share of every volume change the chest wall makes by moving outward (0: a rigid
+    /// wall, all of it from the diaphragm).
+    pub rib_cage_share: f64,
     /// Dynamic mode (bellows law, explicit integration) instead of quasi-static frames.
     pub dynamic: Option<DynamicConfig>,
 }
@@ -260,6 +264,8 @@ impl Default for MotionConfig {
             interpolation_tolerance_mm: m.interpolation_tolerance_mm,
             solve_every_frame: m.solve_every_frame,
             volume_tolerance_fraction: m.volume_tolerance_fraction,
+            // The run's default is physiological (the library's, for any scene, is rigid).
+            rib_cage_share: crate::motion::PHYSIOLOGICAL_RIB_CAGE_SHARE,
             dynamic: None,
         }
     }
@@ -400,6 +406,16 @@ impl RunConfig {
                 format!("{f} must be in (0, 0.1]"),
             );
         }
+        if crate::motion::chest_wall::check_rib_cage_share(m.rib_cage_share).is_err() {
+            return bad(
+                "motion.rib_cage_share",
+                format!(
+                    "{} is not a fraction of the tidal volume within 0 (a rigid chest wall) … {}",
+                    m.rib_cage_share,
+                    crate::motion::chest_wall::MAX_RIB_CAGE_SHARE
+                ),
+            );
+        }
         if let DriverKind::Compliance {
             compliance_ml_per_pa: Some(c),
         } = m.driver
@@ -436,6 +452,7 @@ impl RunConfig {
             interpolation_tolerance_mm: m.interpolation_tolerance_mm,
             solve_every_frame: m.solve_every_frame,
             volume_tolerance_fraction: m.volume_tolerance_fraction,
+            rib_cage_share: m.rib_cage_share,
             ..crate::motion::MotionSettings::default()
         }
     }

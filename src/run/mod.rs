@@ -536,7 +536,12 @@ fn scene_of_scan<'a>(
     crate::process::return_freed_memory();
     log_memory("ingested, freed memory returned");
     let t = Instant::now();
-    let lung = build_lung_scene(outcome, &inputs.points, config.outputs.field_grid)?;
+    let lung = build_lung_scene(
+        outcome,
+        &inputs.points,
+        config.outputs.field_grid,
+        config.motion.rib_cage_share,
+    )?;
     timings.insert("lung_scene".to_string(), t.elapsed().as_secs_f64());
     let t = Instant::now();
     if config.outputs.ingest_files {
@@ -605,9 +610,15 @@ fn build_lung_scene(
     outcome: &IngestOutcome,
     tracked: &[TrackedPoint],
     field_grid: crate::outputs::displacement_field::FieldGrid,
+    rib_cage_share: f64,
 ) -> Result<LungScene> {
     let model = &outcome.model;
-    let scene = lung_scene(model)?;
+    let mut scene = lung_scene(model)?;
+    // A rigid wall keeps the planes where they are: its scene is the one every earlier
+    // figure was measured with, bit for bit.
+    if rib_cage_share > 0.0 {
+        crate::motion::move_costal_wall(&mut scene, model);
+    }
     let mesh = &scene.mesh;
     let field = FieldSampler::new(
         &outcome.segmentation.lungs,
@@ -694,7 +705,10 @@ fn run_the_motion(
             let r = run_dynamic(
                 scene,
                 &inputs.trace,
-                &dynamic.settings(),
+                &crate::motion::dynamic::DynamicSettings {
+                    rib_cage_share: settings.rib_cage_share,
+                    ..dynamic.settings()
+                },
                 &plan.times,
                 &mut |f, positions| {
                     let mut frame = f.as_frame_summary();

@@ -264,6 +264,11 @@ pub struct BreathExtremeSummary {
     pub costal_wall_gap_warning_mm: f64,
     /// Rest position of the costal node with the largest change, LPS mm.
     pub costal_wall_gap_max_at_lps_mm: [f64; 3],
+    /// Mean |displacement| per LPS axis over the lung tissue (node values weighted by the
+    /// nodes' mass), mm: the per-axis motion DIR-Lab's landmarks report.
+    pub mean_abs_displacement_lps_mm: [f64; 3],
+    /// Share of the volume change the moving chest wall made at this frame (0: rigid wall).
+    pub chest_wall_share: f64,
 }
 
 impl BreathExtremeSummary {
@@ -340,8 +345,22 @@ pub(super) fn extreme_summary(
         .map(|&n| u_mm(n as usize).norm())
         .fold(0.0, f64::max);
     let bound_mm = costal_wall_gap_warning_mm(model.report.element_size_mm);
-    let wall = costal_wall_gaps(model, scene, x, bound_mm);
     let f = &report.frames[frame];
+    let wall_factor =
+        f.pressure_pa / crate::motion::REFERENCE_PRESSURE_PA * report.chest_wall.scale;
+    let wall = costal_wall_gaps(model, scene, x, wall_factor, bound_mm);
+    let mass = &scene.mesh.node_mass_kg;
+    let mut mean_abs = [0.0; 3];
+    for (n, &m_kg) in mass.iter().enumerate() {
+        let u = u_mm(n);
+        for (m, c) in mean_abs.iter_mut().zip(u.iter()) {
+            *m += c.abs() * m_kg;
+        }
+    }
+    let total_mass: f64 = mass.iter().sum();
+    mean_abs
+        .iter_mut()
+        .for_each(|m| *m /= total_mass.max(f64::MIN_POSITIVE));
     BreathExtremeSummary {
         kind,
         frame,
@@ -363,6 +382,12 @@ pub(super) fn extreme_summary(
         costal_nodes_off_wall: wall.beyond_bound,
         costal_wall_gap_warning_mm: bound_mm,
         costal_wall_gap_max_at_lps_mm: wall.max_at_lps_mm,
+        mean_abs_displacement_lps_mm: mean_abs,
+        chest_wall_share: if f.simulated_volume_ml.abs() > 1e-9 {
+            f.chest_wall_volume_ml / f.simulated_volume_ml
+        } else {
+            0.0
+        },
     }
 }
 
@@ -376,21 +401,31 @@ struct CostalWallGaps {
     max_at_lps_mm: [f64; 3],
 }
 
-fn costal_wall_gaps(model: &LungModel, scene: &Scene, x: &[V3], bound_mm: f64) -> CostalWallGaps {
+/// `wall_factor` is how far the moving costal planes have gone (load factor times the run's
+/// wall scale): a node is measured against the wall moved by its plane's offset.
+fn costal_wall_gaps(
+    model: &LungModel,
+    scene: &Scene,
+    x: &[V3],
+    wall_factor: f64,
+    bound_mm: f64,
+) -> CostalWallGaps {
     let rest = &scene.mesh.rest_positions_m;
     let mut gaps: Vec<(f64, usize)> = model
         .group_nodes(ConstraintGroup::Costal)
         .iter()
-        .filter(|&&n| {
-            matches!(
-                scene.constraints.get(n),
-                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
-            )
-        })
-        .map(|&n| {
+        .filter_map(|&n| {
+            let wall_offset_m = match scene.constraints.get(n)? {
+                NodeConstraint::Plane { point_m, normal } => {
+                    (point_m - rest[n as usize]).dot(normal) * wall_factor
+                }
+                NodeConstraint::Surface { .. } => 0.0,
+                _ => return None,
+            };
             let n = n as usize;
-            let gap_mm = (model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0).abs() * 1e3;
-            (gap_mm, n)
+            let change_m =
+                model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0 - wall_offset_m;
+            Some((change_m.abs() * 1e3, n))
         })
         .collect();
     gaps.sort_by(|a, b| a.0.total_cmp(&b.0));

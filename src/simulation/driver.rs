@@ -44,6 +44,39 @@ pub struct DrivenState {
     pub wall_time_s: f64,
 }
 
+/// Largest share of the volume change imposed motions may make (at 1 the pressure would
+/// do nothing and the load factor would be undetermined).
+pub const MAX_IMPOSED_SHARE: f64 = 0.9;
+
+/// How the imposed motions were scaled to make their share of the volume change.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ImposedMotionShare {
+    /// Share of every volume change asked of the imposed motions.
+    pub share: f64,
+    /// dV/dλ of the surface pressure alone, imposed motions held at rest, mL (for a rigid
+    /// wall, the driver's first estimate).
+    pub pressure_slope_ml: f64,
+    /// What the imposed motions add to dV/dλ per unit scale, mL: their sweep less the
+    /// tissue's recoil elsewhere.
+    pub motion_slope_ml: f64,
+    /// Volume the imposed motions sweep at λ = 1 and scale 1, mL.
+    pub sweep_ml_per_unit: f64,
+    /// The solver's imposed-motion scale that makes the share.
+    pub scale: f64,
+}
+
+/// The rest positions when the unloaded scene holds them (every constraint passes through
+/// its node's rest position once imposed displacements are scaled to zero).
+fn unloaded_rest(scene: &Scene) -> Option<Vec<V3>> {
+    let rest = &scene.mesh.rest_positions_m;
+    let mut x = rest.clone();
+    scene
+        .constraints
+        .at_load_factor(rest, 0.0)
+        .project_positions(&mut x);
+    (x == *rest).then_some(x)
+}
+
 /// Most times a failed solve's load step is halved before the failure is reported.
 pub const MAX_LOAD_BISECTIONS: usize = 4;
 
@@ -76,6 +109,8 @@ pub struct BreathingDriver<'s> {
     /// Told of every equilibrium reached.
     progress: Option<SolveProgressSink>,
     equilibria: usize,
+    /// Volume the imposed displacements sweep at λ = 1 and scale 1, mL (0: none move).
+    sweep_ml_per_unit: f64,
 }
 
 /// A flag another thread raises to stop a long computation at its next check.
@@ -123,12 +158,11 @@ impl<'s> BreathingDriver<'s> {
         let mut path = Vec::with_capacity(3);
         // The unloaded rest state is the path's first equilibrium when every constraint
         // passes through it: the first solve's end point then extrapolates the second's start.
-        let initial = scene.initial_positions();
-        if initial == scene.mesh.rest_positions_m {
+        if let Some(rest) = unloaded_rest(scene) {
             path.push(PathPoint {
                 lambda: 0.0,
                 dv_ml: 0.0,
-                positions_m: initial,
+                positions_m: rest,
             });
         }
         Ok(BreathingDriver {
@@ -142,6 +176,7 @@ impl<'s> BreathingDriver<'s> {
             predicted: Vec::new(),
             progress: None,
             equilibria: 0,
+            sweep_ml_per_unit: Self::imposed_sweep_ml_per_unit(scene),
         })
     }
 
@@ -284,6 +319,116 @@ impl<'s> BreathingDriver<'s> {
         }
     }
 
+    /// Scales the scene's imposed displacements (a moving chest wall) so that they make
+    /// `share` of every volume change and the surface pressure the rest: measures the lung's
+    /// pressure slope dV/dλ with the imposed motions held at rest (one small solve from rest,
+    /// in the linear range) and the volume they sweep per unit of load, and sets the solver's
+    /// imposed-motion scale from the two. `share` 0 holds them at rest.
+    pub fn share_volume_with_imposed_motion(&mut self, share: f64) -> Result<ImposedMotionShare> {
+        if !(share.is_finite() && (0.0..MAX_IMPOSED_SHARE).contains(&share)) {
+            return Err(Error::Argument {
+                what: "share of the volume change from imposed motion".into(),
+                reason: format!("{share} must lie in [0, {MAX_IMPOSED_SHARE})"),
+            });
+        }
+        let sweep_ml = self.sweep_ml_per_unit;
+        if share == 0.0 {
+            self.set_imposed_motion_scale(0.0);
+            return Ok(ImposedMotionShare {
+                share,
+                pressure_slope_ml: self.slope_ml,
+                motion_slope_ml: 0.0,
+                sweep_ml_per_unit: sweep_ml,
+                scale: 0.0,
+            });
+        }
+        if sweep_ml == 0.0 {
+            return Err(Error::InvalidModel(format!(
+                "a share of {share} of the volume change from imposed motion was asked, but no \
+                 constraint of this scene moves"
+            )));
+        }
+        // Two small solves from rest, in the linear range, give V(λ, s) = λ·(a + s·b): a the
+        // pressure's slope with the imposed motions held, b what they add per unit scale
+        // (less than their geometric sweep S: the tissue they pull recoils elsewhere, the
+        // base rising as the costal wall moves out). The share is the sweep over the total,
+        // s·S / (a + s·b), so s = share·a / (S − share·b).
+        let pressure_slope_ml = self.linear_slope_ml(0.0)?;
+        let guess = share / (1.0 - share) * pressure_slope_ml / sweep_ml;
+        let with_motion_ml = self.linear_slope_ml(guess)?;
+        let motion_slope_ml = (with_motion_ml - pressure_slope_ml) / guess;
+        let scale = share * pressure_slope_ml / (sweep_ml - share * motion_slope_ml);
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(Error::InvalidModel(format!(
+                "imposed motion cannot make {share} of the volume change: the lungs change by \
+                 {pressure_slope_ml:.3} mL per unit load, the moving constraints sweep \
+                 {sweep_ml:.3} mL per unit and add {motion_slope_ml:.3} mL"
+            )));
+        }
+        self.set_imposed_motion_scale(scale);
+        self.slope_ml = pressure_slope_ml + scale * motion_slope_ml;
+        Ok(ImposedMotionShare {
+            share,
+            pressure_slope_ml,
+            motion_slope_ml,
+            sweep_ml_per_unit: sweep_ml,
+            scale,
+        })
+    }
+
+    /// dV/dλ from rest with the imposed motions at `scale`, by one solve of about 5 mL (linear,
+    /// yet far above the solver's round-off); leaves the path at rest.
+    fn linear_slope_ml(&mut self, scale: f64) -> Result<f64> {
+        self.set_imposed_motion_scale(scale);
+        let probe = 5.0 / self.slope_ml.abs();
+        let mut reports = Vec::new();
+        let x = self.solve_factor(probe, &mut reports)?;
+        let slope = self.volume_change_ml(&x) / probe;
+        self.set_imposed_motion_scale(scale);
+        Ok(slope)
+    }
+
+    /// Volume the imposed displacements of `scene` sweep at load factor 1 and imposed-motion
+    /// scale 1, mL (central difference of the enclosed volume: first order in the
+    /// displacements).
+    fn imposed_sweep_ml_per_unit(scene: &Scene) -> f64 {
+        let rest = &scene.mesh.rest_positions_m;
+        let moves = crate::model::constraints::imposed_displacements(&scene.constraints, rest);
+        if moves.is_empty() {
+            return 0.0;
+        }
+        let largest = moves.iter().map(|(_, d)| d.norm()).fold(0.0, f64::max);
+        // A step of a micrometre at the largest offset keeps the difference linear.
+        let eps = 1e-6 / largest;
+        let mut x = rest.clone();
+        let mut volume = |t: f64| {
+            for &(n, d) in &moves {
+                x[n as usize] = rest[n as usize] + d * t;
+            }
+            scene.mesh.enclosed_volume_m3(&x)
+        };
+        (volume(eps) - volume(-eps)) / (2.0 * eps) * 1e6
+    }
+
+    /// Sets the solver's imposed-motion scale; the load path solved so far is forgotten (it
+    /// belonged to the other scale) back to the unloaded rest state.
+    fn set_imposed_motion_scale(&mut self, scale: f64) {
+        self.solver.set_imposed_motion_scale(scale);
+        self.path.clear();
+        if let Some(rest) = unloaded_rest(self.scene) {
+            self.path.push(PathPoint {
+                lambda: 0.0,
+                dv_ml: 0.0,
+                positions_m: rest,
+            });
+        }
+    }
+
+    /// Volume swept by the imposed motions at `lambda`, mL (first order).
+    pub fn imposed_sweep_ml(&self, lambda: f64) -> f64 {
+        lambda * self.solver.imposed_motion_scale() * self.sweep_ml_per_unit
+    }
+
     /// Stops the solve under way and every later one with [`Error::Cancelled`] once `flag` is
     /// raised (the solver holds the flag and checks it inside its iterations).
     pub fn set_cancel(&mut self, flag: CancelFlag) {
@@ -306,8 +451,7 @@ impl<'s> BreathingDriver<'s> {
         // Unloaded, the rest state is the equilibrium when every constraint passes through
         // it; solving would only chase round-off below the residual's floor.
         if lambda == 0.0 {
-            let x = self.scene.initial_positions();
-            if x == self.scene.mesh.rest_positions_m {
+            if let Some(x) = unloaded_rest(self.scene) {
                 self.push_equilibrium(0.0, x.clone());
                 reports.push(SolveReport::default());
                 return Ok(x);

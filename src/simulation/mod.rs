@@ -11,7 +11,9 @@ pub mod multigrid;
 pub mod quasistatic;
 pub mod scene;
 
-pub use driver::{BreathingDriver, CancelFlag, DrivenState, SolveProgress, SolveProgressSink};
+pub use driver::{
+    BreathingDriver, CancelFlag, DrivenState, ImposedMotionShare, SolveProgress, SolveProgressSink,
+};
 pub use explicit::{ExplicitIntegrator, ExplicitSettings, TimeStepBound};
 pub use forces::ForceEvaluator;
 pub use quasistatic::{PreconditionerKind, QuasiStaticSettings, QuasiStaticSolver, SolveReport};

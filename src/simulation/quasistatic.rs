@@ -116,6 +116,8 @@ pub struct QuasiStaticSolver<'s> {
     shift: f64,
     /// Typical stiffness-to-mass ratio (median diagonal), the scale of σ.
     shift_scale: f64,
+    /// Imposed displacements are applied at λ times this (1: in step with the loads).
+    imposed_motion_scale: f64,
     setup_time_s: f64,
 }
 
@@ -153,6 +155,7 @@ impl<'s> QuasiStaticSolver<'s> {
             constrained: sparse(&projector),
             shift_scale: shift_scale(scene),
             shift: 0.0,
+            imposed_motion_scale: 1.0,
             projector,
             preconditioner,
             setup_time_s: start.elapsed().as_secs_f64(),
@@ -225,8 +228,10 @@ impl<'s> QuasiStaticSolver<'s> {
         let mut work = Work::new(n);
         for step in 1..=steps {
             let lambda = load_factor * step as f64 / steps as f64;
-            let constraints =
-                scaled_constraints(&scene.constraints, &scene.mesh.rest_positions_m, lambda);
+            let constraints = scene.constraints.at_load_factor(
+                &scene.mesh.rest_positions_m,
+                lambda * self.imposed_motion_scale,
+            );
             constraints.project_positions(&mut x);
             let tol = if step == steps {
                 self.settings.tolerance
@@ -453,6 +458,18 @@ impl<'s> QuasiStaticSolver<'s> {
                 tolerance: tol,
             })
         }
+    }
+
+    /// Applies the scene's imposed displacements (a moving chest wall, prescribed motions) at
+    /// `scale` times the load factor in later solves: 0 holds every moving constraint at
+    /// rest, 1 (the default) moves it in step with the loads.
+    pub fn set_imposed_motion_scale(&mut self, scale: f64) {
+        self.imposed_motion_scale = scale;
+    }
+
+    /// The factor set by [`QuasiStaticSolver::set_imposed_motion_scale`].
+    pub fn imposed_motion_scale(&self) -> f64 {
+        self.imposed_motion_scale
     }
 
     /// Stops every later solve, and the one under way at its next check, once `flag` is raised.
@@ -744,30 +761,6 @@ fn force_floor_n(scene: &Scene) -> f64 {
         })
         .fold(f64::INFINITY, f64::min)
         .min(1.0)
-}
-
-/// Constraint set with imposed displacements scaled by λ (load stepping).
-fn scaled_constraints<'c>(
-    cs: &'c ConstraintSet,
-    rest: &[V3],
-    lambda: f64,
-) -> std::borrow::Cow<'c, ConstraintSet> {
-    // Most scenes (a lung with a fixed hilum) impose no displacement: borrow rather than
-    // copy the sliding surfaces' distance fields on every load step and frame.
-    let imposes_motion = cs.entries.iter().any(|(node, c)| {
-        matches!(c, NodeConstraint::Fixed { target_m } if *target_m != rest[*node as usize])
-    });
-    if lambda == 1.0 || !imposes_motion {
-        return std::borrow::Cow::Borrowed(cs);
-    }
-    let mut out = cs.clone();
-    for (node, c) in out.entries.iter_mut() {
-        if let NodeConstraint::Fixed { target_m } = c {
-            let r = rest[*node as usize];
-            *target_m = r + (*target_m - r) * lambda;
-        }
-    }
-    std::borrow::Cow::Owned(out)
 }
 
 /// Constraint projector of each node at the rest configuration (None = free).

@@ -178,6 +178,9 @@ fn without_defaults() -> Value {
                     "volume_tolerance_fraction": {"type": "number", "exclusiveMinimum": 0,
                         "maximum": 0.1, "description": "Volume driver tolerance, fraction of \
                             the tidal volume"},
+                    "rib_cage_share": {"type": "number", "minimum": 0, "maximum": 0.8,
+                        "description": "Share of every volume change the chest wall makes by \
+                            moving outward (0: a rigid wall; physiological about 1/3)"},
                     "dynamic": dynamic()
                 }
             },

@@ -1,0 +1,127 @@
+//! A chest wall that moves: the rib cage's share of each breath.
+//!
+//! In supine quiet breathing roughly a third of the tidal volume comes from the rib cage
+//! moving up and out, the rest from the diaphragm's descent (Konno & Mead 1967; see
+//! `../shared/docs/domain.md`). A rigid wall puts all of it on the diaphragm, so the costal
+//! faces cannot move outward and the base moves too far.
+//!
+//! Model: each costal node keeps sliding on its tangent plane, and the plane moves outward
+//! along its normal in proportion to the load, so the wall moves with the breath and the
+//! node still slides freely along it. The wall moves where the ribs do, anteriorly (pump
+//! handle) and laterally (bucket handle), and more at the lower ribs: the plane's unit
+//! offset is
+//!
+//! `g = t · (max(0, −n_y) + max(0, ±n_x))` mm, `t = (z_top − z) / (z_top − z_bottom)`,
+//!
+//! with `n` the wall's outward normal (LPS: −y anterior, −x lateral for the right lung, +x
+//! for the left) and `z_top`, `z_bottom` the extent of that lung's costal face: 0 at the
+//! apex end, 1 at the lowest costal node. Posterior and medial faces (spine, mediastinum), the
+//! apex and the hilum stay where they are; the diaphragm takes the rest of each breath.
+//!
+//! The offsets' overall scale is set per run so that the wall sweeps the asked share of every
+//! volume change ([`BreathingDriver::share_volume_with_imposed_motion`]): the lung's pressure
+//! slope with the wall held is measured by one small solve, the wall's sweep is geometric.
+//!
+//! [`BreathingDriver::share_volume_with_imposed_motion`]:
+//! crate::simulation::BreathingDriver::share_volume_with_imposed_motion
+
+use serde::Serialize;
+
+use crate::ingest::lung_model::{ConstraintGroup, LungModel};
+use crate::model::NodeConstraint;
+use crate::simulation::Scene;
+use crate::{Error, Result};
+
+/// The rib cage's share of the tidal volume in supine quiet breathing, about a third
+/// (Konno & Mead 1967, and later plethysmography): the default of a run.
+pub const PHYSIOLOGICAL_RIB_CAGE_SHARE: f64 = 1.0 / 3.0;
+
+/// Largest rib-cage share accepted: above it the diaphragm would hardly move, which no
+/// breathing pattern shows (thoracic breathing reaches about two thirds).
+pub const MAX_RIB_CAGE_SHARE: f64 = 0.8;
+
+/// Offset of a costal plane, per unit of the wall's scale, where the ribs move most, metres.
+const UNIT_OFFSET_M: f64 = 1e-3;
+
+/// What moving the costal wall did to a scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct CostalWallMotion {
+    /// Costal nodes whose plane moves (the others face backwards or inwards).
+    pub moving_nodes: usize,
+    /// Costal sliding nodes in all.
+    pub costal_nodes: usize,
+}
+
+/// Checks a rib-cage share: a fraction in [0, [`MAX_RIB_CAGE_SHARE`]].
+pub fn check_rib_cage_share(share: f64) -> Result<()> {
+    if share.is_finite() && (0.0..=MAX_RIB_CAGE_SHARE).contains(&share) {
+        Ok(())
+    } else {
+        Err(Error::settings(
+            "motion settings",
+            format!(
+                "rib_cage_share {share} must be a fraction of the tidal volume between 0 (a rigid \
+                 chest wall) and {MAX_RIB_CAGE_SHARE} (physiological: about {:.2})",
+                PHYSIOLOGICAL_RIB_CAGE_SHARE
+            ),
+        ))
+    }
+}
+
+/// Makes the costal tangent planes of `scene` (built by [`super::lung_scene`] from `model`)
+/// move outward with the load, by the unit offsets of the module's rule; the run scales them
+/// to its rib-cage share. A scene whose costal nodes do not slide on tangent planes (the
+/// literal wall-surface mode) is left rigid and says so by moving no node.
+pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotion {
+    let rest = &scene.mesh.rest_positions_m;
+    let lung = model.node_lung();
+    let costal: Vec<u32> = model
+        .group_nodes(ConstraintGroup::Costal)
+        .into_iter()
+        .filter(|&n| matches!(scene.constraints.get(n), Some(NodeConstraint::Plane { .. })))
+        .collect();
+    // The costal face's height per lung (index 1 right, 2 left).
+    let mut extent = [(f64::INFINITY, f64::NEG_INFINITY); 3];
+    for &n in &costal {
+        let (z, l) = (rest[n as usize].z, lung[n as usize] as usize);
+        if let Some(e) = extent.get_mut(l) {
+            *e = (e.0.min(z), e.1.max(z));
+        }
+    }
+    let mut is_costal = vec![false; rest.len()];
+    costal.iter().for_each(|&n| is_costal[n as usize] = true);
+    let mut moving_nodes = 0;
+    // In place: `ConstraintSet::set` would normalise the normal again, and a last-bit change
+    // would keep a share of 0 from being the rigid wall exactly.
+    for (n, c) in scene.constraints.entries.iter_mut() {
+        let n = *n as usize;
+        let NodeConstraint::Plane { point_m, normal } = c else {
+            continue;
+        };
+        if !is_costal[n] {
+            continue;
+        }
+        let r = rest[n];
+        let l = lung[n] as usize;
+        let lateral = match l {
+            1 => -normal.x,
+            2 => normal.x,
+            _ => continue,
+        };
+        let (bottom, top) = extent[l];
+        let t = if top > bottom {
+            (top - r.z) / (top - bottom)
+        } else {
+            1.0
+        };
+        let g = t * ((-normal.y).max(0.0) + lateral.max(0.0)) * UNIT_OFFSET_M;
+        if g > 0.0 {
+            *point_m = r + *normal * g;
+            moving_nodes += 1;
+        }
+    }
+    CostalWallMotion {
+        moving_nodes,
+        costal_nodes: costal.len(),
+    }
+}
