@@ -81,6 +81,56 @@ fn the_wall_sweeps_the_share_asked_and_the_diaphragm_descends_less() {
         "{wall:?}: the anterior and lateral costal wall moves, the posterior wall does not"
     );
 
+    // The wall's motion has no step where the costal face meets a face that stays: a costal
+    // node one edge from a mediastinal, diaphragmatic or apex node moves at most half as far
+    // as the rule allows (1 mm per unit, times at most √2 for the two normal components).
+    let rest = &moving.mesh.rest_positions_m;
+    let still = |n: u32| {
+        matches!(
+            ConstraintGroup::from_code(model.node_group[n as usize]),
+            Some(
+                ConstraintGroup::Mediastinal
+                    | ConstraintGroup::Diaphragmatic
+                    | ConstraintGroup::Apex
+            )
+        )
+    };
+    let mut beside_still = vec![false; rest.len()];
+    for corners in &moving.mesh.elements {
+        for (a, b) in [
+            (0, 1),
+            (1, 2),
+            (2, 3),
+            (3, 0),
+            (4, 5),
+            (5, 6),
+            (6, 7),
+            (7, 4),
+            (0, 4),
+            (1, 5),
+            (2, 6),
+            (3, 7),
+        ] {
+            let (a, b) = (corners[a], corners[b]);
+            beside_still[a as usize] |= still(b);
+            beside_still[b as usize] |= still(a);
+        }
+    }
+    let mut checked = 0;
+    for (n, c) in &moving.constraints.entries {
+        if let lungmotion::model::NodeConstraint::Plane { point_m, normal } = c {
+            let offset_mm = (point_m - rest[*n as usize]).dot(normal) * 1e3;
+            if beside_still[*n as usize] && offset_mm > 0.0 {
+                assert!(
+                    offset_mm <= 0.5 * 2f64.sqrt() + 1e-9,
+                    "node {n}: {offset_mm} mm"
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 0);
+
     let (r0, x0) = run(&rigid, 0.0);
     let (r1, x1) = run(&moving, 1.0 / 3.0);
     assert_eq!(r0.chest_wall.scale, 0.0);
@@ -109,7 +159,6 @@ fn the_wall_sweeps_the_share_asked_and_the_diaphragm_descends_less() {
         "base descends {base_moving:.2} mm with the moving wall, {base_rigid:.2} mm on a rigid one"
     );
     // The moving costal nodes stay on their moved planes, outward of where they were.
-    let rest = &moving.mesh.rest_positions_m;
     let lambda = r1.frames[end].pressure_pa / lungmotion::motion::REFERENCE_PRESSURE_PA;
     let outward: Vec<f64> = model
         .group_nodes(ConstraintGroup::Costal)
