@@ -25,3 +25,14 @@ pub fn lung_scene(model: &LungModel) -> Result<Scene> {
     };
     Scene::new(mesh, model.constraints.clone(), loads)
 }
+
+/// The scene a breathing run solves: [`lung_scene`], with the costal wall moving
+/// ([`super::move_costal_wall`]) when the rib cage has a share of the breath. A rigid wall
+/// leaves the planes where they are, bit for bit.
+pub fn run_scene(model: &LungModel, rib_cage_share: f64) -> Result<Scene> {
+    let mut scene = lung_scene(model)?;
+    if rib_cage_share > 0.0 {
+        super::move_costal_wall(&mut scene, model);
+    }
+    Ok(scene)
+}

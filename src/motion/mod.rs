@@ -12,7 +12,7 @@ pub mod dynamic;
 mod lung_scene;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
-pub use lung_scene::lung_scene;
+pub use lung_scene::{lung_scene, run_scene};
 
 use std::time::Instant;
 

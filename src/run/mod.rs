@@ -47,7 +47,7 @@ use crate::ingest::lung_model::ConstraintGroup;
 use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
 use crate::ingest::scan::{load_ct_with, LoadedScan};
 use crate::motion::dynamic::{run_dynamic, DynamicReport};
-use crate::motion::{lung_scene, run_motion, MotionReport, MotionSettings};
+use crate::motion::{run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
 use crate::outputs::ingest_files::write_ingest_outputs;
 use crate::outputs::radiotherapy::ct_motion::CtMotionSettings;
@@ -613,12 +613,7 @@ fn build_lung_scene(
     rib_cage_share: f64,
 ) -> Result<LungScene> {
     let model = &outcome.model;
-    let mut scene = lung_scene(model)?;
-    // A rigid wall keeps the planes where they are: its scene is the one every earlier
-    // figure was measured with, bit for bit.
-    if rib_cage_share > 0.0 {
-        crate::motion::move_costal_wall(&mut scene, model);
-    }
+    let scene = crate::motion::run_scene(model, rib_cage_share)?;
     let mesh = &scene.mesh;
     let field = FieldSampler::new(
         &outcome.segmentation.lungs,

@@ -45,8 +45,8 @@ use crate::ingest::scan::load_ct;
 use crate::math::V3;
 use crate::model::Material;
 use crate::motion::{
-    elastic_compliance_ml_per_pa, lung_scene, run_motion, MotionReport, MotionSettings,
-    REFERENCE_PRESSURE_PA,
+    elastic_compliance_ml_per_pa, run_motion, run_scene, MotionReport, MotionSettings,
+    PHYSIOLOGICAL_RIB_CAGE_SHARE, REFERENCE_PRESSURE_PA,
 };
 use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
 use crate::process::{
@@ -326,7 +326,10 @@ pub fn run_motion_bench(opts: &MotionBenchOptions) -> Result<MotionBenchReport> 
         });
     };
     let ct_path = dir.join("ct-64.nrrd");
-    let settings = MotionSettings::default();
+    let settings = MotionSettings {
+        rib_cage_share: PHYSIOLOGICAL_RIB_CAGE_SHARE,
+        ..MotionSettings::default()
+    };
     let mut sizes = Vec::with_capacity(opts.element_sizes_mm.len());
     for &h in &opts.element_sizes_mm {
         let mut entry = ElementSizeBench {
@@ -426,7 +429,8 @@ fn build_case(ct_path: &std::path::Path, element_size_mm: f64) -> Result<(Case, 
             .unwrap_or(f64::NAN)
     };
     let t = Instant::now();
-    let scene = lung_scene(&outcome.model)?;
+    // As `lungmotion run` builds it by default: the chest wall makes a third of each breath.
+    let scene = run_scene(&outcome.model, PHYSIOLOGICAL_RIB_CAGE_SHARE)?;
     let scene_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     // As `lungmotion run` writes them by default.
