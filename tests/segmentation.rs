@@ -213,7 +213,26 @@ fn check_synthetic(direction: [[f64; 3]; 3], name: &str) {
         left_lung: true,
     };
     let (ct, truth) = thorax.sample(grid(4.0, direction));
-    let seg = segment_lungs(&ct, &SegmentationSettings::default()).unwrap();
+    let on = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| segment_lungs(&ct, &SegmentationSettings::default()).unwrap())
+    };
+    let (seg, single) = (on(2), on(1));
+    // The per-slice closing, the distance maps and the split of touching lungs run on all
+    // cores: one core must give the same voxels and the same report, timings aside.
+    assert_eq!(seg.lungs.as_slice(), single.lungs.as_slice(), "{name}");
+    assert_eq!(seg.airways.as_slice(), single.airways.as_slice(), "{name}");
+    assert_eq!(seg.body.as_slice(), single.body.as_slice(), "{name}");
+    let untimed = |r: &lungmotion::ingest::segmentation::SegmentationReport| {
+        let mut v = serde_json::to_value(r).unwrap();
+        v["wall_time_s"] = serde_json::Value::Null;
+        v["step_times_s"] = serde_json::Value::Null;
+        v
+    };
+    assert_eq!(untimed(&seg.report), untimed(&single.report), "{name}");
     let r = &seg.report;
     let right = dice(&seg.lungs, RIGHT_LUNG, &truth, RIGHT_LUNG).unwrap();
     let left = dice(&seg.lungs, LEFT_LUNG, &truth, LEFT_LUNG).unwrap();

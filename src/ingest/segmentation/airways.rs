@@ -135,10 +135,17 @@ pub(super) fn grow_airway(
     let min_voxels = (settings.airway_min_ml / voxel_ml).ceil() as usize;
     let ceiling = settings.airway_max_hu.min(threshold_hu);
     let level = |idx: usize| ct.as_slice()[idx].ceil() as i32;
-    let mut queued = std::collections::HashSet::new();
+    // One bit per voxel: a hash set of the queued voxels cost more than the flood itself.
+    let mut queued = vec![0u64; lung_air.len().div_ceil(64)];
+    let mut first_queue = |v: usize| {
+        let (word, bit) = (v / 64, 1u64 << (v % 64));
+        let new = queued[word] & bit == 0;
+        queued[word] |= bit;
+        new
+    };
     let mut heap = BinaryHeap::new();
     heap.push(std::cmp::Reverse((level(seed), seed as u32)));
-    queued.insert(seed as u32);
+    first_queue(seed);
     let mut order: Vec<u32> = Vec::new();
     let mut levels: Vec<i32> = Vec::new();
     let [nx, ny, nz] = dims;
@@ -153,7 +160,7 @@ pub(super) fn grow_airway(
         let i = idx as usize;
         let (x, y, z) = (i % nx, (i / nx) % ny, i / plane);
         let mut visit = |n: usize| {
-            if lung_air[n] != 0 && queued.insert(n as u32) {
+            if lung_air[n] != 0 && first_queue(n) {
                 heap.push(std::cmp::Reverse((lvl.max(level(n)), n as u32)));
             }
         };

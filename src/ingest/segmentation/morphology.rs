@@ -8,7 +8,7 @@
 //! task, without copying the volume.
 
 use ndarray::parallel::prelude::*;
-use ndarray::{ArrayView3, ArrayViewMut3, Axis};
+use ndarray::{ArrayView3, ArrayViewMut2, ArrayViewMut3, Axis};
 use rayon::prelude::*;
 
 /// The voxel axis closest to the patient's z (cranio-caudal) axis, and whether LPS z grows
@@ -42,7 +42,8 @@ pub(crate) fn array_axis(axis: usize) -> Axis {
 }
 
 /// Applies `f(line, scratch)` to every line of `data` along `axis`, in parallel; the line is a
-/// contiguous copy written back afterwards (rows along i are passed in place).
+/// contiguous copy written back afterwards unless `f` returns false for the whole strip of
+/// lines (nothing changed); rows along i are passed in place.
 pub(crate) fn for_each_line<T, S, I, F>(
     data: &mut [T],
     dims: [usize; 3],
@@ -53,30 +54,61 @@ pub(crate) fn for_each_line<T, S, I, F>(
     T: Copy + Send + Sync + Default,
     S: Send,
     I: Fn() -> S + Sync + Send,
-    F: Fn(&mut [T], &mut S) + Sync + Send,
+    F: Fn(&mut [T], &mut S) -> bool + Sync + Send,
 {
     if axis == 0 {
-        data.par_chunks_mut(dims[0])
-            .for_each_init(&init, |s, row| f(row, s));
+        data.par_chunks_mut(dims[0]).for_each_init(&init, |s, row| {
+            f(row, s);
+        });
         return;
     }
-    let n = dims[axis];
     // Each line along j lies in one k-plane and each line along k in one j-plane: planes are
-    // disjoint, so they go to the cores whole, and a plane's lines (one per i) share cache lines.
+    // disjoint, so they go to the cores whole; within a plane the lines are the columns of
+    // rows along i.
     let plane_axis = if axis == 1 { Axis(0) } else { Axis(1) };
     grid_view_mut(data, dims)
         .axis_iter_mut(plane_axis)
         .into_par_iter()
         .for_each_init(
-            || (vec![T::default(); n], init()),
-            |(line, s), mut plane| {
-                for mut lane in plane.lanes_mut(Axis(0)) {
-                    line.iter_mut().zip(&lane).for_each(|(l, &v)| *l = v);
-                    f(line, s);
-                    lane.iter_mut().zip(line.iter()).for_each(|(v, &l)| *v = l);
-                }
-            },
+            || (Vec::new(), init()),
+            |(strip, s), mut plane| for_each_column(&mut plane, strip, s, &f),
         );
+}
+
+/// Lines gathered per strip in [`for_each_column`]: 16 values of a row fill a cache line of
+/// f32, so each row is read and written whole once per strip instead of once per column.
+const STRIP_COLUMNS: usize = 16;
+
+/// Applies `f(column, scratch)` to every column of `plane` (rows contiguous), in strips of
+/// [`STRIP_COLUMNS`] columns transposed into `strip` and back.
+fn for_each_column<T, S, F>(plane: &mut ArrayViewMut2<'_, T>, strip: &mut Vec<T>, s: &mut S, f: &F)
+where
+    T: Copy + Default,
+    F: Fn(&mut [T], &mut S) -> bool,
+{
+    let (n, width) = plane.dim();
+    strip.resize(STRIP_COLUMNS * n, T::default());
+    for c0 in (0..width).step_by(STRIP_COLUMNS) {
+        let w = STRIP_COLUMNS.min(width - c0);
+        for (q, row) in plane.rows().into_iter().enumerate() {
+            let row = row.to_slice().expect("rows along i are contiguous");
+            for (c, &v) in row[c0..c0 + w].iter().enumerate() {
+                strip[c * n + q] = v;
+            }
+        }
+        let mut changed = false;
+        for column in strip.chunks_mut(n).take(w) {
+            changed |= f(column, s);
+        }
+        if changed {
+            for (q, row) in plane.rows_mut().into_iter().enumerate() {
+                let row = row.into_slice().expect("rows along i are contiguous");
+                for (c, v) in row[c0..c0 + w].iter_mut().enumerate() {
+                    *v = strip[c * n + q];
+                }
+            }
+        }
+    }
 }
 
 /// Scratch of the 1-D distance transform.
@@ -88,8 +120,14 @@ struct EnvelopeScratch {
 }
 
 /// Exact 1-D squared distance transform in place: `line[q] ← min_p (line[p] + ((q − p)·s)²)`,
-/// infinite entries being no source.
-fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) {
+/// infinite entries being no source; returns false when the line is left as it was (no
+/// source at all, or sources only), so a strided line need not be written back.
+fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) -> bool {
+    // A line with no source stays infinite and one of sources only stays zero: the bulk of
+    // the lines far from (or deep inside) a mask, skipped without building an envelope.
+    if line.iter().all(|v| !v.is_finite()) || line.iter().all(|&v| v == 0.0) {
+        return false;
+    }
     s.input.clear();
     s.input.extend_from_slice(line);
     s.vertices.clear();
@@ -120,7 +158,7 @@ fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) {
     }
     if s.vertices.is_empty() {
         line.fill(f32::INFINITY);
-        return;
+        return true;
     }
     let mut v = 0;
     for (q, out) in line.iter_mut().enumerate() {
@@ -132,6 +170,7 @@ fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) {
         let d = x - p as f32 * spacing;
         *out = d * d + f[p];
     }
+    true
 }
 
 /// Squared Euclidean distance in mm² from each voxel to the nearest feature voxel, a feature
@@ -145,42 +184,27 @@ pub(crate) fn squared_distance_mm2(
     feature_is_set: bool,
     in_slices_across: Option<usize>,
 ) -> Vec<f32> {
-    let mut d: Vec<f32> = mask
-        .par_iter()
-        .map(|&m| {
-            if (m != 0) == feature_is_set {
-                0.0
-            } else {
-                f32::INFINITY
-            }
-        })
-        .collect();
-    // Along i the input is binary: two sweeps give the distance to the nearest feature in
-    // the row, cheaper than the parabola envelope.
+    let mut d = vec![0f32; mask.len()];
+    let [nx, ny, _] = dims;
+    if in_slices_across == Some(2) {
+        // Axial storage: each slice is contiguous and transformed whole by one core, in cache.
+        let (su, sv) = (spacing_mm[0] as f32, spacing_mm[1] as f32);
+        d.par_chunks_mut(nx * ny)
+            .zip(mask.par_chunks(nx * ny))
+            .for_each_init(SliceScratch::default, |scratch, (out, m)| {
+                squared_distance_slice_mm2(m, [nx, ny], [su, sv], feature_is_set, out, scratch)
+            });
+        return d;
+    }
+    d.par_iter_mut()
+        .zip(mask)
+        .for_each(|(d, &m)| *d = feature_seed(m, feature_is_set));
     let sx = spacing_mm[0] as f32;
     let wanted = |axis: usize| in_slices_across != Some(axis);
-    d.par_chunks_mut(dims[0])
-        .filter(|_| wanted(0))
-        .for_each(|row| {
-            let mut last = None;
-            for (i, v) in row.iter_mut().enumerate() {
-                if *v == 0.0 {
-                    last = Some(i);
-                } else if let Some(l) = last {
-                    *v = (i - l) as f32 * sx;
-                }
-            }
-            last = None;
-            for (i, v) in row.iter_mut().enumerate().rev() {
-                if *v == 0.0 {
-                    last = Some(i);
-                } else {
-                    let back = last.map_or(f32::INFINITY, |l| (l - i) as f32 * sx);
-                    let d = v.min(back);
-                    *v = d * d;
-                }
-            }
-        });
+    if wanted(0) {
+        d.par_chunks_mut(nx)
+            .for_each(|row| row_distance_to_zeros(row, sx));
+    }
     // Without the i pass the values are still squared distances: 0 or ∞.
     for (axis, &spacing) in spacing_mm.iter().enumerate().skip(1) {
         if dims[axis] > 1 && wanted(axis) {
@@ -190,6 +214,72 @@ pub(crate) fn squared_distance_mm2(
         }
     }
     d
+}
+
+/// 0 at a feature voxel, ∞ elsewhere: the input of the transform.
+fn feature_seed(m: u8, feature_is_set: bool) -> f32 {
+    if (m != 0) == feature_is_set {
+        0.0
+    } else {
+        f32::INFINITY
+    }
+}
+
+/// The pass along i, where the input is binary (0 or ∞): two sweeps give the squared distance
+/// to the nearest zero of the row, cheaper than the parabola envelope.
+fn row_distance_to_zeros(row: &mut [f32], sx: f32) {
+    let mut last = None;
+    for (i, v) in row.iter_mut().enumerate() {
+        if *v == 0.0 {
+            last = Some(i);
+        } else if let Some(l) = last {
+            *v = (i - l) as f32 * sx;
+        }
+    }
+    last = None;
+    for (i, v) in row.iter_mut().enumerate().rev() {
+        if *v == 0.0 {
+            last = Some(i);
+        } else {
+            let back = last.map_or(f32::INFINITY, |l| (l - i) as f32 * sx);
+            let d = v.min(back);
+            *v = d * d;
+        }
+    }
+}
+
+/// Per-core scratch of [`squared_distance_slice_mm2`].
+#[derive(Default)]
+pub(crate) struct SliceScratch {
+    strip: Vec<f32>,
+    envelope: EnvelopeScratch,
+}
+
+/// [`squared_distance_mm2`] within one contiguous slice of `nu × nv` voxels (u fastest) of
+/// spacing `su × sv` mm, into `out`: the same passes and arithmetic, so the same bits.
+pub(crate) fn squared_distance_slice_mm2(
+    mask: &[u8],
+    [nu, nv]: [usize; 2],
+    [su, sv]: [f32; 2],
+    feature_is_set: bool,
+    out: &mut [f32],
+    scratch: &mut SliceScratch,
+) {
+    out.iter_mut()
+        .zip(mask)
+        .for_each(|(d, &m)| *d = feature_seed(m, feature_is_set));
+    out.chunks_mut(nu)
+        .for_each(|row| row_distance_to_zeros(row, su));
+    if nv < 2 {
+        return;
+    }
+    let mut plane = ArrayViewMut2::from_shape((nv, nu), out).expect("a slice is nu × nv");
+    for_each_column(
+        &mut plane,
+        &mut scratch.strip,
+        &mut scratch.envelope,
+        &|c, e| envelope_line(c, sv, e),
+    );
 }
 
 /// Fills, in every slice across `axis`, the background regions not connected (4-neighbour)
@@ -220,7 +310,7 @@ pub(crate) fn fill_holes_2d(mask: &mut [u8], dims: [usize; 3], axis: usize) {
 
 /// Hole filling of one 2-D slice (`nu` fastest): flood the background from the border, then
 /// everything not reached is inside.
-fn fill_holes_slice(s: &mut [u8], nu: usize, nv: usize, stack: &mut Vec<u32>) {
+pub(crate) fn fill_holes_slice(s: &mut [u8], nu: usize, nv: usize, stack: &mut Vec<u32>) {
     const OUTSIDE: u8 = 2;
     stack.clear();
     let seed = |s: &mut [u8], idx: usize, stack: &mut Vec<u32>| {
@@ -351,6 +441,49 @@ mod tests {
         let inverted: Vec<u8> = mask.iter().map(|&m| u8::from(m == 0)).collect();
         let to_unset = squared_distance_mm2(&mask, dims, unit, false, None);
         assert_eq!(to_unset, brute(&inverted, dims, unit));
+    }
+
+    #[test]
+    fn each_line_along_every_axis_is_visited_once_in_strips_of_columns() {
+        // 37 columns: two whole strips and a partial one.
+        let dims = [37, 5, 4];
+        let n: usize = dims.iter().product();
+        let data: Vec<u32> = (0..n as u32).collect();
+        for axis in 0..3 {
+            let mut reversed = data.clone();
+            for_each_line(
+                &mut reversed,
+                dims,
+                axis,
+                || (),
+                |line, _| {
+                    line.reverse();
+                    true
+                },
+            );
+            for (idx, &v) in reversed.iter().enumerate() {
+                let mut ijk = [idx % 37, idx / 37 % 5, idx / 185];
+                ijk[axis] = dims[axis] - 1 - ijk[axis];
+                assert_eq!(
+                    v as usize,
+                    ijk[0] + 37 * (ijk[1] + 5 * ijk[2]),
+                    "axis {axis}"
+                );
+            }
+            // A pass that reports no change writes nothing back.
+            let mut kept = data.clone();
+            for_each_line(
+                &mut kept,
+                dims,
+                axis,
+                || (),
+                |line, _| {
+                    line.fill(0);
+                    false
+                },
+            );
+            assert!(axis == 0 || kept == data, "axis {axis}");
+        }
     }
 
     #[test]
