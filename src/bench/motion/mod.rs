@@ -559,6 +559,8 @@ fn bench_serving(
         elastic_compliance_ml_per_pa(rest_volume_ml, &case.material),
         settings.solver.clone(),
     )?;
+    // The chest wall scaled as `run_motion` scales it.
+    driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     // The same tolerances as `run_motion`, so these are the keys the cycle served from.
     let keys = VolumeKeyframes::build(
         &mut driver,
