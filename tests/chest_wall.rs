@@ -97,20 +97,7 @@ fn the_wall_sweeps_the_share_asked_and_the_diaphragm_descends_less() {
     };
     let mut beside_still = vec![false; rest.len()];
     for corners in &moving.mesh.elements {
-        for (a, b) in [
-            (0, 1),
-            (1, 2),
-            (2, 3),
-            (3, 0),
-            (4, 5),
-            (5, 6),
-            (6, 7),
-            (7, 4),
-            (0, 4),
-            (1, 5),
-            (2, 6),
-            (3, 7),
-        ] {
+        for (a, b) in lungmotion::model::mesh::HEX_EDGES {
             let (a, b) = (corners[a], corners[b]);
             beside_still[a as usize] |= still(b);
             beside_still[b as usize] |= still(a);

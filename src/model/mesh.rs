@@ -22,6 +22,22 @@ pub const HEX_FACES: [[usize; 4]; 6] = [
     [1, 2, 6, 5],
 ];
 
+/// The 12 edges of a hexahedron in the mesh's corner order (VTK's).
+pub const HEX_EDGES: [(usize, usize); 12] = [
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 0),
+    (4, 5),
+    (5, 6),
+    (6, 7),
+    (7, 4),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+];
+
 /// A mesh of Baudet bricks sharing corner nodes.
 #[derive(Debug, Clone)]
 pub struct HexMesh {

@@ -35,6 +35,7 @@
 use serde::Serialize;
 
 use crate::ingest::lung_model::{ConstraintGroup, LungModel};
+use crate::model::mesh::HEX_EDGES;
 use crate::model::NodeConstraint;
 use crate::simulation::Scene;
 use crate::{Error, Result};
@@ -53,22 +54,6 @@ const UNIT_OFFSET_M: f64 = 1e-3;
 /// Distance along the lung surface over which the wall's offset falls to zero at the faces
 /// that do not move out, mm (at least two element edges).
 pub const TAPER_MM: f64 = 16.0;
-
-/// The 12 edges of a hexahedron in the mesh's corner order (VTK's).
-const HEX_EDGES: [(usize, usize); 12] = [
-    (0, 1),
-    (1, 2),
-    (2, 3),
-    (3, 0),
-    (4, 5),
-    (5, 6),
-    (6, 7),
-    (7, 4),
-    (0, 4),
-    (1, 5),
-    (2, 6),
-    (3, 7),
-];
 
 /// What moving the costal wall did to a scene.
 #[derive(Debug, Clone, Serialize)]

@@ -43,6 +43,17 @@ impl Scene {
         x
     }
 
+    /// Rest positions projected onto the constraints with every imposed displacement at zero:
+    /// where the unloaded scene starts (a moving wall at rest too).
+    pub fn unloaded_positions(&self) -> Vec<V3> {
+        let rest = &self.mesh.rest_positions_m;
+        let mut x = rest.clone();
+        self.constraints
+            .at_load_factor(rest, 0.0)
+            .project_positions(&mut x);
+        x
+    }
+
     /// Internal forces only, into `out`.
     pub fn internal_forces(&self, x: &[V3], v: Option<&[V3]>, out: &mut [V3]) {
         self.forces.internal_forces(&self.mesh, x, v, out);
