@@ -357,13 +357,7 @@ fn initial_equilibrium(
 ) -> Result<Vec<V3>> {
     Ok(if initial_pressure_pa == 0.0 {
         // Unloaded, a moving wall is at rest too.
-        let rest = &damped.mesh.rest_positions_m;
-        let mut x = rest.clone();
-        damped
-            .constraints
-            .at_load_factor(rest, 0.0)
-            .project_positions(&mut x);
-        x
+        damped.unloaded_positions()
     } else {
         driver
             .solve_pressure(-initial_pressure_pa)

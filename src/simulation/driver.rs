@@ -68,13 +68,8 @@ pub struct ImposedMotionShare {
 /// The rest positions when the unloaded scene holds them (every constraint passes through
 /// its node's rest position once imposed displacements are scaled to zero).
 fn unloaded_rest(scene: &Scene) -> Option<Vec<V3>> {
-    let rest = &scene.mesh.rest_positions_m;
-    let mut x = rest.clone();
-    scene
-        .constraints
-        .at_load_factor(rest, 0.0)
-        .project_positions(&mut x);
-    (x == *rest).then_some(x)
+    let x = scene.unloaded_positions();
+    (x == scene.mesh.rest_positions_m).then_some(x)
 }
 
 /// Most times a failed solve's load step is halved before the failure is reported.
