@@ -220,3 +220,40 @@ fn a_server_down_an_unknown_study_and_a_study_without_ct_are_refused_by_name() {
     assert!(text(&o).contains("not a DICOMweb address"), "{}", text(&o));
     std::fs::remove_dir_all(&scratch).unwrap();
 }
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "needs Orthanc with its DICOMweb plugin (.ci/run installs it): cargo test --features slow-tests --test pacs_orthanc"
+)]
+fn credentials_come_from_the_environment_and_a_401_is_refused_by_name() {
+    let orthanc = Orthanc::start_with("auth", Some(("lungmotion", "cli-pass-5678")));
+    let root = orthanc.root();
+    let ct_dir = sample("phantom-dicom");
+    let push = |env: &[(&str, &str)]| {
+        let mut cmd = bin();
+        cmd.args(["pacs", "push", "--to", &root, ct_dir.to_str().unwrap()]);
+        for name in [
+            "LUNGMOTION_PACS_USERNAME",
+            "LUNGMOTION_PACS_PASSWORD",
+            "LUNGMOTION_PACS_TOKEN",
+        ] {
+            cmd.env_remove(name);
+        }
+        cmd.envs(env.iter().copied()).output().unwrap()
+    };
+    let o = push(&[]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("answered HTTP 401"), "{}", text(&o));
+    let o = push(&[
+        ("LUNGMOTION_PACS_USERNAME", "lungmotion"),
+        ("LUNGMOTION_PACS_PASSWORD", "wrong"),
+    ]);
+    assert!(text(&o).contains("answered HTTP 401"), "{}", text(&o));
+    assert!(!text(&o).contains("wrong"), "{}", text(&o));
+    let o = push(&[
+        ("LUNGMOTION_PACS_USERNAME", "lungmotion"),
+        ("LUNGMOTION_PACS_PASSWORD", "cli-pass-5678"),
+    ]);
+    assert!(text(&o).contains("stored 68 instances"), "{}", text(&o));
+}

@@ -912,6 +912,40 @@ mod tests {
     }
 
     #[test]
+    fn the_pacs_comes_from_the_files_table_and_the_environment() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-pacs-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            "[pacs]\nurl = \"dicomweb://127.0.0.1:8042/dicom-web\"\npush = true\n",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        let pacs = c.pacs.unwrap();
+        assert_eq!(pacs.root_url, "http://127.0.0.1:8042/dicom-web");
+        assert!(pacs.push_by_default && pacs.auth().is_none());
+        let env = |k: &str| (k == "LUNGMOTION_PACS_TOKEN").then(|| "a-bearer-token".to_string());
+        let c = ServiceConfig::load(Some(&path), &env).unwrap();
+        assert_eq!(
+            c.pacs.unwrap().auth(),
+            Some(crate::pacs::DicomWebAuth::Bearer("a-bearer-token".into()))
+        );
+        assert!(ServiceConfig::load(None, &no_env).unwrap().pacs.is_none());
+        std::fs::write(
+            &path,
+            "[pacs]\nurl = \"dicomweb://h/dw\"\nusernme = \"x\"\n",
+        )
+        .unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("usernme"), "{e}");
+        std::fs::write(&path, "[pacs]\nurl = \"dicomweb://h/dw\"\ntimeout_s = -1\n").unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("timeout_s"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn refuses_unknown_keys_bad_numbers_and_open_listening_without_token() {
         let dir = std::env::temp_dir().join(format!("lm-svc-config-bad-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();

@@ -569,6 +569,82 @@ mod tests {
     }
 
     #[test]
+    fn a_pacs_series_or_a_push_needs_a_pacs_and_the_push_defaults_to_the_servers() {
+        let defaults = RunConfig::default();
+        let (t, v) = two_breaths();
+        let body = |extra: serde_json::Value| {
+            let mut body = serde_json::json!({"trace": {"time_s": t, "volume_ml": v}});
+            for (k, value) in extra.as_object().unwrap() {
+                body[k] = value.clone();
+            }
+            body.to_string()
+        };
+        let series =
+            serde_json::json!({"ct": {"dicomweb": {"study": "1.2.3", "series": "1.2.3.4"}}});
+        // No PACS on the server: refused by name, a push too.
+        for extra in [series.clone(), serde_json::json!({"push": true})] {
+            let e = parse_simulation(&defaults, None, "application/json", body(extra).as_bytes())
+                .unwrap_err();
+            assert!(e.status == 422 && e.slug == "no-pacs", "{e}");
+        }
+        let mut pacs = PacsSettings::new("dicomweb://127.0.0.1:8042/dicom-web").unwrap();
+        let request = parse_simulation(
+            &defaults,
+            Some(&pacs),
+            "application/json",
+            body(series.clone()).as_bytes(),
+        )
+        .unwrap();
+        assert_eq!(
+            request.pacs_ct,
+            Some(PacsSeries {
+                study: "1.2.3".into(),
+                series: Some("1.2.3.4".into())
+            })
+        );
+        assert!(!request.push);
+        // The server's default applies unless the request says.
+        pacs.push_by_default = true;
+        let csv: String = std::iter::once("time_s,volume_ml\n".to_string())
+            .chain(t.iter().zip(&v).map(|(t, v)| format!("{t},{v}\n")))
+            .collect();
+        let request = parse_simulation(&defaults, Some(&pacs), "text/csv", csv.as_bytes()).unwrap();
+        assert!(request.push);
+        let request = parse_simulation(
+            &defaults,
+            Some(&pacs),
+            "application/json",
+            body(serde_json::json!({"push": false})).as_bytes(),
+        )
+        .unwrap();
+        assert!(!request.push);
+        for (bad, named) in [
+            (
+                serde_json::json!({"ct": {"dicomweb": {"study": "1.02"}}}),
+                "ct.dicomweb.study",
+            ),
+            (
+                serde_json::json!({"ct": {"dicomweb": {"study": "1.2", "series": "../x"}}}),
+                "ct.dicomweb.series",
+            ),
+            (
+                serde_json::json!({"ct": {"dicomweb": {"studdy": "1.2"}}}),
+                "studdy",
+            ),
+            (serde_json::json!({"ct": {"path": "/etc"}}), "path"),
+        ] {
+            let e = parse_simulation(
+                &defaults,
+                Some(&pacs),
+                "application/json",
+                body(bad).as_bytes(),
+            )
+            .unwrap_err();
+            assert!(e.status == 422 && e.detail.contains(named), "{named}: {e}");
+        }
+    }
+
+    #[test]
     fn bad_requests_are_refused_with_the_right_status_and_a_named_cause() {
         let defaults = RunConfig::default();
         let (t, v) = two_breaths();
