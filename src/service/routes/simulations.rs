@@ -78,7 +78,7 @@ impl From<JobRecord> for JobStatus {
         (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Unusable trace or option (invalid-simulation), or a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
