@@ -57,7 +57,7 @@ pub mod math;
 pub mod model;
 pub mod motion;
 pub mod outputs;
-#[cfg(feature = "pacs")]
+#[cfg(feature = "service")]
 pub mod pacs;
 pub mod phantom;
 pub mod process;

@@ -5,103 +5,16 @@
 //! without a CT are refused by name.
 
 mod common;
+mod orthanc_support;
 
-use std::net::TcpListener;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output};
-use std::time::{Duration, Instant};
+use std::path::Path;
+use std::process::Output;
 
 use common::{absent_temp_dir, bin, sample, write_breaths};
 use dicom_dictionary_std::tags;
 use dicom_object::open_file;
 use lungmotion::formats::dicom::read_dicom_series;
-
-/// An Orthanc server on loopback, stopped and its storage removed on drop.
-struct Orthanc {
-    child: Child,
-    dir: PathBuf,
-    port: u16,
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-impl Orthanc {
-    /// Starts a server whose storage lives in a directory named after `test`.
-    fn start(test: &str) -> Orthanc {
-        let dir = absent_temp_dir(&format!("orthanc-{test}"));
-        std::fs::create_dir_all(dir.join("db")).unwrap();
-        let port = free_port();
-        let config = serde_json::json!({
-            "Name": "lungmotion-test",
-            "StorageDirectory": dir.join("db"),
-            "IndexDirectory": dir.join("db"),
-            "HttpPort": port,
-            "DicomPort": free_port(),
-            "RemoteAccessAllowed": false,
-            "AuthenticationEnabled": false,
-            "Plugins": ["/usr/share/orthanc/plugins/libOrthancDicomWeb.so"],
-            "DicomWeb": {"Enable": true, "Root": "/dicom-web/"}
-        });
-        std::fs::write(dir.join("orthanc.json"), config.to_string()).unwrap();
-        let log = std::fs::File::create(dir.join("orthanc.log")).unwrap();
-        let child = Command::new("Orthanc")
-            .arg(dir.join("orthanc.json"))
-            .stdout(log.try_clone().unwrap())
-            .stderr(log)
-            .spawn()
-            .expect("Orthanc is not installed (apt-get install orthanc orthanc-dicomweb)");
-        let server = Orthanc { child, dir, port };
-        let started = Instant::now();
-        let url = format!("http://127.0.0.1:{port}/dicom-web/studies");
-        while reqwest::blocking::get(&url).map_or(true, |r| !r.status().is_success()) {
-            assert!(
-                started.elapsed() < Duration::from_secs(30),
-                "Orthanc did not start; its log: {}",
-                std::fs::read_to_string(server.dir.join("orthanc.log")).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(200));
-        }
-        server
-    }
-
-    fn root(&self) -> String {
-        format!("dicomweb://127.0.0.1:{}/dicom-web", self.port)
-    }
-
-    /// The study's series as Orthanc's DICOMweb lists them: (modality, series UID).
-    fn series_of(&self, study: &str) -> Vec<(String, String)> {
-        let url = format!(
-            "http://127.0.0.1:{}/dicom-web/studies/{study}/series",
-            self.port
-        );
-        let found: serde_json::Value = reqwest::blocking::get(url).unwrap().json().unwrap();
-        found
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|s| {
-                (
-                    s["00080060"]["Value"][0].as_str().unwrap().to_string(),
-                    s["0020000E"]["Value"][0].as_str().unwrap().to_string(),
-                )
-            })
-            .collect()
-    }
-}
-
-impl Drop for Orthanc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
+use orthanc_support::{free_port, Orthanc};
 
 fn lungmotion(args: &[&str]) -> Output {
     bin().args(args).output().unwrap()
@@ -211,11 +124,7 @@ fn push_pull_run_and_push_back_through_a_real_dicomweb_server() {
     assert_eq!(count("REG"), frames, "{series:?}");
     assert_eq!(count("RTSTRUCT"), 1, "{series:?}");
     let (_, reg_series) = series.iter().find(|(m, _)| m == "REG").unwrap();
-    let url = format!(
-        "http://127.0.0.1:{}/dicom-web/studies/{study}/series/{reg_series}/metadata",
-        orthanc.port
-    );
-    let metadata: serde_json::Value = reqwest::blocking::get(url).unwrap().json().unwrap();
+    let metadata = orthanc.metadata(&study, reg_series);
     assert_eq!(
         metadata[0]["00080016"]["Value"][0], "1.2.840.10008.5.1.4.1.1.66.3",
         "the stored REG read back is a Deformable Spatial Registration"
@@ -310,4 +219,41 @@ fn a_server_down_an_unknown_study_and_a_study_without_ct_are_refused_by_name() {
     assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     assert!(text(&o).contains("not a DICOMweb address"), "{}", text(&o));
     std::fs::remove_dir_all(&scratch).unwrap();
+}
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "needs Orthanc with its DICOMweb plugin (.ci/run installs it): cargo test --features slow-tests --test pacs_orthanc"
+)]
+fn credentials_come_from_the_environment_and_a_401_is_refused_by_name() {
+    let orthanc = Orthanc::start_with("auth", Some(("lungmotion", "cli-pass-5678")));
+    let root = orthanc.root();
+    let ct_dir = sample("phantom-dicom");
+    let push = |env: &[(&str, &str)]| {
+        let mut cmd = bin();
+        cmd.args(["pacs", "push", "--to", &root, ct_dir.to_str().unwrap()]);
+        for name in [
+            "LUNGMOTION_PACS_USERNAME",
+            "LUNGMOTION_PACS_PASSWORD",
+            "LUNGMOTION_PACS_TOKEN",
+        ] {
+            cmd.env_remove(name);
+        }
+        cmd.envs(env.iter().copied()).output().unwrap()
+    };
+    let o = push(&[]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("answered HTTP 401"), "{}", text(&o));
+    let o = push(&[
+        ("LUNGMOTION_PACS_USERNAME", "lungmotion"),
+        ("LUNGMOTION_PACS_PASSWORD", "wrong"),
+    ]);
+    assert!(text(&o).contains("answered HTTP 401"), "{}", text(&o));
+    assert!(!text(&o).contains("wrong"), "{}", text(&o));
+    let o = push(&[
+        ("LUNGMOTION_PACS_USERNAME", "lungmotion"),
+        ("LUNGMOTION_PACS_PASSWORD", "cli-pass-5678"),
+    ]);
+    assert!(text(&o).contains("stored 68 instances"), "{}", text(&o));
 }

@@ -184,7 +184,7 @@ impl PulledSeries {
         let dir = std::env::temp_dir().join(format!("lungmotion-pull-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let pulled = PulledSeries { dir };
-        let files = lungmotion::pacs::pull_ct(address, &pulled.dir)?;
+        let files = super::pacs::pull(address, &pulled.dir)?;
         if !quiet {
             eprintln!(
                 "lungmotion: pulled {} instances from {}",
@@ -342,8 +342,7 @@ impl BreathingRun {
         print_summary(&summary, &self.out);
         drop(self.pulled);
         if let Some(address) = &self.push {
-            let report =
-                lungmotion::pacs::push(&address.root_url, std::slice::from_ref(&self.out))?;
+            let report = super::pacs::push(&address.root_url, std::slice::from_ref(&self.out))?;
             println!(
                 "pushed to {}: {} instances stored, {} already there",
                 address.root_url, report.stored, report.already_stored

@@ -13,7 +13,7 @@ use tokio::io::AsyncWriteExt;
 use super::multipart::{boundary_of, stow_body};
 use crate::{Error, IoContext, IoOp, Result};
 
-/// Most bytes one series may bring (a 512 × 512 × 1 000 CT is about 0.5 GB).
+/// Most bytes one series may bring by default (a 512 × 512 × 1 000 CT is about 0.5 GB).
 const MAX_SERIES_BYTES: u64 = 4 << 30;
 /// Most bytes one instance may bring.
 const MAX_INSTANCE_BYTES: u64 = 1 << 30;
@@ -21,15 +21,67 @@ const MAX_INSTANCE_BYTES: u64 = 1 << 30;
 const MAX_INSTANCES: usize = 10_000;
 /// Bytes sent in one STOW-RS request (the last file may take it over).
 const STOW_BATCH_BYTES: usize = 64 << 20;
-/// Time allowed to connect.
+/// Time allowed to connect, by default.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
-/// Time allowed to one whole request (a large series on a slow network).
+/// Time allowed to one whole request (a large series on a slow network), by default.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(600);
 
 /// A DICOMweb server.
 pub struct DicomWebClient {
     http: reqwest::Client,
     root_url: String,
+    max_series_bytes: u64,
+    auth: Option<DicomWebAuth>,
+}
+
+/// How requests authenticate to the server.
+#[derive(Clone, PartialEq, Eq)]
+pub enum DicomWebAuth {
+    /// HTTP Basic (Orthanc's `RegisteredUsers`, most PACS gateways).
+    Basic {
+        /// The user name.
+        username: String,
+        /// The password.
+        password: String,
+    },
+    /// `Authorization: Bearer <token>` (an OAuth2 access token, DICOMweb proxies).
+    Bearer(String),
+}
+
+impl std::fmt::Debug for DicomWebAuth {
+    // Credentials never reach a log.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DicomWebAuth::Basic { username, .. } => {
+                write!(f, "Basic {{ username: {username:?}, password: <set> }}")
+            }
+            DicomWebAuth::Bearer(_) => f.write_str("Bearer(<set>)"),
+        }
+    }
+}
+
+/// What a client may spend and how it identifies itself.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClientOptions {
+    /// Credentials sent with every request, if the server asks for them.
+    pub auth: Option<DicomWebAuth>,
+    /// Time allowed to connect.
+    pub connect_timeout: Duration,
+    /// Time allowed to one whole request, from connecting to the last byte of the answer.
+    pub request_timeout: Duration,
+    /// Most bytes one pulled series may bring.
+    pub max_series_bytes: u64,
+}
+
+impl Default for ClientOptions {
+    fn default() -> Self {
+        ClientOptions {
+            auth: None,
+            connect_timeout: CONNECT_TIMEOUT,
+            request_timeout: REQUEST_TIMEOUT,
+            max_series_bytes: MAX_SERIES_BYTES,
+        }
+    }
 }
 
 /// What a push did.
@@ -51,17 +103,41 @@ struct Outgoing {
 }
 
 impl DicomWebClient {
-    /// A client of the server at `root_url` (http or https).
+    /// A client of the server at `root_url` (http or https) with the default options.
     pub fn new(root_url: &str) -> Result<Self> {
+        Self::with_options(root_url, &ClientOptions::default())
+    }
+
+    /// A client of the server at `root_url` with `options`' credentials and bounds.
+    pub fn with_options(root_url: &str, options: &ClientOptions) -> Result<Self> {
         let http = reqwest::Client::builder()
-            .connect_timeout(CONNECT_TIMEOUT)
-            .timeout(REQUEST_TIMEOUT)
+            .connect_timeout(options.connect_timeout)
+            .timeout(options.request_timeout)
             .build()
             .map_err(|e| pacs_error(root_url, None, format!("cannot build the client: {e}")))?;
         Ok(DicomWebClient {
             http,
             root_url: root_url.trim_end_matches('/').to_string(),
+            max_series_bytes: options.max_series_bytes,
+            auth: options.auth.clone(),
         })
+    }
+
+    /// The server's DICOMweb root.
+    pub fn root_url(&self) -> &str {
+        &self.root_url
+    }
+
+    /// A request to `url` carrying the credentials, if any.
+    fn request(&self, method: reqwest::Method, url: &str) -> reqwest::RequestBuilder {
+        let request = self.http.request(method, url);
+        match &self.auth {
+            Some(DicomWebAuth::Basic { username, password }) => {
+                request.basic_auth(username, Some(password))
+            }
+            Some(DicomWebAuth::Bearer(token)) => request.bearer_auth(token),
+            None => request,
+        }
     }
 
     /// The one CT series of `study` (QIDO-RS); refuses a study the server does not hold, one
@@ -129,8 +205,7 @@ impl DicomWebClient {
         let response = self
             .send(
                 &url,
-                self.http
-                    .get(&url)
+                self.request(reqwest::Method::GET, &url)
                     .header("Accept", "multipart/related; type=\"application/dicom\""),
             )
             .await?;
@@ -143,8 +218,8 @@ impl DicomWebClient {
         let boundary = boundary_of(&content_type, &url)?;
         let limits = multer::Constraints::new().size_limit(
             multer::SizeLimit::new()
-                .whole_stream(MAX_SERIES_BYTES)
-                .per_field(MAX_INSTANCE_BYTES),
+                .whole_stream(self.max_series_bytes)
+                .per_field(MAX_INSTANCE_BYTES.min(self.max_series_bytes)),
         );
         let mut parts =
             multer::Multipart::with_constraints(response.bytes_stream(), boundary, limits);
@@ -245,8 +320,7 @@ impl DicomWebClient {
         let response = self
             .send(
                 &url,
-                self.http
-                    .post(&url)
+                self.request(reqwest::Method::POST, &url)
                     .header("Content-Type", content_type)
                     .header("Accept", "application/dicom+json")
                     .body(body),
@@ -281,8 +355,7 @@ impl DicomWebClient {
     /// A QIDO-RS search; `None` when the server does not know what was searched (404).
     async fn search(&self, url: &str) -> Result<Option<Vec<Value>>> {
         let request = self
-            .http
-            .get(url)
+            .request(reqwest::Method::GET, url)
             .header("Accept", "application/dicom+json");
         let response = request.send().await.map_err(|e| unreachable(url, &e))?;
         let status = response.status();

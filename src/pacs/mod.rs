@@ -11,7 +11,7 @@ mod multipart;
 
 use std::path::{Path, PathBuf};
 
-pub use client::{DicomWebClient, PushReport};
+pub use client::{ClientOptions, DicomWebAuth, DicomWebClient, PushReport};
 
 use crate::{Error, Result};
 
@@ -92,7 +92,7 @@ impl DicomWebAddress {
 }
 
 /// Whether `uid` is a syntactically valid DICOM UID (PS3.5 §9.1).
-fn is_uid(uid: &str) -> bool {
+pub fn is_uid(uid: &str) -> bool {
     uid.len() <= 64
         && uid.split('.').all(|c| {
             !c.is_empty()
@@ -105,29 +105,45 @@ fn is_uid(uid: &str) -> bool {
 /// instance; returns the files. Blocking: runs its own small runtime.
 pub fn pull_ct(address: &DicomWebAddress, dir: &Path) -> Result<Vec<PathBuf>> {
     let client = DicomWebClient::new(&address.root_url)?;
-    block_on(&address.root_url, async {
-        let study = address.study_uid.as_deref().ok_or_else(|| {
-            Error::argument(
-                "DICOMweb address",
-                format!(
-                    "{}: names no study to pull (add /studies/UID)",
-                    address.root_url
-                ),
-            )
-        })?;
-        let series = match &address.series_uid {
-            Some(series) => series.clone(),
+    let study = address.study_uid.as_deref().ok_or_else(|| {
+        Error::argument(
+            "DICOMweb address",
+            format!(
+                "{}: names no study to pull (add /studies/UID)",
+                address.root_url
+            ),
+        )
+    })?;
+    Ok(pull_series(&client, study, address.series_uid.as_deref(), dir)?.1)
+}
+
+/// Pulls `series` of `study` from `client`'s server into `dir` (created if absent), or the
+/// study's one CT series when no series is named; the series UID and the files. Blocking.
+pub fn pull_series(
+    client: &DicomWebClient,
+    study: &str,
+    series: Option<&str>,
+    dir: &Path,
+) -> Result<(String, Vec<PathBuf>)> {
+    block_on(client.root_url(), async {
+        let series = match series {
+            Some(series) => series.to_string(),
             None => client.find_ct_series(study).await?,
         };
-        client.retrieve_series(study, &series, dir).await
+        let files = client.retrieve_series(study, &series, dir).await?;
+        Ok((series, files))
     })
 }
 
 /// Pushes every DICOM file under `paths` (files or directories, searched recursively) to
 /// the server at `root_url`, skipping instances it already holds. Blocking.
 pub fn push(root_url: &str, paths: &[PathBuf]) -> Result<PushReport> {
-    let client = DicomWebClient::new(root_url)?;
-    block_on(root_url, async { client.push(paths).await })
+    push_with(&DicomWebClient::new(root_url)?, paths)
+}
+
+/// [`push`] through `client` (its credentials and bounds). Blocking.
+pub fn push_with(client: &DicomWebClient, paths: &[PathBuf]) -> Result<PushReport> {
+    block_on(client.root_url(), async { client.push(paths).await })
 }
 
 /// Runs `work` on a current-thread runtime made for it.

@@ -28,6 +28,8 @@
 //! callback_allow_plain_http = false  # http:// callbacks beyond loopback
 //! [run]                       # defaults of every simulation, as `lungmotion run --config`
 //! element_size_mm = 6
+//! [pacs]                      # the DICOMweb server of jobs' CTs and pushes (see pacs_settings)
+//! url = "dicomweb://127.0.0.1:8042/dicom-web"
 //! ```
 
 use std::net::SocketAddr;
@@ -35,6 +37,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use super::pacs_settings::{self, PacsFile, PacsSettings, PACS_ENV_VARS};
 use crate::error::{IoContext, IoOp};
 use crate::run::RunConfig;
 use crate::{Error, Result};
@@ -104,6 +107,8 @@ pub struct ServiceConfig {
     pub callbacks: CallbackSettings,
     /// Defaults of every simulation; a request's options are merged over them.
     pub run: RunConfig,
+    /// The DICOMweb server jobs take their CT from and push their outputs to, if any.
+    pub pacs: Option<PacsSettings>,
 }
 
 /// How long finished jobs and unused scans are kept (see [`super::retention`]).
@@ -207,6 +212,7 @@ impl Default for ServiceConfig {
             retention: RetentionSettings::default(),
             callbacks: CallbackSettings::default(),
             run: RunConfig::default(),
+            pacs: None,
         }
     }
 }
@@ -239,6 +245,7 @@ struct ServiceFile {
     callback_timeout_s: Option<f64>,
     callback_allow_plain_http: Option<bool>,
     run: Option<toml::Value>,
+    pacs: Option<PacsFile>,
 }
 
 /// What the command line (`lungmotion serve`) may override, each over the file and the
@@ -262,7 +269,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 22] = [
+pub const ENV_VARS: [&str; 22 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -285,6 +292,15 @@ pub const ENV_VARS: [&str; 22] = [
     "LUNGMOTION_CALLBACK_RETRY_BASE_S",
     "LUNGMOTION_CALLBACK_TIMEOUT_S",
     "LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP",
+    PACS_ENV_VARS[0],
+    PACS_ENV_VARS[1],
+    PACS_ENV_VARS[2],
+    PACS_ENV_VARS[3],
+    PACS_ENV_VARS[4],
+    PACS_ENV_VARS[5],
+    PACS_ENV_VARS[6],
+    PACS_ENV_VARS[7],
+    PACS_ENV_VARS[8],
 ];
 
 impl ServiceConfig {
@@ -386,6 +402,9 @@ impl ServiceConfig {
             &mut self.callbacks.allow_plain_http,
             file.callback_allow_plain_http,
         );
+        if let Some(pacs) = file.pacs {
+            pacs_settings::apply_file(&mut self.pacs, pacs).map_err(|e| bad(e.to_string()))?;
+        }
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -442,6 +461,7 @@ impl ServiceConfig {
             self.ingest_cache_mib = parsed("LUNGMOTION_INGEST_CACHE_MIB", &v)?;
         }
         self.apply_retention_and_callback_env(env)?;
+        pacs_settings::apply_env(&mut self.pacs, env)?;
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);
         }
@@ -574,6 +594,9 @@ impl ServiceConfig {
             ));
         }
         self.validate_retention_and_callbacks()?;
+        if let Some(pacs) = &self.pacs {
+            pacs.validate()?;
+        }
         if let Some(token) = &self.api_token {
             if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
                 return bad("the API token must be at least 8 characters without spaces");
@@ -885,6 +908,40 @@ mod tests {
             e.contains("retention_max_age_days") && e.contains("-3"),
             "{e}"
         );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_pacs_comes_from_the_files_table_and_the_environment() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-pacs-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        std::fs::write(
+            &path,
+            "[pacs]\nurl = \"dicomweb://127.0.0.1:8042/dicom-web\"\npush = true\n",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &no_env).unwrap();
+        let pacs = c.pacs.unwrap();
+        assert_eq!(pacs.root_url, "http://127.0.0.1:8042/dicom-web");
+        assert!(pacs.push_by_default && pacs.auth().is_none());
+        let env = |k: &str| (k == "LUNGMOTION_PACS_TOKEN").then(|| "a-bearer-token".to_string());
+        let c = ServiceConfig::load(Some(&path), &env).unwrap();
+        assert_eq!(
+            c.pacs.unwrap().auth(),
+            Some(crate::pacs::DicomWebAuth::Bearer("a-bearer-token".into()))
+        );
+        assert!(ServiceConfig::load(None, &no_env).unwrap().pacs.is_none());
+        std::fs::write(
+            &path,
+            "[pacs]\nurl = \"dicomweb://h/dw\"\nusernme = \"x\"\n",
+        )
+        .unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("usernme"), "{e}");
+        std::fs::write(&path, "[pacs]\nurl = \"dicomweb://h/dw\"\ntimeout_s = -1\n").unwrap();
+        let e = ServiceConfig::load(Some(&path), &no_env).unwrap_err();
+        assert!(e.to_string().contains("timeout_s"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

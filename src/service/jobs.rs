@@ -16,8 +16,11 @@ use std::time::{Duration, Instant};
 use super::callbacks::{CallbackDelivery, CallbackState};
 use super::ids::{JobId, ScanId};
 use super::ingest_cache::{IngestCache, IngestKey};
+use super::pacs_jobs::PacsAccess;
 use super::progress::JobObserver;
-use super::store::{now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, Store};
+use super::store::{
+    now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, PacsActivity, PacsSeries, Store,
+};
 use crate::breathing::BreathingTrace;
 use crate::run::{run_breathing_on, IngestedScan, RunInputs, RunObserver};
 use crate::simulation::CancelFlag;
@@ -127,6 +130,7 @@ struct Shared {
     workers: usize,
     ingests: Arc<IngestCache>,
     finished: FinishedJobs,
+    pacs: Option<PacsAccess>,
 }
 
 impl Shared {
@@ -163,8 +167,9 @@ pub struct Workers {
 
 impl JobManager {
     /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads, which
-    /// keep the scans they ingest in `ingests`; jobs with a callback to deliver (ended now or
-    /// left pending by an earlier process) are announced on `finished`.
+    /// keep the scans they ingest in `ingests` and reach the PACS through `pacs`; jobs with a
+    /// callback to deliver (ended now or left pending by an earlier process) are announced on
+    /// `finished`.
     pub fn start(
         store: Store,
         workers: usize,
@@ -172,6 +177,7 @@ impl JobManager {
         max_attempts: u32,
         ingests: Arc<IngestCache>,
         finished: FinishedJobs,
+        pacs: Option<PacsAccess>,
     ) -> Result<(Self, Workers)> {
         let (records, problems) = store.list_jobs()?;
         for p in problems {
@@ -259,6 +265,7 @@ impl JobManager {
             workers,
             ingests,
             finished,
+            pacs,
         });
         let threads = (0..workers)
             .map(|i| {
@@ -280,7 +287,8 @@ impl JobManager {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    /// Stores and queues a job, or refuses it when the queue is full or the server stops.
+    /// Stores and queues a job, or refuses it when the queue is full or the server stops. A
+    /// job whose CT comes from the PACS gets `scan_id` for the scan its series becomes.
     pub fn submit(
         &self,
         scan_id: ScanId,
@@ -299,10 +307,18 @@ impl JobManager {
         }
         // Under the board's lock, as scans are removed, so a job never waits for a scan that
         // is already gone.
-        if self.shared.store.scan(scan_id)?.is_none() {
+        if request.pacs_ct.is_none() && self.shared.store.scan(scan_id)?.is_none() {
             return Ok(Err(SubmitRefusal::ScanMissing));
         }
         let mut record = JobRecord::queued(scan_id);
+        if let (true, Some(pacs)) = (request.pacs_ct.is_some() || request.push, &self.shared.pacs) {
+            record.pacs = Some(PacsActivity {
+                server: pacs.settings.root_url.clone(),
+                ct: request.pacs_ct.clone(),
+                push: request.push,
+                ..PacsActivity::default()
+            });
+        }
         record.progress.frames_total = frames_total(request);
         if request.callback_url.is_some() {
             record.callback = Some(CallbackDelivery::waiting());
@@ -705,6 +721,13 @@ fn frames_total(request: &JobRequest) -> Option<usize> {
 
 fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Result<()> {
     let request = shared.store.job_request(id)?;
+    if let Some(series) = &request.pacs_ct {
+        // A re-run finds the series it pulled before.
+        if shared.store.scan(scan_id)?.is_none() {
+            pull_ct(shared, scan_id, series, &request.config, live)?;
+        }
+    }
+    let push = request.push;
     let scan = shared.store.scan(scan_id)?.ok_or_else(|| Error::Store {
         record: format!("scans/{scan_id}"),
         reason: "the scan was deleted before the job ran".into(),
@@ -721,6 +744,8 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         points,
         callback_url: _,
         target,
+        pacs_ct: _,
+        push: _,
     } = request;
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),
@@ -742,7 +767,64 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         &mut observer,
         Some((&ingested, read_timings)),
     )?;
+    if push {
+        push_outputs(shared, id, live)?;
+    }
     Ok(())
+}
+
+/// The PACS of the service, or the error of a job that needs one on a server that has none
+/// any more (it was configured when the job was submitted).
+fn pacs_of(shared: &Shared) -> Result<&PacsAccess> {
+    shared.pacs.as_ref().ok_or_else(|| {
+        Error::settings(
+            "service configuration",
+            "this job uses the PACS, but the server now has none configured ([pacs] url)",
+        )
+    })
+}
+
+/// Shows a PACS step as the job's stage.
+fn show_stage(live: &LiveJob, stage: &str, label: &str) {
+    let mut record = lock(&live.record);
+    record.progress.stage = Some(stage.into());
+    record.progress.stage_label = Some(label.into());
+}
+
+/// Pulls the job's CT series from the PACS and stores it as scan `scan_id`, recording the
+/// series UID found.
+fn pull_ct(
+    shared: &Shared,
+    scan_id: ScanId,
+    series: &PacsSeries,
+    config: &crate::run::RunConfig,
+    live: &LiveJob,
+) -> Result<()> {
+    let pacs = pacs_of(shared)?;
+    show_stage(live, "pulling_ct", "pulling the CT series from the PACS");
+    let series_uid = pacs.import_series(&shared.store, scan_id, series, config)?;
+    let mut record = lock(&live.record);
+    if let Some(activity) = record.pacs.as_mut() {
+        activity.ct = Some(PacsSeries {
+            study: series.study.clone(),
+            series: Some(series_uid),
+        });
+    }
+    shared.store.save_job(&record)
+}
+
+/// Pushes the job's DICOM outputs to the PACS and records what it stored.
+fn push_outputs(shared: &Shared, id: JobId, live: &LiveJob) -> Result<()> {
+    let pacs = pacs_of(shared)?;
+    show_stage(live, "pushing", "pushing the DICOM outputs to the PACS");
+    let report = pacs.push_outputs(shared.store.job_output_dir(id))?;
+    tracing::info!(job = %id, stored = report.stored, already = report.already_stored, "outputs pushed to the PACS");
+    let mut record = lock(&live.record);
+    if let Some(activity) = record.pacs.as_mut() {
+        activity.stored = Some(report.stored);
+        activity.already_stored = Some(report.already_stored);
+    }
+    shared.store.save_job(&record)
 }
 
 /// The job's scan read and ingested with its settings: from the cache when an earlier job

@@ -2,6 +2,8 @@
 //! and scripts. A thin shell over [`crate::run::run_breathing`] and the ingest stage:
 //!
 //! * [`config`]: file, environment and command-line settings, merged in one place;
+//!   [`pacs_settings`]: the DICOMweb server jobs pull their CT from and push to;
+//!   [`pacs_jobs`]: a job's CT pulled and stored as a scan, its DICOM outputs pushed;
 //! * [`ids`]: unguessable scan and job ids; [`ingest_cache`]: scans ingested for jobs, by settings;
 //! * [`store`]: the on-disk store with atomic records;
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
@@ -28,6 +30,8 @@ pub mod isolation;
 pub mod jobs;
 pub mod metrics;
 pub mod openapi;
+pub mod pacs_jobs;
+pub mod pacs_settings;
 pub mod problem;
 mod progress;
 pub mod request;

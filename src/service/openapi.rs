@@ -15,7 +15,9 @@ use super::routes::{
     self, FrameEntry, FrameList, Health, JobLinks, JobPage, JobStatus, OutputFile, OutputFileList,
     ScanLinks, ScanPage, ScanView, SimulationRequest, TraceBody,
 };
-use super::store::{JobProgress, JobRecord, JobState, ScanRecord, StoredPoint};
+use super::store::{
+    JobProgress, JobRecord, JobState, PacsActivity, PacsSeries, ScanRecord, StoredPoint,
+};
 
 pub mod run_options;
 
@@ -39,6 +41,7 @@ pub mod run_options;
         routes::get_scan,
         routes::delete_scan,
         routes::create_simulation,
+        routes::create_pacs_simulation,
         routes::list_jobs,
         routes::get_job,
         routes::delete_job,
@@ -57,7 +60,7 @@ pub mod run_options;
         Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
         JobState, CallbackBody, CallbackDelivery, CallbackState,
         SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health, OutputFile,
-        OutputFileList, ScanPage, JobPage
+        OutputFileList, ScanPage, JobPage, PacsSeries, PacsActivity
     )),
     modifiers(&BearerAuth),
     tags(
@@ -206,6 +209,24 @@ fn describe_run_options(doc: &mut Value) {
                                 (beyond it only when the server sets \
                                 callback_allow_plain_http); no user:password@. Refused (422) \
                                 when the server has no callback secret."
+                        },
+                        "ct": {
+                            "type": "object",
+                            "description": "The CT as a series on the server's PACS (only at \
+                                POST /v1/simulations; 422 no-pacs when the server has none)",
+                            "required": ["dicomweb"],
+                            "additionalProperties": false,
+                            "properties": {
+                                "dicomweb": {"$ref": "#/components/schemas/PacsSeries"}
+                            }
+                        },
+                        "push": {
+                            "type": "boolean",
+                            "description": "Push the DICOM outputs (virtual CT series, REGs, \
+                                RTSTRUCT) to the server's PACS when the run succeeds, skipping \
+                                the instances it already holds (so a re-run pushes nothing \
+                                twice); default: the server's [pacs] push. A refusal by the PACS \
+                                fails the job with the server's answer."
                         }
                     }
                 },
@@ -227,6 +248,7 @@ mod tests {
             "/v1/scans",
             "/v1/scans/{id}",
             "/v1/scans/{id}/simulations",
+            "/v1/simulations",
             "/v1/jobs/{id}",
             "/v1/jobs/{id}/summary",
             "/v1/jobs/{id}/frames",
@@ -284,5 +306,14 @@ mod tests {
         }
         let record = &doc["components"]["schemas"]["JobRecord"]["properties"];
         assert!(record["callback"].is_object(), "{record}");
+        // A job's CT from the PACS and the push of its outputs.
+        assert!(request["properties"]["ct"]["properties"]["dicomweb"].is_object());
+        assert!(request["properties"]["push"].is_object(), "{request}");
+        assert!(record["pacs"].is_object(), "{record}");
+        let series = &doc["components"]["schemas"]["PacsSeries"]["properties"];
+        assert!(
+            series["study"].is_object() && series["series"].is_object(),
+            "{series}"
+        );
     }
 }

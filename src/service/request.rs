@@ -6,8 +6,9 @@ use serde::Deserialize;
 use serde_json::Value;
 use utoipa::ToSchema;
 
+use super::pacs_settings::PacsSettings;
 use super::problem::{ApiError, ApiResult};
-use super::store::{JobRequest, StoredPoint};
+use super::store::{JobRequest, PacsSeries, StoredPoint};
 use crate::breathing::{BreathingTrace, TraceFormat, TraceOptions};
 use crate::outputs::radiotherapy::target::TargetSpec;
 use crate::run::RunConfig;
@@ -103,11 +104,28 @@ pub struct SimulationRequest {
     /// the server's disk and are refused here.
     #[serde(default)]
     pub target: Option<String>,
+    /// The CT from the service's PACS, `{"dicomweb": {"study": UID, "series": UID}}` (series
+    /// optional: the study's one CT series): only at `POST /v1/simulations`, and only when the
+    /// server is configured with a PACS (`[pacs]`).
+    #[serde(default)]
+    pub ct: Option<CtSource>,
+    /// Push the DICOM outputs (virtual CT series, REGs, RTSTRUCT) to the service's PACS when
+    /// the run succeeds, skipping what it already holds; default: the server's `[pacs] push`.
+    #[serde(default)]
+    pub push: Option<bool>,
     /// Any key of the CLI's configuration (`element_size_mm`, `material`, `diaphragm`,
     /// `trace`, `motion`, `outputs`, `budget`), merged over the server's defaults.
     #[serde(flatten)]
     #[schema(value_type = Object)]
     pub options: serde_json::Map<String, Value>,
+}
+
+/// Where a job's CT comes from when it is not a stored scan.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CtSource {
+    /// A series on the service's PACS.
+    pub dicomweb: PacsSeries,
 }
 
 /// A request's parts before they are checked together.
@@ -118,6 +136,8 @@ struct ParsedRequest {
     source: String,
     callback_url: Option<String>,
     target: Option<String>,
+    pacs_ct: Option<PacsSeries>,
+    push: Option<bool>,
 }
 
 /// A 422 with the slug every unusable simulation request gets.
@@ -141,9 +161,11 @@ fn merge_options(base: &mut Value, overrides: &serde_json::Map<String, Value>) {
     }
 }
 
-/// The job request from a JSON or CSV body, checked as far as it can be without running.
+/// The job request from a JSON or CSV body, checked as far as it can be without running;
+/// `pacs` is the service's PACS, which a request may pull its CT from or push to.
 pub(crate) fn parse_simulation(
     defaults: &RunConfig,
+    pacs: Option<&PacsSettings>,
     content_type: &str,
     body: &[u8],
 ) -> ApiResult<JobRequest> {
@@ -156,6 +178,7 @@ pub(crate) fn parse_simulation(
         return Err(unsupported_media_type(content_type));
     };
     check_request(&parsed)?;
+    check_pacs_use(&parsed, pacs)?;
     let ParsedRequest {
         config,
         trace,
@@ -163,6 +186,8 @@ pub(crate) fn parse_simulation(
         source,
         callback_url,
         target,
+        pacs_ct,
+        push,
     } = parsed;
     Ok(JobRequest {
         config,
@@ -172,6 +197,8 @@ pub(crate) fn parse_simulation(
         points,
         callback_url,
         target,
+        pacs_ct,
+        push: push.unwrap_or_else(|| pacs.is_some_and(|p| p.push_by_default)),
     })
 }
 
@@ -226,6 +253,8 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
         points: request.points,
         callback_url: request.callback_url,
         target: request.target,
+        pacs_ct: request.ct.map(|c| c.dicomweb),
+        push: request.push,
     })
 }
 
@@ -242,6 +271,8 @@ fn parse_csv_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedReque
         points: Vec::new(),
         callback_url: None,
         target: None,
+        pacs_ct: None,
+        push: None,
     })
 }
 
@@ -282,6 +313,42 @@ fn check_request(request: &ParsedRequest) -> ApiResult<()> {
         .times(trace)
         .map_err(|e| invalid(e.to_string()))?;
     check_points(points)
+}
+
+/// Refuses a PACS series or a push when the server has no PACS, and UIDs that are not UIDs
+/// (they go into the PACS's URLs).
+fn check_pacs_use(request: &ParsedRequest, pacs: Option<&PacsSettings>) -> ApiResult<()> {
+    let wants = match (&request.pacs_ct, request.push) {
+        (Some(_), _) => Some("a CT from the PACS (\"ct\": {\"dicomweb\": ...})"),
+        (None, Some(true)) => Some("\"push\": true"),
+        _ => None,
+    };
+    if let (Some(what), None) = (wants, pacs) {
+        return Err(ApiError::unprocessable(
+            "no-pacs",
+            format!(
+                "{what}: this server has no PACS configured (the operator sets [pacs] url or \
+                 LUNGMOTION_PACS_URL)"
+            ),
+        ));
+    }
+    if let Some(series) = &request.pacs_ct {
+        for (key, uid) in [
+            ("study", Some(&series.study)),
+            ("series", series.series.as_ref()),
+        ] {
+            if let Some(uid) = uid {
+                if !crate::pacs::is_uid(uid) {
+                    return Err(invalid(format!(
+                        "ct.dicomweb.{key} {:?} is not a DICOM UID (digits and dots, at most \
+                         64 characters)",
+                        uid.chars().take(80).collect::<String>()
+                    )));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A target over HTTP is a point and a radius: a mask or RTSTRUCT path would name a file on
@@ -337,7 +404,8 @@ mod tests {
                 250.0 * std::f64::consts::FRAC_PI_2 * (std::f64::consts::PI * t / 2.0).sin();
             csv.push_str(&format!("{t:.1},{:.6}\n", (flow_ml_s + 30.0) / 1000.0));
         }
-        let request = parse_simulation(&RunConfig::default(), "text/csv", csv.as_bytes()).unwrap();
+        let request =
+            parse_simulation(&RunConfig::default(), None, "text/csv", csv.as_bytes()).unwrap();
         assert!(
             request.trace_source.starts_with("HTTP request (CSV) (")
                 && request.trace_source.contains("flow"),
@@ -360,8 +428,13 @@ mod tests {
             "motion": {"instants": {"kind": "every_kth", "k": 20}},
             "points": [{"name": "tumour", "lps_mm": [1.0, 2.0, 3.0]}],
         });
-        let request =
-            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        let request = parse_simulation(
+            &defaults,
+            None,
+            "application/json",
+            body.to_string().as_bytes(),
+        )
+        .unwrap();
         assert_eq!(request.config.element_size_mm, 10.0);
         assert_eq!(request.config.material.youngs_modulus_pa, 800.0);
         // Keys the request leaves out keep the server's value, even inside a table.
@@ -381,8 +454,13 @@ mod tests {
         let absolute: Vec<f64> = v.iter().map(|v| v + 2800.0).collect();
         let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": absolute,
             "reference": {"absolute": {"scanned_volume_ml": 2800.0}}}});
-        let request =
-            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        let request = parse_simulation(
+            &defaults,
+            None,
+            "application/json",
+            body.to_string().as_bytes(),
+        )
+        .unwrap();
         let cli_options: TraceOptions =
             toml::from_str("reference = { absolute = { scanned_volume_ml = 2800 } }").unwrap();
         let absolute_text = serde_json::json!({"time_s": t, "volume_ml": absolute}).to_string();
@@ -393,20 +471,35 @@ mod tests {
         let ms: Vec<f64> = t.iter().map(|t| t * 1000.0).collect();
         let litres: Vec<f64> = v.iter().map(|v| v / 1000.0).collect();
         let body = serde_json::json!({"trace": {"time_ms": ms, "volume_l": litres}});
-        let request =
-            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        let request = parse_simulation(
+            &defaults,
+            None,
+            "application/json",
+            body.to_string().as_bytes(),
+        )
+        .unwrap();
         assert!((request.time_s[80] - 8.0).abs() < 1e-12);
         assert!((request.volume_ml[40] - v[40]).abs() < 1e-9);
         let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": litres,
             "ml_per_volume_unit": 1000.0}});
-        let request =
-            parse_simulation(&defaults, "application/json", body.to_string().as_bytes()).unwrap();
+        let request = parse_simulation(
+            &defaults,
+            None,
+            "application/json",
+            body.to_string().as_bytes(),
+        )
+        .unwrap();
         assert!((request.volume_ml[40] - v[40]).abs() < 1e-9);
         // Absolute volumes of a large lung without the scanned volume: refused with the hint.
         let large: Vec<f64> = v.iter().map(|v| v + 5800.0).collect();
         let body = serde_json::json!({"trace": {"time_s": t, "volume_ml": large}});
-        let e = parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
-            .unwrap_err();
+        let e = parse_simulation(
+            &defaults,
+            None,
+            "application/json",
+            body.to_string().as_bytes(),
+        )
+        .unwrap_err();
         assert!(
             e.status == 422 && e.detail.contains("scanned lung volume"),
             "{e}"
@@ -430,8 +523,13 @@ mod tests {
                 trace[k] = value.clone();
             }
             let body = serde_json::json!({ "trace": trace });
-            let e = parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
-                .unwrap_err();
+            let e = parse_simulation(
+                &defaults,
+                None,
+                "application/json",
+                body.to_string().as_bytes(),
+            )
+            .unwrap_err();
             assert!(e.status == 422 && e.detail.contains(named), "{named}: {e}");
         }
     }
@@ -443,7 +541,12 @@ mod tests {
         let request = |target: &str| {
             let body =
                 serde_json::json!({"trace": {"time_s": t, "volume_ml": v}, "target": target});
-            parse_simulation(&defaults, "application/json", body.to_string().as_bytes())
+            parse_simulation(
+                &defaults,
+                None,
+                "application/json",
+                body.to_string().as_bytes(),
+            )
         };
         let ok = request("point:-95,20,-80:r=15").unwrap();
         assert_eq!(ok.target.as_deref(), Some("point:-95,20,-80:r=15"));
@@ -466,11 +569,87 @@ mod tests {
     }
 
     #[test]
+    fn a_pacs_series_or_a_push_needs_a_pacs_and_the_push_defaults_to_the_servers() {
+        let defaults = RunConfig::default();
+        let (t, v) = two_breaths();
+        let body = |extra: serde_json::Value| {
+            let mut body = serde_json::json!({"trace": {"time_s": t, "volume_ml": v}});
+            for (k, value) in extra.as_object().unwrap() {
+                body[k] = value.clone();
+            }
+            body.to_string()
+        };
+        let series =
+            serde_json::json!({"ct": {"dicomweb": {"study": "1.2.3", "series": "1.2.3.4"}}});
+        // No PACS on the server: refused by name, a push too.
+        for extra in [series.clone(), serde_json::json!({"push": true})] {
+            let e = parse_simulation(&defaults, None, "application/json", body(extra).as_bytes())
+                .unwrap_err();
+            assert!(e.status == 422 && e.slug == "no-pacs", "{e}");
+        }
+        let mut pacs = PacsSettings::new("dicomweb://127.0.0.1:8042/dicom-web").unwrap();
+        let request = parse_simulation(
+            &defaults,
+            Some(&pacs),
+            "application/json",
+            body(series.clone()).as_bytes(),
+        )
+        .unwrap();
+        assert_eq!(
+            request.pacs_ct,
+            Some(PacsSeries {
+                study: "1.2.3".into(),
+                series: Some("1.2.3.4".into())
+            })
+        );
+        assert!(!request.push);
+        // The server's default applies unless the request says.
+        pacs.push_by_default = true;
+        let csv: String = std::iter::once("time_s,volume_ml\n".to_string())
+            .chain(t.iter().zip(&v).map(|(t, v)| format!("{t},{v}\n")))
+            .collect();
+        let request = parse_simulation(&defaults, Some(&pacs), "text/csv", csv.as_bytes()).unwrap();
+        assert!(request.push);
+        let request = parse_simulation(
+            &defaults,
+            Some(&pacs),
+            "application/json",
+            body(serde_json::json!({"push": false})).as_bytes(),
+        )
+        .unwrap();
+        assert!(!request.push);
+        for (bad, named) in [
+            (
+                serde_json::json!({"ct": {"dicomweb": {"study": "1.02"}}}),
+                "ct.dicomweb.study",
+            ),
+            (
+                serde_json::json!({"ct": {"dicomweb": {"study": "1.2", "series": "../x"}}}),
+                "ct.dicomweb.series",
+            ),
+            (
+                serde_json::json!({"ct": {"dicomweb": {"studdy": "1.2"}}}),
+                "studdy",
+            ),
+            (serde_json::json!({"ct": {"path": "/etc"}}), "path"),
+        ] {
+            let e = parse_simulation(
+                &defaults,
+                Some(&pacs),
+                "application/json",
+                body(bad).as_bytes(),
+            )
+            .unwrap_err();
+            assert!(e.status == 422 && e.detail.contains(named), "{named}: {e}");
+        }
+    }
+
+    #[test]
     fn bad_requests_are_refused_with_the_right_status_and_a_named_cause() {
         let defaults = RunConfig::default();
         let (t, v) = two_breaths();
         let status = |ct: &str, body: &str| {
-            let e = parse_simulation(&defaults, ct, body.as_bytes()).unwrap_err();
+            let e = parse_simulation(&defaults, None, ct, body.as_bytes()).unwrap_err();
             (e.status.as_u16(), e.detail)
         };
         let (s, d) = status("application/json", "{\"trace\": ");

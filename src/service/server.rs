@@ -22,9 +22,11 @@ use super::callbacks::spawn_deliveries;
 use super::config::ServiceConfig;
 use super::connections::{serve_connections, ConnectionLimits};
 use super::ingest_cache::IngestCache;
+use super::isolation::IngestLimits;
 use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
+use super::pacs_jobs::PacsAccess;
 use super::problem::{ApiError, PROBLEM_JSON};
 use super::retention::spawn_retention;
 use super::routes::{self, AppState, SharedState};
@@ -81,6 +83,10 @@ pub fn router(state: SharedState) -> Router {
         .route(
             "/v1/scans/{id}/simulations",
             post(routes::create_simulation).layer(DefaultBodyLimit::max(request_limit)),
+        )
+        .route(
+            "/v1/simulations",
+            post(routes::create_pacs_simulation).layer(DefaultBodyLimit::max(request_limit)),
         )
         .route("/v1/jobs", get(routes::list_jobs))
         .route(
@@ -295,6 +301,15 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     let metrics = ServiceMetrics::default();
     metrics.register_ingest_cache(&ingests);
     let (finished_tx, finished) = tokio::sync::mpsc::unbounded_channel();
+    let pacs = config.pacs.clone().map(|settings| PacsAccess {
+        settings,
+        max_series_bytes: config.max_upload_bytes,
+        isolation: config.ingest_isolation.clone(),
+        limits: IngestLimits {
+            timeout: Duration::from_secs_f64(config.ingest_timeout_s),
+            memory_mib: config.ingest_memory_mib,
+        },
+    });
     let (jobs, workers) = JobManager::start(
         store.clone(),
         config.workers,
@@ -302,6 +317,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
         config.max_attempts,
         ingests,
         finished_tx,
+        pacs,
     )?;
     let state = Arc::new(AppState {
         ingest_slots: tokio::sync::Semaphore::new(config.workers),

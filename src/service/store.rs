@@ -153,6 +153,40 @@ pub struct JobRecord {
     /// job to end, then `pending`, `delivered` or `failed`, with the POSTs made.
     #[serde(default)]
     pub callback: Option<CallbackDelivery>,
+    /// What it takes from and gives to the service's PACS, when its CT comes from there or
+    /// it pushes its outputs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pacs: Option<PacsActivity>,
+}
+
+/// A CT series on the service's PACS, as a request names it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PacsSeries {
+    /// StudyInstanceUID.
+    pub study: String,
+    /// SeriesInstanceUID; without it, the study's one CT series (found by QIDO-RS).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub series: Option<String>,
+}
+
+/// A job's exchanges with the service's PACS.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct PacsActivity {
+    /// The server's DICOMweb root.
+    pub server: String,
+    /// The CT series pulled (its series UID once found), when the CT comes from the PACS.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ct: Option<PacsSeries>,
+    /// Whether the job pushes its DICOM outputs (virtual CT series, REGs, RTSTRUCT) when done.
+    pub push: bool,
+    /// Instances the push stored, once it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stored: Option<usize>,
+    /// Instances the push found already on the server (an earlier push of the same
+    /// outputs), not sent again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub already_stored: Option<usize>,
 }
 
 impl JobRecord {
@@ -169,6 +203,7 @@ impl JobRecord {
             started_at: None,
             finished_at: None,
             callback: None,
+            pacs: None,
         }
     }
 }
@@ -192,6 +227,12 @@ pub struct JobRequest {
     /// The target to follow, as the request gave it (`point:<x>,<y>,<z>:r=<mm>`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub target: Option<String>,
+    /// The CT series to pull from the service's PACS (the job's scan is then made from it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pacs_ct: Option<PacsSeries>,
+    /// Whether to push the DICOM outputs to the service's PACS when the run succeeds.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub push: bool,
 }
 
 /// A tracked point in `request.json`.
@@ -533,6 +574,8 @@ mod tests {
             points: vec![],
             callback_url: None,
             target: None,
+            pacs_ct: None,
+            push: false,
         };
         store.put_job(&job, &request).unwrap();
         let mut running = store.job(job.job_id).unwrap().unwrap();

@@ -330,6 +330,32 @@ fn put_text(obj: &mut InMemDicomObject, tag: Tag, vr: VR, value: String) {
     obj.put(DataElement::new(tag, vr, PrimitiveValue::from(value)));
 }
 
+/// The patient and general-study attributes every object derived from `study` carries
+/// (patient's name, ID, birth date and sex; study UID, date, time, ID, accession number,
+/// referring physician and description), so a planning system or PACS files the virtual CT,
+/// the REGs and the RTSTRUCT under the planning CT's patient and study.
+pub(crate) fn put_study_attributes(obj: &mut InMemDicomObject, study: &DicomStudyContext) {
+    for (tag, vr, value) in [
+        (tags::PATIENT_NAME, VR::PN, &study.patient_name),
+        (tags::PATIENT_ID, VR::LO, &study.patient_id),
+        (tags::PATIENT_BIRTH_DATE, VR::DA, &study.patient_birth_date),
+        (tags::PATIENT_SEX, VR::CS, &study.patient_sex),
+        (tags::STUDY_INSTANCE_UID, VR::UI, &study.study_instance_uid),
+        (tags::STUDY_DATE, VR::DA, &study.study_date),
+        (tags::STUDY_TIME, VR::TM, &study.study_time),
+        (tags::STUDY_ID, VR::SH, &study.study_id),
+        (tags::ACCESSION_NUMBER, VR::SH, &study.accession_number),
+        (
+            tags::REFERRING_PHYSICIAN_NAME,
+            VR::PN,
+            &study.referring_physician_name,
+        ),
+        (tags::STUDY_DESCRIPTION, VR::LO, &study.study_description),
+    ] {
+        put_text(obj, tag, vr, value.clone());
+    }
+}
+
 /// SOP, study, series, patient and instance elements of slice `k` (the patient's are
 /// fictitious, from `meta`).
 fn put_identity_elements<T>(
@@ -353,42 +379,20 @@ fn put_identity_elements<T>(
     let study = match &meta.derived {
         Some(d) => &d.study,
         None => {
-            fictitious = fictitious_study(meta);
+            fictitious = DicomStudyContext {
+                study_instance_uid: series.study_uid.clone(),
+                ..fictitious_study(meta)
+            };
             &fictitious
         }
     };
-    put(tags::STUDY_DATE, VR::DA, study.study_date.clone());
-    put(tags::STUDY_TIME, VR::TM, study.study_time.clone());
-    put(
-        tags::ACCESSION_NUMBER,
-        VR::SH,
-        study.accession_number.clone(),
-    );
     put(tags::MODALITY, VR::CS, "CT".into());
     put(tags::MANUFACTURER, VR::LO, meta.manufacturer.clone());
-    put(
-        tags::REFERRING_PHYSICIAN_NAME,
-        VR::PN,
-        study.referring_physician_name.clone(),
-    );
-    put(
-        tags::STUDY_DESCRIPTION,
-        VR::LO,
-        study.study_description.clone(),
-    );
     put(
         tags::SERIES_DESCRIPTION,
         VR::LO,
         meta.series_description.clone(),
     );
-    put(tags::PATIENT_NAME, VR::PN, study.patient_name.clone());
-    put(tags::PATIENT_ID, VR::LO, study.patient_id.clone());
-    put(
-        tags::PATIENT_BIRTH_DATE,
-        VR::DA,
-        study.patient_birth_date.clone(),
-    );
-    put(tags::PATIENT_SEX, VR::CS, study.patient_sex.clone());
     put(tags::KVP, VR::DS, String::new());
     put(
         tags::SLICE_THICKNESS,
@@ -401,12 +405,11 @@ fn put_identity_elements<T>(
         study.patient_position.clone()
     };
     put(tags::PATIENT_POSITION, VR::CS, position);
-    put(tags::STUDY_INSTANCE_UID, VR::UI, series.study_uid.clone());
     put(tags::SERIES_INSTANCE_UID, VR::UI, series.series_uid.clone());
-    put(tags::STUDY_ID, VR::SH, study.study_id.clone());
     put(tags::SERIES_NUMBER, VR::IS, meta.series_number.to_string());
     put(tags::ACQUISITION_NUMBER, VR::IS, "1".into());
     put(tags::INSTANCE_NUMBER, VR::IS, (k + 1).to_string());
+    put_study_attributes(obj, study);
 }
 
 /// Image plane elements of slice `k`: position, orientation, frame of reference and

@@ -49,7 +49,7 @@ use rayon::prelude::*;
 
 use super::PhaseMotion;
 use crate::durable::write_atomic;
-use crate::formats::dicom::{DicomStudyContext, SliceReference};
+use crate::formats::dicom::{put_study_attributes, DicomStudyContext, SliceReference};
 use crate::math::V3;
 use crate::{Error, Result};
 
@@ -353,30 +353,15 @@ impl RegistrationWriter {
         put(tags::SOP_INSTANCE_UID, VR::UI, &phase.instance_uid);
         put(tags::INSTANCE_CREATION_DATE, VR::DA, &self.content_date);
         put(tags::INSTANCE_CREATION_TIME, VR::TM, &self.content_time);
-        put(tags::STUDY_DATE, VR::DA, &s.study_date);
-        put(tags::STUDY_TIME, VR::TM, &s.study_time);
-        put(tags::ACCESSION_NUMBER, VR::SH, &s.accession_number);
         put(tags::MODALITY, VR::CS, "REG");
         // The chest, an unpaired part: Laterality (2C, for paired parts) stays absent.
         put(tags::BODY_PART_EXAMINED, VR::CS, "CHEST");
-        put(
-            tags::REFERRING_PHYSICIAN_NAME,
-            VR::PN,
-            &s.referring_physician_name,
-        );
-        put(tags::STUDY_DESCRIPTION, VR::LO, &s.study_description);
         put(
             tags::SERIES_DESCRIPTION,
             VR::LO,
             &long_string(&format!("lungmotion REG {}", phase.label)),
         );
-        put(tags::PATIENT_NAME, VR::PN, &s.patient_name);
-        put(tags::PATIENT_ID, VR::LO, &s.patient_id);
-        put(tags::PATIENT_BIRTH_DATE, VR::DA, &s.patient_birth_date);
-        put(tags::PATIENT_SEX, VR::CS, &s.patient_sex);
-        put(tags::STUDY_INSTANCE_UID, VR::UI, &s.study_instance_uid);
         put(tags::SERIES_INSTANCE_UID, VR::UI, &phase.series_uid);
-        put(tags::STUDY_ID, VR::SH, &s.study_id);
         put(
             tags::SERIES_NUMBER,
             VR::IS,
@@ -388,6 +373,7 @@ impl RegistrationWriter {
             &s.frame_of_reference_uid,
         );
         put(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "");
+        put_study_attributes(obj, s);
     }
 
     /// The one item of the Deformable Registration Sequence: source frame, images, the

@@ -15,7 +15,7 @@ use nalgebra::Vector3;
 
 use super::contours::{fill_even_odd, slice_contours, SliceContour};
 use crate::durable::write_atomic;
-use crate::formats::dicom::{read_single_object, DicomStudyContext};
+use crate::formats::dicom::{put_study_attributes, read_single_object, DicomStudyContext};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -207,37 +207,23 @@ fn put_identity(obj: &mut InMemDicomObject, study: &DicomStudyContext, label: &s
         VR::UI,
         &study.derived_uid(INSTANCE_UID_KIND, 0),
     );
-    put(tags::STUDY_DATE, VR::DA, &study.study_date);
-    put(tags::STUDY_TIME, VR::TM, &study.study_time);
-    put(tags::ACCESSION_NUMBER, VR::SH, &study.accession_number);
     put(tags::MODALITY, VR::CS, "RTSTRUCT");
     put(tags::MANUFACTURER, VR::LO, "lungmotion");
-    put(
-        tags::REFERRING_PHYSICIAN_NAME,
-        VR::PN,
-        &study.referring_physician_name,
-    );
-    put(tags::STUDY_DESCRIPTION, VR::LO, &study.study_description);
     put(tags::SERIES_DESCRIPTION, VR::LO, label);
     put(tags::OPERATORS_NAME, VR::PN, "");
-    put(tags::PATIENT_NAME, VR::PN, &study.patient_name);
-    put(tags::PATIENT_ID, VR::LO, &study.patient_id);
-    put(tags::PATIENT_BIRTH_DATE, VR::DA, &study.patient_birth_date);
-    put(tags::PATIENT_SEX, VR::CS, &study.patient_sex);
     put(tags::SOFTWARE_VERSIONS, VR::LO, env!("CARGO_PKG_VERSION"));
-    put(tags::STUDY_INSTANCE_UID, VR::UI, &study.study_instance_uid);
     put(
         tags::SERIES_INSTANCE_UID,
         VR::UI,
         &study.derived_uid(SERIES_UID_KIND, 0),
     );
-    put(tags::STUDY_ID, VR::SH, &study.study_id);
     put(tags::SERIES_NUMBER, VR::IS, "9001");
     put(tags::INSTANCE_NUMBER, VR::IS, "1");
     put(tags::STRUCTURE_SET_LABEL, VR::SH, "lungmotion");
     put(tags::STRUCTURE_SET_NAME, VR::LO, label);
     put(tags::STRUCTURE_SET_DATE, VR::DA, "");
     put(tags::STRUCTURE_SET_TIME, VR::TM, "");
+    put_study_attributes(obj, study);
 }
 
 /// A ContourImageSequence item naming CT slice `k`.

@@ -13,10 +13,11 @@ use super::{
     SharedState,
 };
 use crate::service::callbacks::check_callback_url;
+use crate::service::ids::ScanId;
 use crate::service::jobs::{CancelOutcome, SubmitRefusal};
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::request::{parse_simulation, SimulationRequest};
-use crate::service::store::JobRecord;
+use crate::service::store::{JobRecord, JobRequest};
 
 /// Links of a job.
 #[derive(Debug, Serialize, ToSchema)]
@@ -77,7 +78,7 @@ impl From<JobRecord> for JobStatus {
         (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Unusable trace or option (invalid-simulation), or a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
@@ -90,37 +91,26 @@ pub async fn create_simulation(
     body: Bytes,
 ) -> ApiResult<Response> {
     let scan = scan_id(&id)?;
-    let content_type = headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let content_type = content_type_of(&headers);
     let worker_state = state.clone();
     let record = blocking(move || {
         load_scan(&worker_state, scan)?;
-        let request = parse_simulation(&worker_state.config.run, &content_type, &body)?;
-        if let Some(url) = &request.callback_url {
-            check_callback_url(url, &worker_state.config.callbacks)
-                .map_err(|m| ApiError::unprocessable("invalid-callback", m))?;
+        let request = parse_simulation(
+            &worker_state.config.run,
+            worker_state.config.pacs.as_ref(),
+            &content_type,
+            &body,
+        )?;
+        if request.pacs_ct.is_some() {
+            return Err(ApiError::unprocessable(
+                "invalid-simulation",
+                format!(
+                    "\"ct\": scan {scan} is this simulation's CT; a simulation of a CT on the \
+                     PACS is submitted to POST /v1/simulations"
+                ),
+            ));
         }
-        match worker_state
-            .jobs
-            .submit(scan, &request)
-            .map_err(store_error)?
-        {
-            Ok(record) => Ok(record),
-            Err(SubmitRefusal::ShuttingDown) => Err(shutting_down()),
-            Err(SubmitRefusal::ScanMissing) => Err(ApiError::not_found(format!("no scan {scan}"))),
-            Err(SubmitRefusal::QueueFull {
-                queued,
-                retry_after_s,
-            }) => Err(ApiError::new(
-                StatusCode::TOO_MANY_REQUESTS,
-                "queue-full",
-                format!("{queued} simulations are already waiting; retry later"),
-            )
-            .retry_after(retry_after_s)),
-        }
+        submit(&worker_state, scan, &request)
     })
     .await?;
     tracing::info!(job = %record.job_id, scan = %scan, "job queued");
@@ -130,6 +120,104 @@ pub async fn create_simulation(
         JobStatus::from(record),
         StatusCode::ACCEPTED,
     ))
+}
+
+/// Submit a simulation of a CT series on the service's PACS.
+#[utoipa::path(
+    post, path = "/v1/simulations", tag = "jobs",
+    request_body(description = "JSON as for a scan's simulations, with `ct` naming the series \
+        on the server's PACS: `{\"ct\": {\"dicomweb\": {\"study\": UID, \"series\": UID}}, \
+        \"trace\": {...}, \"push\": true, ...options}`. The job pulls the series (QIDO-RS, \
+        WADO-RS), stores it as a scan (its `scan_id`, readable once pulled), runs, and with \
+        `push` stores its DICOM outputs back (STOW-RS), skipping what the PACS already holds. \
+        A PACS that is down or refuses fails the job, naming the server and its answer.",
+        content((SimulationRequest = "application/json"))),
+    responses(
+        (status = 202, description = "Queued", body = JobStatus,
+         headers(("location" = String, description = "The job's URL"))),
+        (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No `ct`, a UID that is not one, an unusable trace or option (invalid-simulation), no PACS configured (no-pacs), or a callback_url refused (invalid-callback)", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
+    ),
+    security(("bearer" = []))
+)]
+pub async fn create_pacs_simulation(
+    State(state): State<SharedState>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult<Response> {
+    let content_type = content_type_of(&headers);
+    if !(content_type.starts_with("application/json") || content_type.ends_with("+json")) {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!(
+                "a simulation of a CT on the PACS is application/json ({{\"ct\": {{\"dicomweb\": \
+                 {{\"study\": ...}}}}, \"trace\": {{...}}}}), not {content_type:?}"
+            ),
+        ));
+    }
+    let worker_state = state.clone();
+    let record = blocking(move || {
+        let request = parse_simulation(
+            &worker_state.config.run,
+            worker_state.config.pacs.as_ref(),
+            &content_type,
+            &body,
+        )?;
+        if request.pacs_ct.is_none() {
+            return Err(ApiError::unprocessable(
+                "invalid-simulation",
+                "no \"ct\": POST /v1/simulations runs on a series of the PACS, \
+                 {\"ct\": {\"dicomweb\": {\"study\": UID, \"series\": UID}}}; a stored scan's \
+                 simulations go to POST /v1/scans/{id}/simulations",
+            ));
+        }
+        // The scan the series becomes once the job has pulled it.
+        submit(&worker_state, ScanId::random(), &request)
+    })
+    .await?;
+    tracing::info!(job = %record.job_id, scan = %record.scan_id, "job on a PACS series queued");
+    let location = format!("/v1/jobs/{}", record.job_id);
+    Ok(created(
+        location,
+        JobStatus::from(record),
+        StatusCode::ACCEPTED,
+    ))
+}
+
+/// The request's content type, lower case ("" when absent).
+fn content_type_of(headers: &HeaderMap) -> String {
+    headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase()
+}
+
+/// Checks the callback and queues the job, or says why not.
+fn submit(state: &SharedState, scan: ScanId, request: &JobRequest) -> ApiResult<JobRecord> {
+    if let Some(url) = &request.callback_url {
+        check_callback_url(url, &state.config.callbacks)
+            .map_err(|m| ApiError::unprocessable("invalid-callback", m))?;
+    }
+    match state.jobs.submit(scan, request).map_err(store_error)? {
+        Ok(record) => Ok(record),
+        Err(SubmitRefusal::ShuttingDown) => Err(shutting_down()),
+        Err(SubmitRefusal::ScanMissing) => Err(ApiError::not_found(format!("no scan {scan}"))),
+        Err(SubmitRefusal::QueueFull {
+            queued,
+            retry_after_s,
+        }) => Err(ApiError::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            "queue-full",
+            format!("{queued} simulations are already waiting; retry later"),
+        )
+        .retry_after(retry_after_s)),
+    }
 }
 
 /// A job's state and progress.

@@ -1,0 +1,100 @@
+//! A job's exchanges with the service's PACS, on its worker thread: the CT series pulled
+//! (QIDO-RS, WADO-RS) and stored as the job's scan, checked as an upload is (its ingest in
+//! the same isolation, held to the same limits); after the run, the DICOM outputs pushed
+//! (STOW-RS). Both go through [`crate::pacs`]'s client, whose push skips the instances the
+//! server already holds: the outputs' UIDs derive from the CT's, so a re-run job (a
+//! restart, a client's resubmission) stores nothing twice.
+
+use std::path::PathBuf;
+
+use super::config::IngestIsolation;
+use super::ids::ScanId;
+use super::isolation::{ingest_isolated, IngestLimits};
+use super::pacs_settings::PacsSettings;
+use super::store::{now_rfc3339, PacsSeries, ScanRecord, Store};
+use crate::pacs::{pull_series, push_with, PushReport};
+use crate::run::RunConfig;
+use crate::{Error, Result};
+
+/// The file name of a pulled series in its scan directory (a directory of instances).
+const PULLED_SERIES: &str = "series";
+
+/// What jobs need to reach the PACS and to check what they pull.
+#[derive(Debug, Clone)]
+pub struct PacsAccess {
+    /// The server and its credentials.
+    pub settings: PacsSettings,
+    /// Most bytes a pulled series may bring (the service's `max_upload_mib`).
+    pub max_series_bytes: u64,
+    /// Where the pulled series' ingest runs (as an upload's).
+    pub isolation: IngestIsolation,
+    /// What that ingest may spend (as an upload's).
+    pub limits: IngestLimits,
+}
+
+/// Removes a directory of `tmp/` when dropped (a pull that failed half-way).
+struct TempDir(PathBuf);
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+impl PacsAccess {
+    /// Pulls `series` (or the study's one CT series) into the store as scan `scan_id`,
+    /// ingested with `run`'s settings; the series UID pulled. A refusal of the series names
+    /// the server, the study and the series.
+    pub fn import_series(
+        &self,
+        store: &Store,
+        scan_id: ScanId,
+        series: &PacsSeries,
+        run: &RunConfig,
+    ) -> Result<String> {
+        let client = self.settings.client(self.max_series_bytes)?;
+        let staging = TempDir(store.tmp_path("pull"));
+        let dir = staging.0.join(PULLED_SERIES);
+        let (series_uid, files) =
+            pull_series(&client, &series.study, series.series.as_deref(), &dir)?;
+        let bytes = files
+            .iter()
+            .filter_map(|f| std::fs::metadata(f).ok())
+            .map(|m| m.len())
+            .sum();
+        let ingest = ingest_isolated(&self.isolation, &dir, run, self.limits).map_err(|e| {
+            Error::Ingest(format!(
+                "the CT series {series_uid} of study {} pulled from {}: {}",
+                series.study, self.settings.root_url, e.detail
+            ))
+        })?;
+        let record = ScanRecord {
+            scan_id,
+            created_at: now_rfc3339(),
+            format: "dicomweb".into(),
+            upload_bytes: bytes,
+            file_name: PULLED_SERIES.into(),
+            ingest,
+        };
+        store.put_scan(&record, &dir)?;
+        Ok(series_uid)
+    }
+
+    /// Pushes every DICOM file under `output` (a job's output directory), skipping what the
+    /// server already holds; a refusal says the run itself succeeded.
+    pub fn push_outputs(&self, output: PathBuf) -> Result<PushReport> {
+        let client = self.settings.client(self.max_series_bytes)?;
+        push_with(&client, &[output]).map_err(|e| match e {
+            Error::Pacs {
+                url,
+                status,
+                reason,
+            } => Error::Pacs {
+                url,
+                status,
+                reason: format!("{reason} (the run succeeded; pushing its DICOM outputs failed)"),
+            },
+            other => other,
+        })
+    }
+}
