@@ -13,7 +13,7 @@ use dicom_dictionary_std::tags;
 use orthanc_support::{free_port, Orthanc};
 use serde_json::{json, Value};
 use service_support::{
-    accepted_job_id, assert_problem, breathing_trace, sample, Scratch, ServerProcess,
+    accepted_job_id, assert_problem, breathing_trace, sample, tiny_request, Scratch, ServerProcess,
 };
 
 /// The bundled CT's StudyInstanceUID.
@@ -140,6 +140,20 @@ fn a_job_pulls_its_ct_from_the_pacs_and_pushes_its_outputs_back_once() {
     assert_eq!(done["pacs"]["already_stored"], stored, "{done:#}");
     assert_eq!(orthanc.series_of(&study).len(), series.len());
 
+    // Again with other settings (a rigid chest wall): the motion differs, so do the REGs,
+    // the virtual phases and the structure set, and the PACS stores them beside the first
+    // job's (the UIDs follow the content, not only the CT).
+    let mut request = request;
+    request["motion"]["rib_cage_share"] = json!(0);
+    let rigid = accepted_job_id(post_pacs_simulation(&server, &request));
+    let done = server.wait_for_state(&rigid, &["done"], Duration::from_secs(900));
+    assert!(done["pacs"]["stored"].as_u64().unwrap() > 0, "{done:#}");
+    let after = orthanc.series_of(&study);
+    let count_after = |modality: &str| after.iter().filter(|(m, _)| m == modality).count();
+    assert_eq!(count_after("RTSTRUCT"), 2, "{after:?}");
+    assert!(count_after("REG") > frames, "{after:?}");
+    assert!(count_after("CT") > 1 + frames + 2, "{after:?}");
+
     // A series the PACS does not hold: the job fails with the server's answer.
     let missing = "1.2.826.0.1.3680043.2.1125.99.1";
     let request = pacs_request(
@@ -209,6 +223,27 @@ fn a_pacs_that_is_down_fails_the_job_naming_it_and_no_pacs_refuses_pacs_requests
         "{error}"
     );
     assert_eq!(status["pacs"]["server"], down.as_str(), "{status:#}");
+    // A job on an uploaded scan that runs and then cannot push: failed, saying the run
+    // succeeded, and its outputs stay downloadable.
+    let scan = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    let mut request = tiny_request(2);
+    request["push"] = json!(true);
+    request["outputs"]["registration"] = json!(true);
+    request["outputs"]["registration_spacing_mm"] = json!(8);
+    let job = accepted_job_id(server.post_simulation(&scan, &request));
+    let status = server.wait_for_state(&job, &["failed"], Duration::from_secs(300));
+    let error = status["error"].as_str().unwrap();
+    assert!(
+        error.contains(&down) && error.contains("the run succeeded"),
+        "{error}"
+    );
+    let push_error = status["pacs"]["push_error"].as_str().unwrap();
+    assert!(push_error.contains("cannot connect"), "{status:#}");
+    let summary = server.get(&format!("/v1/jobs/{job}/summary"));
+    assert_eq!(summary.status(), 200);
+    let reg = server.get(&format!("/v1/jobs/{job}/files/frames/0/registration.dcm"));
+    assert_eq!(reg.status(), 200);
+    assert!(reg.bytes().unwrap().len() > 1000);
     // Not a UID: refused before anything is queued.
     let bad = pacs_request(json!({"dicomweb": {"study": "1.2.x"}}), false);
     assert_problem(

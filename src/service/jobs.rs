@@ -817,7 +817,20 @@ fn pull_ct(
 fn push_outputs(shared: &Shared, id: JobId, live: &LiveJob) -> Result<()> {
     let pacs = pacs_of(shared)?;
     show_stage(live, "pushing", "pushing the DICOM outputs to the PACS");
-    let report = pacs.push_outputs(shared.store.job_output_dir(id))?;
+    let report = match pacs.push_outputs(shared.store.job_output_dir(id)) {
+        Ok(report) => report,
+        Err(e) => {
+            // The outputs are published: record that only the push failed, so they stay
+            // downloadable.
+            let mut record = lock(&live.record);
+            if let Some(activity) = record.pacs.as_mut() {
+                let root = format!("{}/", shared.store.root().display());
+                activity.push_error = Some(e.to_string().replace(&root, ""));
+            }
+            shared.store.save_job(&record)?;
+            return Err(e);
+        }
+    };
     tracing::info!(job = %id, stored = report.stored, already = report.already_stored, "outputs pushed to the PACS");
     let mut record = lock(&live.record);
     if let Some(activity) = record.pacs.as_mut() {

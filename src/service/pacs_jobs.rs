@@ -92,7 +92,10 @@ impl PacsAccess {
             } => Error::Pacs {
                 url,
                 status,
-                reason: format!("{reason} (the run succeeded; pushing its DICOM outputs failed)"),
+                reason: format!(
+                    "{reason} (the run succeeded and its outputs can be downloaded; pushing its \
+                     DICOM outputs failed: submit the job again to push what is missing)"
+                ),
             },
             other => other,
         })

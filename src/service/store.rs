@@ -187,6 +187,20 @@ pub struct PacsActivity {
     /// outputs), not sent again.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub already_stored: Option<usize>,
+    /// Why the push failed after a run that succeeded: the job is failed, its outputs are
+    /// complete and served.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub push_error: Option<String>,
+}
+
+impl JobRecord {
+    /// Whether the job's outputs are complete: it is done, or only its push to the PACS
+    /// failed after the run published them.
+    pub fn outputs_complete(&self) -> bool {
+        self.state == JobState::Done
+            || (self.state == JobState::Failed
+                && self.pacs.as_ref().is_some_and(|p| p.push_error.is_some()))
+    }
 }
 
 impl JobRecord {

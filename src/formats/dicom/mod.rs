@@ -24,7 +24,7 @@ use crate::volume::Volume;
 
 pub(crate) use read::read_single_object;
 pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
-pub use study::{DicomStudyContext, SliceReference};
+pub use study::{ContentKey, DicomStudyContext, SliceReference};
 pub(crate) use write::put_study_attributes;
 pub use write::{write_ct_series, DerivedSeries, HuSample, RespiratoryPhase};
 

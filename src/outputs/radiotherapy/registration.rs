@@ -49,7 +49,7 @@ use rayon::prelude::*;
 
 use super::PhaseMotion;
 use crate::durable::write_atomic;
-use crate::formats::dicom::{put_study_attributes, DicomStudyContext, SliceReference};
+use crate::formats::dicom::{put_study_attributes, ContentKey, DicomStudyContext, SliceReference};
 use crate::math::V3;
 use crate::{Error, Result};
 
@@ -160,6 +160,18 @@ impl RegistrationGrid {
         self.origin_lps_mm
             + (self.axes[0] * i as f64 + self.axes[1] * j as f64 + self.axes[2] * k as f64)
                 * self.spacing_mm
+    }
+
+    /// A key of this grid and `vectors` on it, for the UIDs of the object holding them.
+    pub fn content_key(&self, vectors: &[f32]) -> u64 {
+        let mut key = ContentKey::default();
+        self.dims.iter().for_each(|&d| key.mix(d as u64));
+        std::iter::once(self.spacing_mm)
+            .chain(self.origin_lps_mm.iter().copied())
+            .chain(self.axes.iter().flat_map(|a| a.iter().copied()))
+            .for_each(|v| key.mix(v.to_bits()));
+        vectors.iter().for_each(|v| key.mix(u64::from(v.to_bits())));
+        key.finish()
     }
 
     /// The vectors `moved − p` of `motion` at every grid point, x fastest then y then z, as
@@ -282,15 +294,20 @@ impl RegistrationWriter {
         source: Option<&SourceImages>,
     ) -> Result<PathBuf> {
         let vectors = self.grid.sample_vectors_mm(motion)?;
+        // The UIDs follow what the object shows: another run's motion on the same CT is
+        // a new object a PACS stores, a rerun's the same one it already holds.
+        let content = self.grid.content_key(&vectors);
         let phase = PhaseObject {
             frame_index,
             label,
             series_uid: self
                 .study
-                .derived_uid(REG_SERIES_UID_KIND, frame_index as u64),
-            instance_uid: self
-                .study
-                .derived_uid(REG_INSTANCE_UID_KIND, frame_index as u64),
+                .content_uid(REG_SERIES_UID_KIND, frame_index as u64, content),
+            instance_uid: self.study.content_uid(
+                REG_INSTANCE_UID_KIND,
+                frame_index as u64,
+                content,
+            ),
         };
         let obj = self.dataset(&phase, vectors, source);
         let path = self

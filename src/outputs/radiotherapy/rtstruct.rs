@@ -15,7 +15,9 @@ use nalgebra::Vector3;
 
 use super::contours::{fill_even_odd, slice_contours, SliceContour};
 use crate::durable::write_atomic;
-use crate::formats::dicom::{put_study_attributes, read_single_object, DicomStudyContext};
+use crate::formats::dicom::{
+    put_study_attributes, read_single_object, ContentKey, DicomStudyContext,
+};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -91,7 +93,7 @@ pub fn write_rtstruct(
 ) -> Result<()> {
     check_study(study, ct)?;
     let mut obj = InMemDicomObject::new_empty();
-    put_identity(&mut obj, study, label);
+    put_identity(&mut obj, study, label, content_key(rois, label));
     put_referenced_frame_of_reference(&mut obj, study);
     let numbered = || rois.iter().enumerate().map(|(n, roi)| (n as i32 + 1, roi));
     let structure_set_rois = numbered()
@@ -197,15 +199,45 @@ fn put_sequence(obj: &mut InMemDicomObject, tag: Tag, items: Vec<InMemDicomObjec
     obj.put(DataElement::new(tag, VR::SQ, DataSetSequence::from(items)));
 }
 
+/// A key of the structure set's label, ROIs and contours: its UIDs follow what it shows, so
+/// a job with other settings on the same CT writes a new structure set a PACS stores.
+fn content_key(rois: &[RoiContours], label: &str) -> u64 {
+    let mut key = ContentKey::default();
+    key.mix_str(label);
+    for roi in rois {
+        key.mix_str(&roi.name);
+        key.mix_str(roi.interpreted_type);
+        roi.colour_rgb.iter().for_each(|&c| key.mix(u64::from(c)));
+        for (k, polygons) in &roi.slices {
+            key.mix(*k as u64);
+            for polygon in polygons {
+                key.mix(u64::from(polygon.hole));
+                key.mix(polygon.points_ij.len() as u64);
+                polygon
+                    .points_ij
+                    .iter()
+                    .flatten()
+                    .for_each(|v| key.mix(v.to_bits()));
+            }
+        }
+    }
+    key.finish()
+}
+
 /// SOP common, patient, study, RT series, equipment and structure set label elements.
-fn put_identity(obj: &mut InMemDicomObject, study: &DicomStudyContext, label: &str) {
+fn put_identity(
+    obj: &mut InMemDicomObject,
+    study: &DicomStudyContext,
+    label: &str,
+    content_key: u64,
+) {
     let mut put = |tag: Tag, vr: VR, value: &str| put_text(obj, tag, vr, value);
     put(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 192");
     put(tags::SOP_CLASS_UID, VR::UI, uids::RT_STRUCTURE_SET_STORAGE);
     put(
         tags::SOP_INSTANCE_UID,
         VR::UI,
-        &study.derived_uid(INSTANCE_UID_KIND, 0),
+        &study.content_uid(INSTANCE_UID_KIND, 0, content_key),
     );
     put(tags::MODALITY, VR::CS, "RTSTRUCT");
     put(tags::MANUFACTURER, VR::LO, "lungmotion");
@@ -215,7 +247,7 @@ fn put_identity(obj: &mut InMemDicomObject, study: &DicomStudyContext, label: &s
     put(
         tags::SERIES_INSTANCE_UID,
         VR::UI,
-        &study.derived_uid(SERIES_UID_KIND, 0),
+        &study.content_uid(SERIES_UID_KIND, 0, content_key),
     );
     put(tags::SERIES_NUMBER, VR::IS, "9001");
     put(tags::INSTANCE_NUMBER, VR::IS, "1");

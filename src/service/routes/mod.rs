@@ -18,7 +18,7 @@ use super::ids::{JobId, ScanId};
 use super::jobs::JobManager;
 use super::metrics::ServiceMetrics;
 use super::problem::{ApiError, ApiResult};
-use super::store::{JobRecord, JobState, ScanRecord, Store};
+use super::store::{JobRecord, ScanRecord, Store};
 
 pub mod files;
 pub mod listing;
@@ -98,7 +98,7 @@ fn load_job(state: &AppState, id: JobId) -> ApiResult<JobRecord> {
 /// The job's record if it is done, else 409 saying what it is.
 fn finished_job(state: &AppState, id: JobId) -> ApiResult<JobRecord> {
     let job = load_job(state, id)?;
-    if job.state != JobState::Done {
+    if !job.outputs_complete() {
         return Err(ApiError::conflict(
             "job-not-done",
             format!(
