@@ -1,6 +1,7 @@
 //! The mechanical model: material, element, mesh, constraints and loads.
 
 pub mod constraints;
+pub mod cube_lattice;
 pub mod element;
 pub mod grid;
 pub mod loads;
@@ -11,6 +12,7 @@ pub mod spring_law;
 pub mod volumetric;
 
 pub use constraints::{ConstraintSet, NodeConstraint};
+pub use cube_lattice::CubeLattice;
 pub use element::{BrickCoefficients, BrickShape};
 pub use grid::VoxelGrid;
 pub use loads::{Loads, SurfacePressure};

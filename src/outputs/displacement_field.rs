@@ -15,13 +15,11 @@
 //! point of the nearest element of the same lung within two cells; voxels outside the lungs
 //! stay zero. Sampling a frame is then one pass of 8 multiply-adds per lung voxel.
 
-use std::collections::HashMap;
-
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::math::V3;
-use crate::model::HexMesh;
+use crate::model::{CubeLattice, HexMesh};
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -73,47 +71,10 @@ pub struct FieldSampler {
     pub extrapolated_voxels: usize,
 }
 
-/// Bits (x, y, z) of each VTK hexahedron corner in the element's own frame.
-pub(crate) const CORNER_BITS: [[bool; 3]; 8] = [
-    [false, false, false],
-    [true, false, false],
-    [true, true, false],
-    [false, true, false],
-    [false, false, true],
-    [true, false, true],
-    [true, true, true],
-    [false, true, true],
-];
+pub(crate) use crate::model::cube_lattice::CORNER_BITS;
 
 /// Element, corner weights, and whether the point lies inside the element.
 type Location = (u32, [f32; 8], bool);
-
-struct Lattice {
-    origin_m: V3,
-    axes: [V3; 3],
-    edge_m: f64,
-    cells: HashMap<(i64, i64, i64, u8), u32>,
-    /// The cell of each element, in element order.
-    element_cell: Vec<[i64; 3]>,
-}
-
-impl Lattice {
-    /// Lattice coordinates of `p_m`, in element edges.
-    fn coords(&self, p_m: V3) -> V3 {
-        let d = p_m - self.origin_m;
-        V3::new(
-            d.dot(&self.axes[0]) / self.edge_m,
-            d.dot(&self.axes[1]) / self.edge_m,
-            d.dot(&self.axes[2]) / self.edge_m,
-        )
-    }
-
-    fn cell_of(&self, p_m: V3) -> ([i64; 3], V3) {
-        let f = self.coords(p_m);
-        let c = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
-        (c, f)
-    }
-}
 
 /// The CT voxel where the box around the non-zero voxels of `labels` starts and its size,
 /// grown by `margin` voxels on every side within the grid; the whole grid when none is set.
@@ -166,14 +127,7 @@ impl FieldSampler {
         element_lung: &[u8],
         grid: FieldGrid,
     ) -> Result<Self> {
-        if element_lung.len() != mesh.elements.len() {
-            return Err(Error::InvalidModel(format!(
-                "{} lung labels for {} elements",
-                element_lung.len(),
-                mesh.elements.len()
-            )));
-        }
-        let lattice = lattice_of(mesh, element_lung)?;
+        let lattice = CubeLattice::of(mesh, element_lung)?;
         let g = lungs.geometry;
         let [nx, ny, _] = g.dims;
         let (start, dims) = match grid {
@@ -332,7 +286,7 @@ impl PointSampler {
     /// Locates each LPS point (mm) in the element containing it, in either lung, or the
     /// nearest element within two cells; a point farther from the mesh is an error naming it.
     pub fn new(points_lps_mm: &[[f64; 3]], mesh: &HexMesh, element_lung: &[u8]) -> Result<Self> {
-        let lattice = lattice_of(mesh, element_lung)?;
+        let lattice = CubeLattice::of(mesh, element_lung)?;
         let mut labels: Vec<u8> = element_lung.to_vec();
         labels.sort_unstable();
         labels.dedup();
@@ -414,7 +368,7 @@ impl PointSampler {
 }
 
 /// Distance from `p_m` to the box of element `e`, metres.
-fn distance_outside(lattice: &Lattice, mesh: &HexMesh, e: u32, p_m: V3) -> f64 {
+fn distance_outside(lattice: &CubeLattice, mesh: &HexMesh, e: u32, p_m: V3) -> f64 {
     let x0 = mesh.rest_positions_m[mesh.elements[e as usize][0] as usize];
     let d = p_m - x0;
     (0..3)
@@ -427,58 +381,11 @@ fn distance_outside(lattice: &Lattice, mesh: &HexMesh, e: u32, p_m: V3) -> f64 {
         .sqrt()
 }
 
-/// Recovers the common cube lattice of the mesh's elements.
-fn lattice_of(mesh: &HexMesh, element_lung: &[u8]) -> Result<Lattice> {
-    let first = mesh
-        .elements
-        .first()
-        .ok_or_else(|| Error::InvalidModel("the mesh has no elements".into()))?;
-    let x = |n: u32| mesh.rest_positions_m[n as usize];
-    let axes = [
-        (x(first[1]) - x(first[0])).normalize(),
-        (x(first[3]) - x(first[0])).normalize(),
-        (x(first[4]) - x(first[0])).normalize(),
-    ];
-    let edge_m = (x(first[1]) - x(first[0])).norm();
-    let origin_m = x(first[0]);
-    let mut lattice = Lattice {
-        origin_m,
-        axes,
-        edge_m,
-        cells: HashMap::with_capacity(mesh.elements.len()),
-        element_cell: Vec::with_capacity(mesh.elements.len()),
-    };
-    for (e, nodes) in mesh.elements.iter().enumerate() {
-        let (c, f) = lattice.cell_of(x(nodes[0]) + (axes[0] + axes[1] + axes[2]) * (0.5 * edge_m));
-        let off = (f - V3::new(c[0] as f64 + 0.5, c[1] as f64 + 0.5, c[2] as f64 + 0.5)).norm();
-        let edges_ok = (1..8).all(|k| {
-            let b = CORNER_BITS[k];
-            let expected = x(nodes[0])
-                + (0..3)
-                    .filter(|&a| b[a])
-                    .map(|a| axes[a] * edge_m)
-                    .sum::<V3>();
-            (x(nodes[k]) - expected).norm() <= 1e-6 * edge_m.max(1e-3)
-        });
-        if off > 1e-6 || !edges_ok {
-            return Err(Error::InvalidModel(format!(
-                "element {e} is not a cube of the mesh's lattice; displacement fields need one \
-                 lattice of equal cubes"
-            )));
-        }
-        lattice
-            .cells
-            .insert((c[0], c[1], c[2], element_lung[e]), e as u32);
-        lattice.element_cell.push(c);
-    }
-    Ok(lattice)
-}
-
 /// The element of lung `label` containing `p_m` (or the nearest within the search radius),
 /// its corner weights, and whether the point was inside it.
-fn locate(lattice: &Lattice, p_m: V3, label: u8) -> Option<Location> {
+fn locate(lattice: &CubeLattice, p_m: V3, label: u8) -> Option<Location> {
     let (c, f) = lattice.cell_of(p_m);
-    if let Some(&e) = lattice.cells.get(&(c[0], c[1], c[2], label)) {
+    if let Some(e) = lattice.element_at(c, label) {
         let local = f - V3::new(c[0] as f64, c[1] as f64, c[2] as f64);
         return Some((e, weights(local), true));
     }
@@ -487,9 +394,9 @@ fn locate(lattice: &Lattice, p_m: V3, label: u8) -> Option<Location> {
     for dz in -r..=r {
         for dy in -r..=r {
             for dx in -r..=r {
-                let cell = (c[0] + dx, c[1] + dy, c[2] + dz, label);
-                if let Some(&e) = lattice.cells.get(&cell) {
-                    let corner = V3::new(cell.0 as f64, cell.1 as f64, cell.2 as f64);
+                let cell = [c[0] + dx, c[1] + dy, c[2] + dz];
+                if let Some(e) = lattice.element_at(cell, label) {
+                    let corner = V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64);
                     let local = (f - corner).map(|v| v.clamp(0.0, 1.0));
                     let d = (f - corner - local).norm();
                     if best.is_none_or(|(bd, _, _)| d < bd) {

@@ -2,13 +2,11 @@
 //! interpolation inside the lungs, zero outside. The exact motion the tracked points follow
 //! (`trajectories.csv`), used where the motion over the whole CT is not wanted or not built.
 
-use std::collections::HashMap;
-
 use super::PhaseMotion;
 use crate::math::V3;
-use crate::model::HexMesh;
+use crate::model::{CubeLattice, HexMesh};
 use crate::outputs::displacement_field::corner_weight;
-use crate::{Error, Result};
+use crate::Result;
 
 /// Fixed-point iterations of [`MeshMotion::source_lps_mm`] before it gives its best estimate.
 const INVERSE_ITERATIONS: usize = 60;
@@ -18,71 +16,19 @@ const INVERSE_TOLERANCE_MM: f64 = 1e-5;
 /// Where each element of a cube-lattice mesh sits, to find the element holding a point in
 /// O(1). Built once per run (the rest mesh does not change).
 #[derive(Debug, Clone)]
-pub struct MeshLattice {
-    origin_m: V3,
-    axes: [V3; 3],
-    edge_m: f64,
-    /// The element filling each lattice cell (the first one when both lungs claim a cell).
-    cells: HashMap<[i64; 3], u32>,
-}
+pub struct MeshLattice(CubeLattice);
 
 impl MeshLattice {
-    /// Recovers the lattice of `mesh`'s equal cubes; refuses a mesh that is not one.
+    /// Recovers the lattice of `mesh`'s equal cubes (the first element of a cell both lungs
+    /// claim); refuses a mesh that is not one.
     pub fn of(mesh: &HexMesh) -> Result<Self> {
-        let first = mesh
-            .elements
-            .first()
-            .ok_or_else(|| Error::InvalidModel("the mesh has no elements".into()))?;
-        let x = |n: u32| mesh.rest_positions_m[n as usize];
-        let edge = x(first[1]) - x(first[0]);
-        let edge_m = edge.norm();
-        if !(edge_m.is_finite() && edge_m > 0.0) {
-            return Err(Error::InvalidModel(format!(
-                "element 0 has an edge of {edge_m} m; the lung motion needs cubes"
-            )));
-        }
-        let axes = [
-            edge / edge_m,
-            (x(first[3]) - x(first[0])).normalize(),
-            (x(first[4]) - x(first[0])).normalize(),
-        ];
-        let mut lattice = MeshLattice {
-            origin_m: x(first[0]),
-            axes,
-            edge_m,
-            cells: HashMap::with_capacity(mesh.elements.len()),
-        };
-        for (e, nodes) in mesh.elements.iter().enumerate() {
-            let centre = x(nodes[0]) + (axes[0] + axes[1] + axes[2]) * (0.5 * edge_m);
-            let f = lattice.coords(centre);
-            let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
-            let off =
-                (f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64)).add_scalar(-0.5);
-            if off.norm() > 1e-6 {
-                return Err(Error::InvalidModel(format!(
-                    "element {e} is not a cube of the mesh's lattice"
-                )));
-            }
-            lattice.cells.entry(cell).or_insert(e as u32);
-        }
-        Ok(lattice)
-    }
-
-    /// Lattice coordinates of `p_m`, in element edges.
-    fn coords(&self, p_m: V3) -> V3 {
-        let d = p_m - self.origin_m;
-        V3::new(
-            d.dot(&self.axes[0]),
-            d.dot(&self.axes[1]),
-            d.dot(&self.axes[2]),
-        ) / self.edge_m
+        CubeLattice::of_cells(mesh).map(MeshLattice)
     }
 
     /// The element holding `p_m` and the point's place in it (0…1 per axis), if any.
     pub fn locate(&self, p_m: V3) -> Option<(u32, V3)> {
-        let f = self.coords(p_m);
-        let cell = [f.x.floor() as i64, f.y.floor() as i64, f.z.floor() as i64];
-        let e = *self.cells.get(&cell)?;
+        let (cell, f) = self.0.cell_of(p_m);
+        let e = self.0.any_element_at(cell)?;
         Some((
             e,
             f - V3::new(cell[0] as f64, cell[1] as f64, cell[2] as f64),
