@@ -101,22 +101,6 @@ pub fn is_uid(uid: &str) -> bool {
         })
 }
 
-/// Pulls the CT series `address` names into `dir` (created if absent), one file per
-/// instance; returns the files. Blocking: runs its own small runtime.
-pub fn pull_ct(address: &DicomWebAddress, dir: &Path) -> Result<Vec<PathBuf>> {
-    let client = DicomWebClient::new(&address.root_url)?;
-    let study = address.study_uid.as_deref().ok_or_else(|| {
-        Error::argument(
-            "DICOMweb address",
-            format!(
-                "{}: names no study to pull (add /studies/UID)",
-                address.root_url
-            ),
-        )
-    })?;
-    Ok(pull_series(&client, study, address.series_uid.as_deref(), dir)?.1)
-}
-
 /// Pulls `series` of `study` from `client`'s server into `dir` (created if absent), or the
 /// study's one CT series when no series is named; the series UID and the files. Blocking.
 pub fn pull_series(
@@ -135,13 +119,9 @@ pub fn pull_series(
     })
 }
 
-/// Pushes every DICOM file under `paths` (files or directories, searched recursively) to
-/// the server at `root_url`, skipping instances it already holds. Blocking.
-pub fn push(root_url: &str, paths: &[PathBuf]) -> Result<PushReport> {
-    push_with(&DicomWebClient::new(root_url)?, paths)
-}
-
-/// [`push`] through `client` (its credentials and bounds). Blocking.
+/// Pushes every DICOM file under `paths` (files or directories, searched recursively)
+/// through `client` (its credentials and bounds), skipping instances the server already
+/// holds. Blocking.
 pub fn push_with(client: &DicomWebClient, paths: &[PathBuf]) -> Result<PushReport> {
     block_on(client.root_url(), async { client.push(paths).await })
 }
