@@ -69,7 +69,7 @@ impl SpringLaw {
                 "spring_law cubic ratio λ₁/λ₂ = {c} is outside [{floor:.4}, {MAX_CUBIC_RATIO}]: \
                  below −1/3 a spring's stiffness λ₂·(1 + 3c·d²) turns negative before it \
                  doubles or collapses (|d| ≤ {ADMISSIBLE_RELATIVE_ELONGATION}); above \
-                 {MAX_CUBIC_RATIO} it is over 20× stiffer at 25 % elongation than at rest"
+                 {MAX_CUBIC_RATIO} its tangent at 25 % elongation passes 20× the one at rest"
             )));
         }
         Ok(())
