@@ -328,3 +328,76 @@ fn springs_and_volumetric_laws_leave_rest_and_rigid_motion_force_free() {
     let largest = f.iter().map(|v| v.norm()).fold(0.0, f64::max);
     assert!(largest < 1e-12, "rigid motion gave {largest:e} N");
 }
+
+/// J·v of the internal forces summed spring by spring: for a spring of tension
+/// T = k·e + k₃·e³ along n, d f_a = [T′(ℓ)·n nᵀ + T/ℓ·(I − n nᵀ)]·(v_b − v_a) and f_b = −f_a.
+/// `cubic = false` drops k₃ from the tangent (what a solver built on the linear law would use).
+fn spring_tangent_product(mesh: &HexMesh, x: &[V3], v: &[V3], cubic: bool) -> Vec<V3> {
+    use lungmotion::model::element::SPRINGS;
+    let mut out = vec![V3::zeros(); mesh.node_count()];
+    for (e, corners) in mesh.elements.iter().enumerate() {
+        let class = &mesh.classes[mesh.element_class[e] as usize];
+        for (a, b, kind) in SPRINGS {
+            let (ia, ib) = (corners[a] as usize, corners[b] as usize);
+            let d = x[ib] - x[ia];
+            let len = d.norm();
+            let n = d / len;
+            let ext = len - class.rest_length_m(kind);
+            let (k, k3) = (
+                class.spring_stiffness(kind),
+                class.spring_cubic_n_per_m3(kind),
+            );
+            let tension = k * ext + k3 * ext.powi(3);
+            let slope = k + if cubic { 3.0 * k3 * ext * ext } else { 0.0 };
+            let nn = n * n.transpose();
+            let tangent = nn * slope + (SMatrix::<f64, 3, 3>::identity() - nn) * (tension / len);
+            let df = tangent * (v[ib] - v[ia]);
+            out[ia] += df;
+            out[ib] -= df;
+        }
+    }
+    out
+}
+
+#[test]
+fn the_newton_jacobian_product_carries_the_cubic_tangent_exactly() {
+    use lungmotion::model::SpringLaw;
+    // ν = 1/4: a cube's Lagrange corrections vanish (c_ij = (3 − 12ν)/48), so its forces are
+    // the springs' alone and the per-spring tangent above is the exact Jacobian.
+    let edge = 5e-3;
+    let material = Material::new(390.0, 0.25, 700.0)
+        .unwrap()
+        .with_spring_law(SpringLaw::Cubic(1.3 / 0.15))
+        .unwrap();
+    let mesh = block([3, 3, 3], [edge; 3], material);
+    let w = mesh.classes[0].correction_map;
+    assert!(w.abs().max() < 1e-14, "corrections at ν = 1/4: {w}");
+    let mut rng = Rng(0x5eed_cafe);
+    // Springs strained up to about ±30 %: the cubic term is a third of the tangent or more.
+    let x = perturbed(&mesh, &mut rng, 0.15 * edge);
+    let v: Vec<V3> = (0..mesh.node_count()).map(|_| rng.vector(1.0)).collect();
+    let exact = spring_tangent_product(&mesh, &x, &v, true);
+    let linear_only = spring_tangent_product(&mesh, &x, &v, false);
+    // The Newton–Krylov product: a one-sided difference of the production kernel with the
+    // quasi-static solver's step, 1e-7 × the shortest edge over max |v|.
+    let vmax = v
+        .iter()
+        .flat_map(|p| p.iter())
+        .fold(0.0f64, |m, a| m.max(a.abs()));
+    let h = 1e-7 * edge / vmax;
+    let xp: Vec<V3> = x.iter().zip(&v).map(|(p, d)| p + d * h).collect();
+    let (f0, f1) = (evaluate(&mesh, &x, None, 1), evaluate(&mesh, &xp, None, 1));
+    // Sign: the solver differentiates the force, the tangent above too (f_a pulls towards b).
+    let fd: Vec<V3> = f1.iter().zip(&f0).map(|(a, b)| (a - b) / h).collect();
+    let scale = exact.iter().map(|p| p.norm()).fold(0.0, f64::max);
+    let fd_error = max_diff(&fd, &exact) / scale;
+    let cubic_share = max_diff(&linear_only, &exact) / scale;
+    assert!(
+        fd_error < 1e-5,
+        "finite-difference product off by {fd_error:e}"
+    );
+    assert!(
+        cubic_share > 0.05,
+        "the cubic term changes the tangent by only {cubic_share:e}"
+    );
+}

@@ -114,20 +114,28 @@ fn end_inhale_frame_agrees_with_calculix() {
 
 /// The same frame with both codes following the compressible neo-Hookean law (ours through the
 /// volumetric correction, CalculiX through `*HYPERELASTIC, NEO HOOKE`), against the linear
-/// springs on the same CalculiX solution: what the volumetric law is worth at end-inhale.
+/// springs on the same CalculiX solution: what the volumetric law is worth at end-inhale; and
+/// the cubic springs fitted to that law (`spring_law = "cubic"`).
 #[test]
 #[cfg_attr(
     any(not(feature = "slow-tests"), not(shared_data)),
     ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn end_inhale_frame_with_the_neo_hookean_law() {
-    use lungmotion::model::{ContinuumLaw, Material};
+    use lungmotion::model::{ContinuumLaw, Material, SpringLaw};
     if calculix::ccx_path().is_none() {
         panic!("CalculiX (`ccx`) is required by this test but was not found: {CCX_INSTALL_HINT}");
     }
     let law = Some(ContinuumLaw::NeoHookean);
     let mut means = Vec::new();
-    for ours in [Material::LUNG, Material::LUNG.with_volumetric_law(law)] {
+    let cubic = Material::LUNG
+        .with_spring_law(SpringLaw::CubicNeoHookean)
+        .unwrap();
+    for ours in [
+        Material::LUNG,
+        Material::LUNG.with_volumetric_law(law),
+        cubic,
+    ] {
         let settings = LungCalculixSettings {
             material: ours,
             calculix_material: Some(Material::LUNG.with_volumetric_law(law)),
@@ -139,6 +147,6 @@ fn end_inhale_frame_with_the_neo_hookean_law() {
         eprintln!("{}", r.to_markdown());
         means.push(r.calculix[0].ours_vs_calculix.mean_mm);
     }
-    eprintln!("mean |Δu| against CalculiX neo-Hookean: linear springs {:.3} mm, volumetric neo-Hookean {:.3} mm", means[0], means[1]);
+    eprintln!("mean |Δu| against CalculiX neo-Hookean: linear springs {:.3} mm, volumetric neo-Hookean {:.3} mm, cubic springs fitted to it {:.3} mm", means[0], means[1], means[2]);
     assert!(means.iter().all(|m| m.is_finite() && *m < 2.0), "{means:?}");
 }

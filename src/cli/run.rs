@@ -93,6 +93,11 @@ pub struct RunArgs {
     /// config's `[motion] rib_cage_share`).
     #[arg(long, value_name = "FRACTION", value_parser = parse_rib_cage_share, allow_negative_numbers = true)]
     rib_cage_share: Option<f64>,
+    /// Each spring's law T = λ₂·d + λ₁·d³: `linear` (Baudet), `cubic` (λ₁/λ₂ fitted to
+    /// compressible neo-Hookean at the material's ν) or `cubic:<λ₁/λ₂>` (default linear, or the
+    /// config's `[material] spring_law`).
+    #[arg(long, value_name = "linear|cubic|cubic:C", allow_hyphen_values = true)]
+    spring_law: Option<lungmotion::model::SpringLaw>,
     /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
     /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
     /// output and exits with status 3.
@@ -235,6 +240,9 @@ impl RunArgs {
         }
         if let Some(s) = self.time_budget {
             config.budget.time_s = s;
+        }
+        if let Some(law) = self.spring_law {
+            config.material.spring_law = law;
         }
         if let Some(s) = self.rib_cage_share {
             config.motion.rib_cage_share = s;

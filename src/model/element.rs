@@ -178,7 +178,7 @@ impl BrickCoefficients {
             })?;
         let w = 2.0 * cm.transpose() * m;
         let corner_mass_kg = material.density_kg_per_m3 * vol / 8.0;
-        let spring_cubic_ratio = material.spring_law.cubic_ratio();
+        let spring_cubic_ratio = material.spring_law.cubic_ratio(material.poisson_ratio);
         Ok(BrickCoefficients {
             shape,
             material,

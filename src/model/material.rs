@@ -78,7 +78,7 @@ impl Material {
                 "density must be a positive finite number of kg/m³, got {rho}"
             )));
         }
-        spring_law.validate()
+        spring_law.validate(nu)
     }
 
     /// The same material with another spring law.

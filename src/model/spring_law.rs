@@ -20,40 +20,169 @@ pub const ADMISSIBLE_RELATIVE_ELONGATION: f64 = 1.0;
 pub const MAX_CUBIC_RATIO: f64 = 100.0;
 
 /// How each spring's tension grows with its relative elongation beyond the small-strain slope.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+///
+/// In a configuration: `"linear"`, `"cubic"` (the ratio fitted to the compressible neo-Hookean
+/// law at the material's ν) or `{ cubic = c }` (an explicit ratio).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum SpringLaw {
     /// λ₁ = 0: Baudet's element as published.
     #[default]
     Linear,
     /// λ₁ = c·λ₂ with the given dimensionless c (Boux de Casson's cubic springs).
     Cubic(f64),
+    /// λ₁ = c·λ₂ with c fitted by [`fit_cubic_ratio`] to the compressible neo-Hookean law
+    /// W = (G/2)(Ī₁ − 3) + (K/2)(J − 1)² (G, K the material's small-strain moduli) over
+    /// 0–25 % uniaxial stretch and ±20 % volume, at the material's Poisson's ratio.
+    CubicNeoHookean,
 }
 
+/// The configuration name of [`SpringLaw::CubicNeoHookean`].
+const CUBIC_NEO_HOOKEAN_NAME: &str = "cubic";
+
 impl SpringLaw {
-    /// The ratio c = λ₁/λ₂ of this law.
-    pub fn cubic_ratio(&self) -> f64 {
+    /// The ratio c = λ₁/λ₂ of this law for a material of Poisson's ratio `poisson_ratio`
+    /// (NaN when a fit is asked for an inadmissible ν, which [`Material::validate`] refuses).
+    pub fn cubic_ratio(&self, poisson_ratio: f64) -> f64 {
         match *self {
             SpringLaw::Linear => 0.0,
             SpringLaw::Cubic(c) => c,
+            SpringLaw::CubicNeoHookean => {
+                fitted_cubic_ratio(ContinuumLaw::NeoHookean, poisson_ratio).unwrap_or(f64::NAN)
+            }
         }
     }
 
     /// Refuses a cubic ratio that makes a spring's tangent stiffness non-positive within the
-    /// admissible elongations, or that is not finite or absurdly large.
-    pub fn validate(&self) -> Result<()> {
-        if let SpringLaw::Cubic(c) = *self {
-            let floor = -1.0 / (3.0 * ADMISSIBLE_RELATIVE_ELONGATION.powi(2));
-            if !c.is_finite() || c < floor || c > MAX_CUBIC_RATIO {
-                return Err(Error::InvalidMaterial(format!(
-                    "spring_law cubic ratio λ₁/λ₂ = {c} is outside [{floor:.4}, {MAX_CUBIC_RATIO}]: \
-                     below −1/3 a spring's stiffness λ₂·(1 + 3c·d²) turns negative before it \
-                     doubles or collapses (|d| ≤ {ADMISSIBLE_RELATIVE_ELONGATION})"
-                )));
+    /// admissible elongations, or that is not finite or absurdly large (for a fitted ratio,
+    /// the ratio the fit gives at `poisson_ratio`).
+    pub fn validate(&self, poisson_ratio: f64) -> Result<()> {
+        let c = match *self {
+            SpringLaw::Linear => return Ok(()),
+            SpringLaw::Cubic(c) => c,
+            SpringLaw::CubicNeoHookean => {
+                fitted_cubic_ratio(ContinuumLaw::NeoHookean, poisson_ratio)?
             }
+        };
+        let floor = -1.0 / (3.0 * ADMISSIBLE_RELATIVE_ELONGATION.powi(2));
+        if !c.is_finite() || c < floor || c > MAX_CUBIC_RATIO {
+            return Err(Error::InvalidMaterial(format!(
+                "spring_law cubic ratio λ₁/λ₂ = {c} is outside [{floor:.4}, {MAX_CUBIC_RATIO}]: \
+                 below −1/3 a spring's stiffness λ₂·(1 + 3c·d²) turns negative before it \
+                 doubles or collapses (|d| ≤ {ADMISSIBLE_RELATIVE_ELONGATION}); above \
+                 {MAX_CUBIC_RATIO} its tangent at 25 % elongation passes 20× the one at rest"
+            )));
         }
         Ok(())
     }
+}
+
+impl Serialize for SpringLaw {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        match *self {
+            SpringLaw::Linear => s.serialize_str("linear"),
+            SpringLaw::CubicNeoHookean => s.serialize_str(CUBIC_NEO_HOOKEAN_NAME),
+            SpringLaw::Cubic(c) => {
+                let mut m = s.serialize_map(Some(1))?;
+                m.serialize_entry("cubic", &c)?;
+                m.end()
+            }
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for SpringLaw {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = SpringLaw;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(
+                    "\"linear\", \"cubic\" (fitted to compressible neo-Hookean) or \
+                     { cubic = <λ₁/λ₂> }",
+                )
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> std::result::Result<SpringLaw, E> {
+                match v {
+                    "linear" => Ok(SpringLaw::Linear),
+                    CUBIC_NEO_HOOKEAN_NAME => Ok(SpringLaw::CubicNeoHookean),
+                    other => Err(E::custom(format!(
+                        "unknown spring_law `{other}`: expected \"linear\", \"cubic\" (the \
+                         cubic ratio fitted to compressible neo-Hookean) or {{ cubic = <λ₁/λ₂> }}"
+                    ))),
+                }
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                mut map: A,
+            ) -> std::result::Result<SpringLaw, A::Error> {
+                use serde::de::Error as _;
+                let key: String = map
+                    .next_key()?
+                    .ok_or_else(|| A::Error::custom("spring_law table is empty: { cubic = c }"))?;
+                if key != "cubic" {
+                    return Err(A::Error::custom(format!(
+                        "unknown spring_law key `{key}`: the only one is `cubic` (λ₁/λ₂)"
+                    )));
+                }
+                let c: f64 = map.next_value()?;
+                if let Some(extra) = map.next_key::<String>()? {
+                    return Err(A::Error::custom(format!(
+                        "unknown spring_law key `{extra}`: the only one is `cubic` (λ₁/λ₂)"
+                    )));
+                }
+                Ok(SpringLaw::Cubic(c))
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
+}
+
+impl std::str::FromStr for SpringLaw {
+    type Err = String;
+
+    /// `linear`, `cubic` (fitted to compressible neo-Hookean) or `cubic:<λ₁/λ₂>`.
+    fn from_str(text: &str) -> std::result::Result<Self, String> {
+        match text.trim() {
+            "linear" => Ok(SpringLaw::Linear),
+            CUBIC_NEO_HOOKEAN_NAME => Ok(SpringLaw::CubicNeoHookean),
+            other => match other.strip_prefix("cubic:") {
+                Some(c) => c.trim().parse().map(SpringLaw::Cubic).map_err(|_| {
+                    format!("`{c}` is not a number (the cubic ratio λ₁/λ₂ of `cubic:<c>`)")
+                }),
+                None => Err(format!(
+                    "unknown spring law `{other}`: expected linear, cubic (fitted to \
+                     compressible neo-Hookean) or cubic:<λ₁/λ₂>"
+                )),
+            },
+        }
+    }
+}
+
+/// Fitted ratios already computed, by law and the bits of ν: a fit costs tens of
+/// milliseconds and every element class of every mesh asks for it.
+static FITTED_RATIOS: std::sync::Mutex<Vec<(ContinuumLaw, u64, f64)>> =
+    std::sync::Mutex::new(Vec::new());
+
+/// The cubic ratio [`fit_cubic_ratio`] gives for `law` at `poisson_ratio`, memoised.
+pub fn fitted_cubic_ratio(law: ContinuumLaw, poisson_ratio: f64) -> Result<f64> {
+    let key = (law, poisson_ratio.to_bits());
+    let cached = |fits: &Vec<(ContinuumLaw, u64, f64)>| {
+        fits.iter()
+            .find(|(l, nu, _)| (*l, *nu) == key)
+            .map(|&(_, _, c)| c)
+    };
+    if let Some(c) = cached(&FITTED_RATIOS.lock().unwrap_or_else(|e| e.into_inner())) {
+        return Ok(c);
+    }
+    let c = fit_cubic_ratio(law, poisson_ratio)?
+        .spring_law
+        .cubic_ratio(poisson_ratio);
+    let mut fits = FITTED_RATIOS.lock().unwrap_or_else(|e| e.into_inner());
+    if cached(&fits).is_none() {
+        fits.push((key.0, key.1, c));
+    }
+    Ok(c)
 }
 
 /// Continuum laws the cubic term can be fitted to, each with the small-strain moduli G and K
@@ -326,13 +455,65 @@ mod tests {
     #[test]
     fn refuses_cubic_ratios_that_soften_to_negative_stiffness() {
         for c in [-0.34, -1.0, f64::NAN, 1e3] {
-            let err = SpringLaw::Cubic(c).validate().unwrap_err().to_string();
+            let err = SpringLaw::Cubic(c).validate(0.3).unwrap_err().to_string();
             assert!(
                 err.contains("cubic ratio") && err.contains("negative"),
                 "{err}"
             );
         }
-        assert!(SpringLaw::Cubic(-0.33).validate().is_ok());
-        assert!(SpringLaw::Cubic(2.0).validate().is_ok());
+        assert!(SpringLaw::Cubic(-0.33).validate(0.3).is_ok());
+        assert!(SpringLaw::Cubic(2.0).validate(0.3).is_ok());
+    }
+
+    #[test]
+    fn names_parse_and_print_back() {
+        for (text, law) in [
+            ("linear", SpringLaw::Linear),
+            ("cubic", SpringLaw::CubicNeoHookean),
+            ("cubic:2.5", SpringLaw::Cubic(2.5)),
+            ("cubic:-0.2", SpringLaw::Cubic(-0.2)),
+        ] {
+            assert_eq!(text.parse::<SpringLaw>().unwrap(), law);
+            let json = serde_json::to_string(&law).unwrap();
+            assert_eq!(
+                serde_json::from_str::<SpringLaw>(&json).unwrap(),
+                law,
+                "{json}"
+            );
+        }
+        assert_eq!(
+            serde_json::to_string(&SpringLaw::Cubic(2.5)).unwrap(),
+            r#"{"cubic":2.5}"#
+        );
+        for bad in ["quadratic", "cubic:", "cubic:x", ""] {
+            let err = bad.parse::<SpringLaw>().unwrap_err();
+            assert!(err.contains("cubic"), "{bad}: {err}");
+        }
+        let err = serde_json::from_str::<SpringLaw>(r#"{"cubic": 1, "linear": 2}"#).unwrap_err();
+        assert!(err.to_string().contains("`linear`"), "{err}");
+    }
+
+    #[test]
+    fn the_neo_hookean_fit_is_admissible_memoised_and_no_worse_than_linear() {
+        let nu = 0.3;
+        let c = SpringLaw::CubicNeoHookean.cubic_ratio(nu);
+        assert!(SpringLaw::CubicNeoHookean.validate(nu).is_ok());
+        assert!((-1.0 / 3.0..=MAX_CUBIC_RATIO).contains(&c), "{c}");
+        assert_eq!(fitted_cubic_ratio(ContinuumLaw::NeoHookean, nu).unwrap(), c);
+        let sweeps = FitSweeps::default();
+        let rms = |law: SpringLaw| {
+            let m = Material::new(1.0, nu, 1.0)
+                .unwrap()
+                .with_spring_law(law)
+                .unwrap();
+            cube_response(ContinuumLaw::NeoHookean, m, &sweeps)
+                .unwrap()
+                .rms_stress_error()
+        };
+        assert!(rms(SpringLaw::Cubic(c)) <= rms(SpringLaw::Linear));
+        // A material with an inadmissible ν has no fit to give: the material refuses it first.
+        assert!(Material::new(1.0, 0.5, 1.0)
+            .and_then(|m| m.with_spring_law(SpringLaw::CubicNeoHookean))
+            .is_err());
     }
 }

@@ -89,7 +89,9 @@ impl VolumetricCorrection {
 pub fn springs_pressure_pa(material: &Material, j: f64) -> f64 {
     let s = j.cbrt();
     let d = s - 1.0;
-    3.0 * material.bulk_modulus_pa() * d * (1.0 + material.spring_law.cubic_ratio() * d * d)
+    3.0 * material.bulk_modulus_pa()
+        * d
+        * (1.0 + material.spring_law.cubic_ratio(material.poisson_ratio) * d * d)
         / (s * s)
 }
 

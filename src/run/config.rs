@@ -11,7 +11,7 @@
 //! youngs_modulus_pa = 390.0
 //! poisson_ratio = 0.3
 //! density_kg_per_m3 = 700.0
-//! spring_law = "linear"               # or { cubic = 3.0 }: Boux de Casson's λ₁/λ₂
+//! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
 //! [trace]
@@ -498,6 +498,11 @@ mod tests {
             c.material.volumetric_law,
             Some(crate::model::ContinuumLaw::LungBirzle)
         );
+        let c = RunConfig::from_toml("[material]\nspring_law = \"cubic\"").unwrap();
+        assert_eq!(
+            c.material.spring_law,
+            crate::model::SpringLaw::CubicNeoHookean
+        );
     }
 
     #[test]
@@ -511,6 +516,13 @@ mod tests {
             cubic.contains("cubic ratio") && cubic.contains("-1"),
             "{cubic}"
         );
+        let name = err("[material]\nspring_law = \"quadratic\"");
+        assert!(
+            name.contains("quadratic") && name.contains("cubic"),
+            "{name}"
+        );
+        let key = err("[material]\nspring_law = { quartic = 1.0 }");
+        assert!(key.contains("quartic"), "{key}");
         let law = err("[material]\nvolumetric_law = \"ogden\"");
         assert!(law.contains("ogden") && law.contains("hyperfoam"), "{law}");
         assert!(err("[motion]\ninterpolation_tolerance_mm = -1").contains("interpolation"));

@@ -34,6 +34,62 @@ pub struct MaterialLawReport {
     pub fits: Vec<CubeResponse>,
     /// Per law: linear springs on the fit sweeps, for the fit's gain.
     pub linear_on_fit_sweeps: Vec<CubeResponse>,
+    /// Effective E, ν and K of the cube against compressible neo-Hookean's along the fit
+    /// sweeps, for linear springs, `spring_law = "cubic"` and Boux de Casson's own ratio.
+    pub neo_hookean_moduli: Vec<EffectiveModuliCurve>,
+}
+
+/// Boux de Casson's liver springs (thesis eq. 2.2, Fig. 2.11: λ₁ = 1.3, λ₂ = 0.15).
+pub const THESIS_CUBIC_RATIO: f64 = 1.3 / 0.15;
+
+/// Secant moduli of one element variant relative to those of a continuum law at equal strain.
+#[derive(Debug, Clone, Serialize)]
+pub struct EffectiveModuliCurve {
+    /// What the element is, in words.
+    pub variant: String,
+    /// Its cubic ratio c = λ₁/λ₂.
+    pub cubic_ratio: f64,
+    /// Axial stretches of the uniaxial-stress sweep.
+    pub stretches: Vec<f64>,
+    /// E_element/E_law − 1, E the nominal axial stress over the axial strain.
+    pub youngs_error: Vec<f64>,
+    /// ν_element/ν_law − 1, ν = (1 − lateral stretch)/(axial stretch − 1).
+    pub poisson_error: Vec<f64>,
+    /// Volume ratios J of the hydrostatic sweep, ascending.
+    pub volume_ratios: Vec<f64>,
+    /// K_element/K_law − 1, K the Cauchy pressure over (J − 1).
+    pub bulk_error: Vec<f64>,
+}
+
+impl EffectiveModuliCurve {
+    /// The moduli errors of `response` (one cube against its law).
+    fn of(variant: String, cubic_ratio: f64, response: &CubeResponse) -> Self {
+        let mut hydro: Vec<_> = response.hydrostatic.iter().collect();
+        hydro.sort_by(|a, b| a.strain_measure.total_cmp(&b.strain_measure));
+        EffectiveModuliCurve {
+            variant,
+            cubic_ratio,
+            stretches: response.uniaxial.iter().map(|p| p.strain_measure).collect(),
+            youngs_error: response.uniaxial.iter().map(|p| p.stress_error()).collect(),
+            poisson_error: response
+                .uniaxial
+                .iter()
+                .map(|p| (1.0 - p.element_lateral_stretch) / (1.0 - p.law_lateral_stretch) - 1.0)
+                .collect(),
+            volume_ratios: hydro.iter().map(|p| p.strain_measure).collect(),
+            bulk_error: hydro.iter().map(|p| p.stress_error()).collect(),
+        }
+    }
+
+    /// Largest |error| of E, ν and K over the sweeps.
+    pub fn max_errors(&self) -> [f64; 3] {
+        let max = |v: &[f64]| v.iter().fold(0.0f64, |m, e| m.max(e.abs()));
+        [
+            max(&self.youngs_error),
+            max(&self.poisson_error),
+            max(&self.bulk_error),
+        ]
+    }
 }
 
 /// The report's wide sweeps: where the variants differ (the fit sweeps are too gentle for the
@@ -77,11 +133,32 @@ pub fn run_material_law_study() -> Result<MaterialLawReport> {
         fits.push(fit_cubic_ratio(law, POISSON_RATIO)?);
         linear_on_fit_sweeps.push(cube_response(law, base, &FitSweeps::default())?);
     }
+    let mut neo_hookean_moduli = Vec::new();
+    for (variant, law) in [
+        ("linear springs", SpringLaw::Linear),
+        (
+            "spring_law = \"cubic\" (fitted)",
+            SpringLaw::CubicNeoHookean,
+        ),
+        (
+            "Boux de Casson's ratio 1.3/0.15",
+            SpringLaw::Cubic(THESIS_CUBIC_RATIO),
+        ),
+    ] {
+        let material = base.with_spring_law(law)?;
+        let response = cube_response(ContinuumLaw::NeoHookean, material, &FitSweeps::default())?;
+        neo_hookean_moduli.push(EffectiveModuliCurve::of(
+            variant.to_string(),
+            law.cubic_ratio(POISSON_RATIO),
+            &response,
+        ));
+    }
     Ok(MaterialLawReport {
         poisson_ratio: POISSON_RATIO,
         comparisons,
         fits,
         linear_on_fit_sweeps,
+        neo_hookean_moduli,
     })
 }
 
@@ -122,12 +199,64 @@ impl MaterialLawReport {
             s.push_str(&format!(
                 "| {:?} | {:.3} | {:.1} % | {:.1} % | {:.1} % | {:.1} % |\n",
                 f.law,
-                f.spring_law.cubic_ratio(),
+                f.spring_law.cubic_ratio(POISSON_RATIO),
                 100.0 * f.rms_stress_error(),
                 100.0 * l.rms_stress_error(),
                 100.0 * f.max_stress_error(),
                 100.0 * l.max_stress_error()
             ));
+        }
+        s.push_str(&self.moduli_markdown());
+        s
+    }
+
+    /// The effective E, ν and K errors against compressible neo-Hookean, one row per
+    /// variant and modulus.
+    fn moduli_markdown(&self) -> String {
+        let Some(first) = self.neo_hookean_moduli.first() else {
+            return String::new();
+        };
+        let mut s = String::from(
+            "\nEffective moduli against compressible neo-Hookean \
+             W = (G/2)(Ī₁ − 3) + (K/2)(J − 1)² with the same small-strain G and K (secant E and \
+             ν under uniaxial stress, secant K = p/(J − 1) under hydrostatic load; element / \
+             law − 1):\n\n| element | c | modulus |",
+        );
+        let shown_stretch: Vec<usize> = (0..first.stretches.len()).filter(|i| i % 2 == 1).collect();
+        let shown_j: Vec<usize> = (0..first.volume_ratios.len())
+            .filter(|i| i % 4 == 0 || *i + 1 == first.volume_ratios.len())
+            .collect();
+        for &i in &shown_stretch {
+            s.push_str(&format!(" stretch {:.2} |", first.stretches[i]));
+        }
+        s.push_str(" max over 0–25 % |");
+        for &i in &shown_j {
+            s.push_str(&format!(" J {:.2} |", first.volume_ratios[i]));
+        }
+        s.push_str(" max over ±20 % |\n");
+        s.push_str(&"|---".repeat(5 + shown_stretch.len() + shown_j.len()));
+        s.push_str("|\n");
+        let pct = |e: f64| format!(" {:+.2} % |", 100.0 * e);
+        for c in &self.neo_hookean_moduli {
+            let [me, mn, mk] = c.max_errors();
+            for (name, errors, max) in [("E", &c.youngs_error, me), ("ν", &c.poisson_error, mn)] {
+                s.push_str(&format!(
+                    "| {} | {:.3} | {name} |",
+                    c.variant, c.cubic_ratio
+                ));
+                for &i in &shown_stretch {
+                    s.push_str(&pct(errors[i]));
+                }
+                s.push_str(&format!(" {:.2} % |", 100.0 * max));
+                s.push_str(&" |".repeat(shown_j.len() + 1));
+                s.push('\n');
+            }
+            s.push_str(&format!("| {} | {:.3} | K |", c.variant, c.cubic_ratio));
+            s.push_str(&" |".repeat(shown_stretch.len() + 1));
+            for &i in &shown_j {
+                s.push_str(&pct(c.bulk_error[i]));
+            }
+            s.push_str(&format!(" {:.2} % |\n", 100.0 * mk));
         }
         s
     }
@@ -150,10 +279,21 @@ mod tests {
             }
         }
         for f in &r.fits {
-            let c = f.spring_law.cubic_ratio();
+            let c = f.spring_law.cubic_ratio(POISSON_RATIO);
             assert!((-1.0 / 3.0 - 1e-9..=10.0).contains(&c), "{:?}: {c}", f.law);
         }
         let md = r.to_markdown();
         assert!(md.contains("LungBirzle") && md.contains("fitted c"), "{md}");
+        // Every variant is exact at small strain and each curve covers both sweeps.
+        assert_eq!(r.neo_hookean_moduli.len(), 3);
+        for c in &r.neo_hookean_moduli {
+            assert_eq!(c.stretches.len(), 10);
+            assert_eq!(c.volume_ratios.len(), 20);
+            assert!(c.youngs_error[0].abs() < 0.05, "{c:?}");
+        }
+        assert!(
+            md.contains("Effective moduli against compressible neo-Hookean"),
+            "{md}"
+        );
     }
 }

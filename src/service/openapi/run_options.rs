@@ -149,9 +149,9 @@ fn without_defaults() -> Value {
                     "density_kg_per_m3": {"type": "number", "exclusiveMinimum": 0,
                         "description": "Density ρ, kg/m³"},
                     "spring_law": {
-                        "description": "Each spring's tension T = λ₂·d + λ₁·d³ (d its relative elongation): \"linear\" (λ₁ = 0, Baudet's element) or {\"cubic\": c} with c = λ₁/λ₂ in [−1/3, 100] (Boux de Casson's cubic springs)",
+                        "description": "Each spring's tension T = λ₂·d + λ₁·d³ (d its relative elongation): \"linear\" (λ₁ = 0, Baudet's element), \"cubic\" (λ₁/λ₂ fitted to compressible neo-Hookean at the material's ν) or {\"cubic\": c} with c = λ₁/λ₂ in [−1/3, 100] (Boux de Casson's cubic springs)",
                         "oneOf": [
-                            {"type": "string", "enum": ["linear"]},
+                            {"type": "string", "enum": ["linear", "cubic"]},
                             {"type": "object", "additionalProperties": false, "required": ["cubic"],
                                 "properties": {"cubic": {"type": "number", "minimum": -0.3333333333333333, "maximum": 100}}}
                         ]
