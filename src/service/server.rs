@@ -11,7 +11,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{header, HeaderName, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use subtle::ConstantTimeEq;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
@@ -79,6 +79,15 @@ pub fn router(state: SharedState) -> Router {
         .route(
             "/v1/scans/{id}",
             get(routes::get_scan).delete(routes::delete_scan),
+        )
+        .route("/v1/scans/{id}/targets", get(routes::list_targets))
+        .route(
+            "/v1/scans/{id}/targets/{name}",
+            // Uploads are limited while streaming, by max_upload_bytes.
+            put(routes::put_target)
+                .layer(DefaultBodyLimit::disable())
+                .get(routes::get_target)
+                .delete(routes::delete_target),
         )
         .route(
             "/v1/scans/{id}/simulations",
