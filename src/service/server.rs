@@ -135,17 +135,27 @@ pub fn router(state: SharedState) -> Router {
                     .get(&REQUEST_ID)
                     .and_then(|v| v.to_str().ok())
                     .unwrap_or("-");
-                // Paths hold only random ids, never patient data, so they may be logged.
+                // Paths hold only random ids, never patient data, so they may be logged; a
+                // target's name is the client's, so it is not.
                 tracing::info_span!(
                     "request",
                     request_id = %id,
                     method = %request.method(),
-                    path = %request.uri().path(),
+                    path = %loggable_path(request.uri().path()),
                 )
             }),
         )
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
         .layer(middleware::map_request(sanitize_request_id))
+}
+
+/// A request path as it may be logged: a target's name (chosen by the client, so possibly a
+/// patient's initials) replaced by `{name}`.
+fn loggable_path(path: &str) -> std::borrow::Cow<'_, str> {
+    match path.split_once("/targets/") {
+        Some((scan, _)) => format!("{scan}/targets/{{name}}").into(),
+        None => path.into(),
+    }
 }
 
 /// Requires the bearer token when one is configured.

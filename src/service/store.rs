@@ -778,6 +778,94 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    fn target_record(name: &str) -> TargetRecord {
+        TargetRecord {
+            name: name.into(),
+            kind: super::super::targets::TargetKind::Mask,
+            format: "nifti".into(),
+            upload_bytes: 3,
+            created_at: now_rfc3339(),
+            file_name: format!("{name}.nii"),
+            labels: vec![],
+            rois: vec![],
+            notes: vec![],
+        }
+    }
+
+    #[test]
+    fn targets_are_replaced_whole_kept_when_a_replacement_fails_and_copied_into_jobs() {
+        let (dir, store) = temp_store("targets");
+        let upload = store.tmp_path("upload");
+        std::fs::write(&upload, b"ct").unwrap();
+        let scan = ScanRecord {
+            scan_id: ScanId::random(),
+            created_at: now_rfc3339(),
+            format: "nifti".into(),
+            upload_bytes: 2,
+            file_name: "scan.nii".into(),
+            ingest: serde_json::json!({}),
+        };
+        store.put_scan(&scan, &upload).unwrap();
+        let id = scan.scan_id;
+        let put = |bytes: &[u8], record: &TargetRecord| {
+            let file = store.tmp_path("target-upload");
+            std::fs::write(&file, bytes).unwrap();
+            store.put_target(id, record, &file)
+        };
+        let tumour = target_record("tumour");
+        assert_eq!(put(b"one", &tumour).unwrap(), TargetStored::Created);
+        assert_eq!(put(b"two", &tumour).unwrap(), TargetStored::Replaced);
+        let file = store.target_file(id, &tumour);
+        assert_eq!(std::fs::read(&file).unwrap(), b"two");
+        // A replacement whose file cannot be moved in leaves the stored one whole.
+        assert!(store
+            .put_target(id, &tumour, &store.tmp_path("missing"))
+            .is_err());
+        assert_eq!(std::fs::read(&file).unwrap(), b"two");
+        assert_eq!(store.target(id, "tumour").unwrap(), Some(tumour.clone()));
+        assert_eq!(
+            put(b"x", &target_record("gtv")).unwrap(),
+            TargetStored::Created
+        );
+        let names: Vec<String> = store
+            .list_targets(id)
+            .unwrap()
+            .into_iter()
+            .map(|t| t.name)
+            .collect();
+        assert_eq!(names, ["gtv", "tumour"]);
+        assert_eq!(store.target(id, "../scan.json").unwrap(), None);
+        // A job keeps its copy when the scan's target goes.
+        let job = JobRecord::queued(id);
+        let request = JobRequest {
+            config: RunConfig::default(),
+            time_s: vec![0.0, 1.0],
+            volume_ml: vec![0.0, 100.0],
+            trace_source: "test".into(),
+            points: vec![],
+            callback_url: None,
+            target: None,
+            pacs_ct: None,
+            push: false,
+        };
+        store.put_job(&job, &request, Some(&file)).unwrap();
+        assert!(store.delete_target(id, "tumour").unwrap());
+        assert!(!store.delete_target(id, "tumour").unwrap());
+        let copy = store.job_target_dir(job.job_id).join("tumour.nii");
+        assert_eq!(std::fs::read(copy).unwrap(), b"two");
+        // Nothing is stored for a scan that is gone, and the scan is not brought back.
+        assert!(store.delete_scan(id).unwrap());
+        assert_eq!(put(b"late", &tumour).unwrap(), TargetStored::ScanMissing);
+        assert!(!store.scan_dir(id).exists());
+        let left: Vec<_> = std::fs::read_dir(store.tmp_dir())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n != "writable")
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     #[test]
     fn a_corrupt_record_is_named_not_swallowed() {
         let (dir, store) = temp_store("corrupt");

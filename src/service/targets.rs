@@ -254,7 +254,7 @@ fn check_point(text: &str) -> ApiResult<TargetSpec> {
 
 /// Checks `choice` against the scan's uploaded target `record` (`None`: no such upload;
 /// `uploaded` lists the names there are): the label present in the mask, the ROI in the
-/// structure set and usable. The stored file's name, for the job's copy.
+/// structure set and usable.
 pub fn choose(
     choice: &TargetChoice,
     record: Option<&TargetRecord>,
@@ -293,6 +293,13 @@ pub fn choose(
         }
         TargetKind::Rtstruct => {
             let names: Vec<&str> = record.rois.iter().map(|r| r.name.as_str()).collect();
+            if choice.label.is_some() {
+                return Err(invalid(format!(
+                    "target {name:?} is an RTSTRUCT: name an ROI (\"roi\": ...), not a label; \
+                     ROIs present: {}",
+                    names.join(", ")
+                )));
+            }
             let Some(roi) = &choice.roi else {
                 return Err(invalid(format!(
                     "target {name:?} is an RTSTRUCT: name its ROI (\"roi\": ...); ROIs \
@@ -300,11 +307,6 @@ pub fn choose(
                     names.join(", ")
                 )));
             };
-            if choice.label.is_some() {
-                return Err(invalid(format!(
-                    "target {name:?} is an RTSTRUCT: name an ROI, not a label"
-                )));
-            }
             // The CLI's rule: the exact name, else the one name equal ignoring case.
             let exact = record.rois.iter().find(|r| &r.name == roi);
             let loose: Vec<&StructureRoi> = record

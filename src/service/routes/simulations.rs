@@ -69,8 +69,8 @@ impl From<JobRecord> for JobStatus {
 #[utoipa::path(
     post, path = "/v1/scans/{id}/simulations", tag = "jobs",
     params(("id" = String, Path, description = "Scan id")),
-    request_body(description = "JSON (trace, points and any `lungmotion run` option) or the \
-        CLI's CSV trace (time_s,volume_ml; volume as change from the scanned state)",
+    request_body(description = "JSON (trace, points, target and any `lungmotion run` option) \
+        or the CLI's CSV trace (time_s,volume_ml; volume as change from the scanned state)",
         content((SimulationRequest = "application/json"), (String = "text/csv"))),
     responses(
         (status = 202, description = "Queued", body = JobStatus,
@@ -79,7 +79,7 @@ impl From<JobRecord> for JobStatus {
         (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations; a target that is a path, or an uploaded target the scan does not have, a label not in its mask, an ROI missing from its RTSTRUCT or unusable on the CT, each named), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
@@ -141,7 +141,7 @@ pub async fn create_simulation(
         (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "No `ct`, a UID that is not one, an unusable trace or option (invalid-simulation), no PACS configured (no-pacs), or a callback_url refused (invalid-callback)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No `ct`, a UID that is not one, an unusable trace or option, an uploaded target (it belongs to a stored scan; invalid-simulation), no PACS configured (no-pacs), or a callback_url refused (invalid-callback)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
