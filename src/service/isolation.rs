@@ -425,6 +425,20 @@ mod tests {
     }
 
     #[test]
+    fn a_refused_series_is_called_what_it_is_never_by_the_servers_path() {
+        let dir = std::env::temp_dir().join(format!("lm-isolation-{}", std::process::id()));
+        let series = dir.join("series");
+        std::fs::create_dir_all(&series).unwrap();
+        std::fs::write(series.join("IM0001"), b"not a DICOM file").unwrap();
+        let e = ingest_upload(&series, &RunConfig::default(), "the series").unwrap_err();
+        assert!(e.status == 422, "{e}");
+        assert!(e.detail.contains("the series"), "{e}");
+        assert!(!e.detail.contains("the upload"), "{e}");
+        assert!(!e.detail.contains(&dir.display().to_string()), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn the_childs_standard_error_is_kept_to_its_last_lines() {
         let text: String = (0..100).map(|i| format!("line {i}\n")).collect();
         let tail = relay_stderr(text.as_bytes());
