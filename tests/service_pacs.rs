@@ -255,6 +255,18 @@ fn a_pacs_that_is_down_fails_the_job_naming_it_and_no_pacs_refuses_pacs_requests
     let mut no_ct = pacs_request(Value::Null, false);
     no_ct.as_object_mut().unwrap().remove("ct");
     assert_problem(post_pacs_simulation(&server, &no_ct), 422, &["no \"ct\""]);
+    // A target uploaded to a scan cannot go with a CT not pulled yet: the way round is named.
+    let mut uploaded = pacs_request(json!({"dicomweb": {"study": "1.2.3"}}), false);
+    uploaded["target"] = json!({"upload": "gtv", "roi": "GTV"});
+    assert_problem(
+        post_pacs_simulation(&server, &uploaded),
+        422,
+        &[
+            "\"gtv\"",
+            "belong to a stored scan",
+            "PUT /v1/scans/{scan_id}/targets",
+        ],
+    );
     drop(server);
 
     // A server without a PACS refuses a PACS series and a push by name.

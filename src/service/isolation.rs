@@ -61,6 +61,16 @@ struct ChildRequest {
     /// Address space the child limits itself to before reading, MiB (0: none).
     #[serde(default)]
     memory_mib: u64,
+    /// What the client calls the file in the refusals (`the upload`).
+    #[serde(default = "the_upload")]
+    shown_as: String,
+}
+
+/// What a scan upload is called in its refusals.
+pub const THE_UPLOAD: &str = "the upload";
+
+fn the_upload() -> String {
+    THE_UPLOAD.into()
 }
 
 /// What an ingest child answers.
@@ -78,16 +88,17 @@ enum ChildAnswer {
 }
 
 /// Reads and meshes the upload at `upload` with the ingest settings of `run`; the ingest
-/// summary, or the refusal with the upload called "the upload" (never a server path).
-pub fn ingest_upload(upload: &Path, run: &RunConfig) -> ApiResult<Value> {
+/// summary, or the refusal with the file called `shown_as` ("the upload", "the series pulled
+/// from the PACS"; never a server path).
+pub fn ingest_upload(upload: &Path, run: &RunConfig, shown_as: &str) -> ApiResult<Value> {
     let shown = upload.display().to_string();
     // The scan field names the upload (or `upload:entry` in a zip); reasons may list the
     // files a DICOM reader skipped, so their text is redacted too.
     let refused = |e: crate::Error| {
         ApiError::from_input_error_showing(e, |p| {
-            p.to_string_lossy().replacen(&shown, "the upload", 1).into()
+            p.to_string_lossy().replacen(&shown, shown_as, 1).into()
         })
-        .redact_path(upload, "the upload")
+        .redact_path(upload, shown_as)
     };
     let scan = load_ct_with(upload, &run.dicom_read_options()).map_err(refused)?;
     let outcome = ingest_scan(&scan, &run.ingest_settings()).map_err(refused)?;
@@ -95,16 +106,20 @@ pub fn ingest_upload(upload: &Path, run: &RunConfig) -> ApiResult<Value> {
         .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))
 }
 
-/// [`ingest_upload`] where `isolation` says, a child held to `limits`. Blocks.
+/// [`ingest_upload`] where `isolation` says, a child held to `limits`, the file called
+/// `shown_as` in refusals. Blocks.
 pub fn ingest_isolated(
     isolation: &IngestIsolation,
     upload: &Path,
     run: &RunConfig,
     limits: IngestLimits,
+    shown_as: &str,
 ) -> ApiResult<Value> {
     match isolation {
-        IngestIsolation::Thread => ingest_upload(upload, run),
-        IngestIsolation::ChildProcess { program } => in_child(program, upload, run, limits),
+        IngestIsolation::Thread => ingest_upload(upload, run, shown_as),
+        IngestIsolation::ChildProcess { program } => {
+            in_child(program, upload, run, limits, shown_as)
+        }
     }
 }
 
@@ -171,7 +186,9 @@ pub fn serve_ingest_child(input: impl Read, mut output: impl Write) -> std::io::
                 }),
             };
             let ingest = limited.and_then(|()| {
-                on_worker_sized_thread(|| ingest_upload(&request.upload, &request.run))
+                on_worker_sized_thread(|| {
+                    ingest_upload(&request.upload, &request.run, &request.shown_as)
+                })
             });
             match ingest {
                 Ok(summary) => ChildAnswer::Summary(summary),
@@ -198,12 +215,14 @@ fn in_child(
     upload: &Path,
     run: &RunConfig,
     limits: IngestLimits,
+    shown_as: &str,
 ) -> ApiResult<Value> {
     let timeout = limits.timeout;
     let request = serde_json::to_vec(&ChildRequest {
         upload: upload.to_path_buf(),
         run: run.clone(),
         memory_mib: limits.memory_mib,
+        shown_as: shown_as.to_string(),
     })
     .map_err(|e| ApiError::internal(format!("ingest child request: {e}")))?;
     let mut child = Command::new(program)
@@ -252,7 +271,7 @@ fn in_child(
         return Err(ApiError::unprocessable(
             "ingest-timeout",
             format!(
-                "reading and meshing the upload took longer than {} s (ingest_timeout_s) and was \
+                "reading and meshing {shown_as} took longer than {} s (ingest_timeout_s) and was \
                  stopped",
                 timeout.as_secs_f64()
             ),
@@ -271,7 +290,7 @@ fn in_child(
             known_slug(&slug),
             detail,
         )),
-        Err(_) => Err(crashed(status, &stderr_tail, limits.memory_mib)),
+        Err(_) => Err(crashed(status, &stderr_tail, limits.memory_mib, shown_as)),
     }
 }
 
@@ -298,13 +317,13 @@ fn relay_stderr(stderr: impl Read) -> String {
 /// The refusal of an upload whose reader ended the child without an answer, told from its
 /// exit signal and the last lines it wrote (Rust's runtime names an allocation it could not
 /// make and a stack overflow before it aborts).
-fn crashed(status: ExitStatus, stderr_tail: &str, memory_mib: u64) -> ApiError {
+fn crashed(status: ExitStatus, stderr_tail: &str, memory_mib: u64, shown_as: &str) -> ApiError {
     if memory_mib != 0 && stderr_tail.contains("memory allocation of") {
         tracing::error!("ingest child ran out of its {memory_mib} MiB on an upload");
         return ApiError::unprocessable(
             "ingest-out-of-memory",
             format!(
-                "reading the upload needed more than the {memory_mib} MiB an ingest may use \
+                "reading {shown_as} needed more than the {memory_mib} MiB an ingest may use \
                  (ingest_memory_mib) and was stopped; nothing was stored"
             ),
         );
@@ -331,7 +350,7 @@ fn crashed(status: ExitStatus, stderr_tail: &str, memory_mib: u64) -> ApiError {
     ApiError::unprocessable(
         "scan-reader-crashed",
         format!(
-            "reading the upload {how}; the file is malformed beyond what the readers can \
+            "reading {shown_as} {how}; the file is malformed beyond what the readers can \
              refuse by name (for example nested far deeper than any CT); nothing was stored"
         ),
     )
@@ -365,6 +384,7 @@ mod tests {
             aborted,
             "reading\nmemory allocation of 251658240 bytes failed",
             256,
+            THE_UPLOAD,
         );
         assert_eq!(oom.slug, "ingest-out-of-memory");
         assert!(oom.detail.contains("256 MiB") && oom.detail.contains("ingest_memory_mib"));
@@ -372,6 +392,7 @@ mod tests {
             aborted,
             "thread 'lungmotion-ingest' has overflowed its stack\nfatal runtime error",
             256,
+            THE_UPLOAD,
         );
         assert_eq!(overflow.slug, "scan-reader-crashed");
         assert!(
@@ -380,10 +401,41 @@ mod tests {
             overflow.detail
         );
         // Without a limit an allocation failure is not blamed on one.
-        let unlimited = crashed(aborted, "memory allocation of 8 bytes failed", 0);
+        let unlimited = crashed(
+            aborted,
+            "memory allocation of 8 bytes failed",
+            0,
+            THE_UPLOAD,
+        );
         assert_eq!(unlimited.slug, "scan-reader-crashed");
-        let killed = crashed(ExitStatus::from_raw(9), "", 256);
+        let killed = crashed(
+            ExitStatus::from_raw(9),
+            "",
+            256,
+            "the series pulled from the PACS",
+        );
         assert!(killed.detail.contains("signal 9"), "{}", killed.detail);
+        assert!(
+            killed
+                .detail
+                .starts_with("reading the series pulled from the PACS killed"),
+            "{}",
+            killed.detail
+        );
+    }
+
+    #[test]
+    fn a_refused_series_is_called_what_it_is_never_by_the_servers_path() {
+        let dir = std::env::temp_dir().join(format!("lm-isolation-{}", std::process::id()));
+        let series = dir.join("series");
+        std::fs::create_dir_all(&series).unwrap();
+        std::fs::write(series.join("IM0001"), b"not a DICOM file").unwrap();
+        let e = ingest_upload(&series, &RunConfig::default(), "the series").unwrap_err();
+        assert!(e.status == 422, "{e}");
+        assert!(e.detail.contains("the series"), "{e}");
+        assert!(!e.detail.contains("the upload"), "{e}");
+        assert!(!e.detail.contains(&dir.display().to_string()), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -288,11 +288,13 @@ impl JobManager {
     }
 
     /// Stores and queues a job, or refuses it when the queue is full or the server stops. A
-    /// job whose CT comes from the PACS gets `scan_id` for the scan its series becomes.
+    /// job whose CT comes from the PACS gets `scan_id` for the scan its series becomes; a job
+    /// following a target uploaded to the scan stores its own copy of the file `target`.
     pub fn submit(
         &self,
         scan_id: ScanId,
         request: &JobRequest,
+        target: Option<&std::path::Path>,
     ) -> Result<std::result::Result<JobRecord, SubmitRefusal>> {
         let mut board = self.board();
         if board.shutting_down {
@@ -324,7 +326,7 @@ impl JobManager {
             record.callback = Some(CallbackDelivery::waiting());
         }
         // On disk before it is acknowledged: an accepted job is never lost.
-        self.shared.store.put_job(&record, request)?;
+        self.shared.store.put_job(&record, request, target)?;
         board
             .jobs
             .insert(record.job_id, LiveJob::new(record.clone()));
@@ -753,8 +755,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         trace_source,
         points: points.iter().map(Into::into).collect(),
         target: target
-            .as_deref()
-            .map(str::parse::<crate::outputs::radiotherapy::target::TargetSpec>)
+            .map(|t| t.spec(&shared.store.job_target_dir(id)))
             .transpose()?,
     };
     let mut observer = JobObserver::new(&shared.store, live.record.clone(), live.stop.clone());

@@ -10,6 +10,7 @@
 //!   [`progress`]: a running job's progress and time left;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
+//!   [`targets`]: treatment targets (masks, RTSTRUCTs) uploaded to a scan and named by requests;
 //! * [`routes`]: the endpoints, one file per resource; [`openapi`]: their description;
 //!   [`problem`]: error bodies;
 //! * [`retention`]: finished jobs and unused scans removed by age and store size;
@@ -39,6 +40,7 @@ pub mod retention;
 pub mod routes;
 pub mod server;
 pub mod store;
+pub mod targets;
 pub mod upload;
 
 pub use config::{IngestIsolation, ServeOverrides, ServiceConfig};

@@ -13,11 +13,13 @@ use super::callbacks::{
 use super::problem::Problem;
 use super::routes::{
     self, FrameEntry, FrameList, Health, JobLinks, JobPage, JobStatus, OutputFile, OutputFileList,
-    ScanLinks, ScanPage, ScanView, SimulationRequest, TraceBody,
+    ScanLinks, ScanPage, ScanView, SimulationRequest, TargetLinks, TargetList, TargetView,
+    TraceBody,
 };
 use super::store::{
     JobProgress, JobRecord, JobState, PacsActivity, PacsSeries, ScanRecord, StoredPoint,
 };
+use super::targets::{MaskLabel, StructureRoi, TargetKind, TargetRecord, MAX_TARGET_NAME_CHARS};
 
 pub mod run_options;
 
@@ -40,6 +42,10 @@ pub mod run_options;
         routes::list_scans,
         routes::get_scan,
         routes::delete_scan,
+        routes::put_target,
+        routes::list_targets,
+        routes::get_target,
+        routes::delete_target,
         routes::create_simulation,
         routes::create_pacs_simulation,
         routes::list_jobs,
@@ -60,11 +66,13 @@ pub mod run_options;
         Problem, ScanView, ScanLinks, ScanRecord, JobStatus, JobRecord, JobLinks, JobProgress,
         JobState, CallbackBody, CallbackDelivery, CallbackState,
         SimulationRequest, TraceBody, StoredPoint, FrameList, FrameEntry, Health, OutputFile,
-        OutputFileList, ScanPage, JobPage, PacsSeries, PacsActivity
+        OutputFileList, ScanPage, JobPage, PacsSeries, PacsActivity, TargetView, TargetLinks,
+        TargetList, TargetRecord, TargetKind, MaskLabel, StructureRoi
     )),
     modifiers(&BearerAuth),
     tags(
-        (name = "scans", description = "CT uploads and their ingest"),
+        (name = "scans", description = "CT uploads and their ingest, and the treatment targets \
+            (masks, RTSTRUCTs) uploaded to them"),
         (name = "jobs", description = "Simulations and their progress"),
         (name = "results", description = "Displacement fields, trajectories, summaries"),
         (name = "operations", description = "Health, readiness and metrics"),
@@ -220,6 +228,67 @@ fn describe_run_options(doc: &mut Value) {
                                 "dicomweb": {"$ref": "#/components/schemas/PacsSeries"}
                             }
                         },
+                        "target": {
+                            "description": "The treatment target to follow (per-frame masks, \
+                                ITV, centroid motion per axis, RTSTRUCT; files under \
+                                target/ and target-motion.csv, figures in summary.json → \
+                                target): a point and radius, or a file uploaded to the scan \
+                                (PUT /v1/scans/{id}/targets/{name}). Never a path on the \
+                                server's disk. An upload is checked against the scan's target \
+                                when the job is submitted (unknown name, label not in the \
+                                mask, ROI missing or unusable: 422) and the job keeps its own \
+                                copy; only at POST /v1/scans/{id}/simulations.",
+                            "oneOf": [
+                                {
+                                    "type": "string",
+                                    "pattern": "^point:",
+                                    "description": "point:<x>,<y>,<z>:r=<radius mm>, LPS mm \
+                                        (radius up to 150 mm)",
+                                    "examples": ["point:-95,20,-80:r=15"]
+                                },
+                                {
+                                    "type": "object",
+                                    "description": "A mask uploaded to the scan, every \
+                                        nonzero voxel or one label",
+                                    "required": ["upload"],
+                                    "additionalProperties": false,
+                                    "properties": {
+                                        "upload": {
+                                            "type": "string",
+                                            "pattern": "^[A-Za-z0-9][A-Za-z0-9._-]*$",
+                                            "maxLength": MAX_TARGET_NAME_CHARS,
+                                            "description": "The target's name on the scan"
+                                        },
+                                        "label": {
+                                            "type": "integer",
+                                            "minimum": 1,
+                                            "maximum": 255,
+                                            "description": "Only this label is the target"
+                                        }
+                                    }
+                                },
+                                {
+                                    "type": "object",
+                                    "description": "An ROI of an RTSTRUCT uploaded to the scan",
+                                    "required": ["upload", "roi"],
+                                    "additionalProperties": false,
+                                    "properties": {
+                                        "upload": {
+                                            "type": "string",
+                                            "pattern": "^[A-Za-z0-9][A-Za-z0-9._-]*$",
+                                            "maxLength": MAX_TARGET_NAME_CHARS,
+                                            "description": "The target's name on the scan"
+                                        },
+                                        "roi": {
+                                            "type": "string",
+                                            "minLength": 1,
+                                            "description": "ROIName (exact, else the one name \
+                                                equal ignoring case)"
+                                        }
+                                    }
+                                }
+                            ]
+                        },
                         "push": {
                             "type": "boolean",
                             "description": "Push the DICOM outputs (virtual CT series, REGs, \
@@ -248,6 +317,8 @@ mod tests {
             "/v1/scans",
             "/v1/scans/{id}",
             "/v1/scans/{id}/simulations",
+            "/v1/scans/{id}/targets",
+            "/v1/scans/{id}/targets/{name}",
             "/v1/simulations",
             "/v1/jobs/{id}",
             "/v1/jobs/{id}/summary",
@@ -310,6 +381,23 @@ mod tests {
         assert!(request["properties"]["ct"]["properties"]["dicomweb"].is_object());
         assert!(request["properties"]["push"].is_object(), "{request}");
         assert!(record["pacs"].is_object(), "{record}");
+        // The target: a point, an uploaded mask with its label or an RTSTRUCT with its ROI.
+        let target = &request["properties"]["target"]["oneOf"];
+        assert_eq!(target[0]["type"], "string", "{target}");
+        assert!(target[1]["properties"]["label"].is_object(), "{target}");
+        assert!(target[2]["properties"]["roi"].is_object(), "{target}");
+        let upload = &doc["paths"]["/v1/scans/{id}/targets/{name}"];
+        for method in ["put", "get", "delete"] {
+            assert!(upload[method].is_object(), "{method} {upload}");
+        }
+        assert!(upload["put"]["responses"]["422"].is_object());
+        let record = &doc["components"]["schemas"]["TargetRecord"]["properties"];
+        for key in ["kind", "labels", "rois", "notes"] {
+            assert!(
+                record[key].is_object(),
+                "TargetRecord lacks {key}: {record}"
+            );
+        }
         let series = &doc["components"]["schemas"]["PacsSeries"]["properties"];
         assert!(
             series["study"].is_object() && series["series"].is_object(),

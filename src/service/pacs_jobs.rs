@@ -18,6 +18,9 @@ use crate::{Error, Result};
 
 /// The file name of a pulled series in its scan directory (a directory of instances).
 const PULLED_SERIES: &str = "series";
+/// What the pulled series is called in the refusal of its ingest (the job's error names the
+/// study, the series and the server before it).
+const PULLED_SERIES_SHOWN_AS: &str = "the series";
 
 /// What jobs need to reach the PACS and to check what they pull.
 #[derive(Debug, Clone)]
@@ -62,7 +65,14 @@ impl PacsAccess {
             .filter_map(|f| std::fs::metadata(f).ok())
             .map(|m| m.len())
             .sum();
-        let ingest = ingest_isolated(&self.isolation, &dir, run, self.limits).map_err(|e| {
+        let ingest = ingest_isolated(
+            &self.isolation,
+            &dir,
+            run,
+            self.limits,
+            PULLED_SERIES_SHOWN_AS,
+        )
+        .map_err(|e| {
             Error::Ingest(format!(
                 "the CT series {series_uid} of study {} pulled from {}: {}",
                 series.study, self.settings.root_url, e.detail

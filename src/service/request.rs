@@ -9,8 +9,8 @@ use utoipa::ToSchema;
 use super::pacs_settings::PacsSettings;
 use super::problem::{ApiError, ApiResult};
 use super::store::{JobRequest, PacsSeries, StoredPoint};
+use super::targets::{parse_request_target, JobTarget};
 use crate::breathing::{BreathingTrace, TraceFormat, TraceOptions};
-use crate::outputs::radiotherapy::target::TargetSpec;
 use crate::run::RunConfig;
 
 /// A breathing trace in a JSON request: the CLI's JSON trace file (`time_s` or `time_ms`,
@@ -100,10 +100,12 @@ pub struct SimulationRequest {
     #[serde(default)]
     pub callback_url: Option<String>,
     /// The treatment target to follow (per-frame masks, ITV, motion per axis, RTSTRUCT):
-    /// `point:<x>,<y>,<z>:r=<radius mm>` in LPS mm. Masks and RTSTRUCT files name files on
-    /// the server's disk and are refused here.
+    /// `"point:<x>,<y>,<z>:r=<radius mm>"` in LPS mm, or a target file uploaded to the scan
+    /// (`PUT /v1/scans/{id}/targets/{name}`), `{"upload": name, "label": n}` for a mask or
+    /// `{"upload": name, "roi": "GTV"}` for an RTSTRUCT. Never a path on the server's disk.
     #[serde(default)]
-    pub target: Option<String>,
+    #[schema(value_type = Object)]
+    pub target: Option<Value>,
     /// The CT from the service's PACS, `{"dicomweb": {"study": UID, "series": UID}}` (series
     /// optional: the study's one CT series): only at `POST /v1/simulations`, and only when the
     /// server is configured with a PACS (`[pacs]`).
@@ -135,7 +137,7 @@ struct ParsedRequest {
     points: Vec<StoredPoint>,
     source: String,
     callback_url: Option<String>,
-    target: Option<String>,
+    target: Option<JobTarget>,
     pacs_ct: Option<PacsSeries>,
     push: Option<bool>,
 }
@@ -252,7 +254,7 @@ fn parse_json_request(defaults: &RunConfig, body: &[u8]) -> ApiResult<ParsedRequ
         trace: reading.trace,
         points: request.points,
         callback_url: request.callback_url,
-        target: request.target,
+        target: request.target.map(parse_request_target).transpose()?,
         pacs_ct: request.ct.map(|c| c.dicomweb),
         push: request.push,
     })
@@ -293,18 +295,15 @@ fn unsupported_media_type(content_type: &str) -> ApiError {
     )
 }
 
-/// Refuses what a run would refuse later: options, trace, output instants and points.
+/// Refuses what a run would refuse later: options, trace, output instants and points (the
+/// target was checked as it was read).
 fn check_request(request: &ParsedRequest) -> ApiResult<()> {
     let ParsedRequest {
         config,
         trace,
         points,
-        target,
         ..
     } = request;
-    if let Some(text) = target {
-        check_target(text)?;
-    }
     config.validate().map_err(|e| invalid(e.to_string()))?;
     trace.validate().map_err(|e| invalid(e.to_string()))?;
     config
@@ -349,19 +348,6 @@ fn check_pacs_use(request: &ParsedRequest, pacs: Option<&PacsSettings>) -> ApiRe
         }
     }
     Ok(())
-}
-
-/// A target over HTTP is a point and a radius: a mask or RTSTRUCT path would name a file on
-/// the server's disk, which is not the client's to read.
-pub(crate) fn check_target(text: &str) -> ApiResult<TargetSpec> {
-    if !text.starts_with("point:") {
-        return Err(invalid(format!(
-            "target {:?}: over HTTP a target is a point and a radius,              point:<x>,<y>,<z>:r=<radius mm> (LPS mm); masks and RTSTRUCT files are given              to the command line",
-            text.chars().take(100).collect::<String>()
-        )));
-    }
-    text.parse::<TargetSpec>()
-        .map_err(|e| invalid(e.to_string()))
 }
 
 /// Point names end up in trajectories.csv, so they must be plain; coordinates finite.
@@ -535,7 +521,7 @@ mod tests {
     }
 
     #[test]
-    fn a_target_is_a_point_and_radius_over_http_and_never_a_server_path() {
+    fn a_target_is_a_point_or_an_upload_and_never_a_server_path() {
         let defaults = RunConfig::default();
         let (t, v) = two_breaths();
         let request = |target: &str| {
@@ -549,15 +535,18 @@ mod tests {
             )
         };
         let ok = request("point:-95,20,-80:r=15").unwrap();
-        assert_eq!(ok.target.as_deref(), Some("point:-95,20,-80:r=15"));
+        assert_eq!(
+            ok.target,
+            Some(JobTarget::Point("point:-95,20,-80:r=15".into()))
+        );
         let stored: JobRequest =
             serde_json::from_str(&serde_json::to_string(&ok).unwrap()).unwrap();
         assert_eq!(stored.target, ok.target);
         for (bad, named) in [
-            ("/etc/passwd:label=1", "over HTTP a target is a point"),
+            ("/etc/passwd:label=1", "never as a path"),
             (
                 "sample-volumes/phantom-truth.nii.gz:label=8",
-                "over HTTP a target is a point",
+                "never as a path",
             ),
             ("point:1,2:r=5", "2 coordinate(s)"),
             ("point:1,2,3:r=0", "radius"),

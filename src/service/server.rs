@@ -11,7 +11,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{header, HeaderName, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use subtle::ConstantTimeEq;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
@@ -80,6 +80,15 @@ pub fn router(state: SharedState) -> Router {
             "/v1/scans/{id}",
             get(routes::get_scan).delete(routes::delete_scan),
         )
+        .route("/v1/scans/{id}/targets", get(routes::list_targets))
+        .route(
+            "/v1/scans/{id}/targets/{name}",
+            // Uploads are limited while streaming, by max_upload_bytes.
+            put(routes::put_target)
+                .layer(DefaultBodyLimit::disable())
+                .get(routes::get_target)
+                .delete(routes::delete_target),
+        )
         .route(
             "/v1/scans/{id}/simulations",
             post(routes::create_simulation).layer(DefaultBodyLimit::max(request_limit)),
@@ -126,17 +135,27 @@ pub fn router(state: SharedState) -> Router {
                     .get(&REQUEST_ID)
                     .and_then(|v| v.to_str().ok())
                     .unwrap_or("-");
-                // Paths hold only random ids, never patient data, so they may be logged.
+                // Paths hold only random ids, never patient data, so they may be logged; a
+                // target's name is the client's, so it is not.
                 tracing::info_span!(
                     "request",
                     request_id = %id,
                     method = %request.method(),
-                    path = %request.uri().path(),
+                    path = %loggable_path(request.uri().path()),
                 )
             }),
         )
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
         .layer(middleware::map_request(sanitize_request_id))
+}
+
+/// A request path as it may be logged: a target's name (chosen by the client, so possibly a
+/// patient's initials) replaced by `{name}`.
+fn loggable_path(path: &str) -> std::borrow::Cow<'_, str> {
+    match path.split_once("/targets/") {
+        Some((scan, _)) => format!("{scan}/targets/{{name}}").into(),
+        None => path.into(),
+    }
 }
 
 /// Requires the bearer token when one is configured.

@@ -4,21 +4,26 @@
 //!
 //! Layout under the data directory:
 //! * `scans/<scan_id>/scan.json` ([`ScanRecord`]) and the upload as received
-//!   (`scan.nii.gz`, `scan.nii`, `scan.nrrd` or `scan.zip`);
-//! * `jobs/<job_id>/job.json` ([`JobRecord`]), `request.json` ([`JobRequest`]) and `out/`,
-//!   the run's output directory in the CLI's layout, published whole when the run succeeds;
+//!   (`scan.nii.gz`, `scan.nii`, `scan.nrrd` or `scan.zip`), and
+//!   `scans/<scan_id>/targets/<name>/` for each target uploaded to it: `target.json`
+//!   ([`TargetRecord`]) and the file;
+//! * `jobs/<job_id>/job.json` ([`JobRecord`]), `request.json` ([`JobRequest`]), `target/`
+//!   (its copy of an uploaded target, when it follows one) and `out/`, the run's output
+//!   directory in the CLI's layout, published whole when the run succeeds;
 //! * `tmp/`: uploads in progress and directories being deleted; emptied at start.
 //!
-//! A scan or job directory appears by renaming a complete directory from `tmp/`, and
+//! A scan, job or target directory appears by renaming a complete directory from `tmp/`, and
 //! disappears by renaming it back into `tmp/` before removal, so a listing never sees half of one.
 
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
 use super::callbacks::CallbackDelivery;
 use super::ids::{JobId, ScanId};
+use super::targets::{JobTarget, TargetRecord, JOB_TARGET_DIR};
 use crate::durable::{sync_dir, write_durable};
 use crate::run::{RunConfig, TrackedPoint};
 use crate::{Error, IoContext, IoOp, Result};
@@ -238,9 +243,10 @@ pub struct JobRequest {
     /// Where to POST the job's outcome when it ends (checked when submitted).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub callback_url: Option<String>,
-    /// The target to follow, as the request gave it (`point:<x>,<y>,<z>:r=<mm>`).
+    /// The target to follow: a point as the request gave it (`point:<x>,<y>,<z>:r=<mm>`),
+    /// or a target uploaded to the scan, copied into the job's `target/`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub target: Option<String>,
+    pub target: Option<JobTarget>,
     /// The CT series to pull from the service's PACS (the job's scan is then made from it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pacs_ct: Option<PacsSeries>,
@@ -276,11 +282,27 @@ pub fn now_rfc3339() -> String {
 #[derive(Debug, Clone)]
 pub struct Store {
     root: PathBuf,
+    /// Held while a target directory is replaced or removed, or a job copies a target, so
+    /// that two uploads of one name never interleave their renames.
+    targets: Arc<Mutex<()>>,
+}
+
+/// What storing an uploaded target came to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TargetStored {
+    /// It is the scan's first target of that name.
+    Created,
+    /// It replaced the target of that name.
+    Replaced,
+    /// The scan is gone; nothing was stored.
+    ScanMissing,
 }
 
 const SCAN_RECORD: &str = "scan.json";
 const JOB_RECORD: &str = "job.json";
 const JOB_REQUEST: &str = "request.json";
+const TARGET_RECORD: &str = "target.json";
+const SCAN_TARGETS: &str = "targets";
 /// The run's output directory inside a job's directory.
 pub const JOB_OUTPUT: &str = "out";
 
@@ -289,6 +311,7 @@ impl Store {
     pub fn open(root: &Path) -> Result<Self> {
         let store = Store {
             root: root.to_path_buf(),
+            targets: Arc::default(),
         };
         for dir in ["scans", "jobs"] {
             let dir = root.join(dir);
@@ -355,6 +378,126 @@ impl Store {
         self.remove_dir(&self.scan_dir(id))
     }
 
+    /// A target's directory in its scan's.
+    fn target_dir(&self, scan: ScanId, name: &str) -> PathBuf {
+        self.scan_dir(scan).join(SCAN_TARGETS).join(name)
+    }
+
+    /// The uploaded file of a scan's target.
+    pub fn target_file(&self, scan: ScanId, record: &TargetRecord) -> PathBuf {
+        self.target_dir(scan, &record.name).join(&record.file_name)
+    }
+
+    /// Stores a target of scan `scan`: moves the received `upload` in beside its record, all
+    /// at once, replacing a target of the same name (the old one stays whole when this fails).
+    /// `name` must have passed [`super::targets::check_target_name`].
+    pub fn put_target(
+        &self,
+        scan: ScanId,
+        record: &TargetRecord,
+        upload: &Path,
+    ) -> Result<TargetStored> {
+        let staging = self.tmp_path("target");
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
+        let staged = (|| {
+            let file = staging.join(&record.file_name);
+            std::fs::rename(upload, &file).at(IoOp::Rename, upload)?;
+            write_json(&staging.join(TARGET_RECORD), record)?;
+            sync_dir(&staging);
+            Ok(())
+        })();
+        if let Err(e) = staged {
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(e);
+        }
+        let _one_at_a_time = lock(&self.targets);
+        let targets = self.scan_dir(scan).join(SCAN_TARGETS);
+        // Not create_dir_all: that would bring back a scan removed meanwhile.
+        match std::fs::create_dir(&targets) {
+            Ok(()) => sync_dir(&self.scan_dir(scan)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                let _ = std::fs::remove_dir_all(&staging);
+                return Ok(TargetStored::ScanMissing);
+            }
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&staging);
+                return Err(Error::io(IoOp::CreateDir, &targets, e));
+            }
+        }
+        let dir = targets.join(&record.name);
+        let replaced = self.tmp_path("replaced");
+        let had_one = match std::fs::rename(&dir, &replaced) {
+            Ok(()) => true,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&staging);
+                return Err(Error::io(IoOp::Rename, &dir, e));
+            }
+        };
+        if let Err(e) = std::fs::rename(&staging, &dir) {
+            // The old target goes back: a failed upload loses nothing already stored.
+            if had_one {
+                let _ = std::fs::rename(&replaced, &dir);
+            }
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(Error::io(IoOp::Replace, &dir, e));
+        }
+        sync_dir(&targets);
+        if had_one {
+            let _ = std::fs::remove_dir_all(&replaced);
+        }
+        Ok(if had_one {
+            TargetStored::Replaced
+        } else {
+            TargetStored::Created
+        })
+    }
+
+    /// A scan's target, `None` when it has none of that name (or the name is no name).
+    pub fn target(&self, scan: ScanId, name: &str) -> Result<Option<TargetRecord>> {
+        if super::targets::check_target_name(name).is_err() {
+            return Ok(None);
+        }
+        self.read_record(&self.target_dir(scan, name).join(TARGET_RECORD))
+    }
+
+    /// A scan's targets by name; unreadable ones are left out and logged.
+    pub fn list_targets(&self, scan: ScanId) -> Result<Vec<TargetRecord>> {
+        let dir = self.scan_dir(scan).join(SCAN_TARGETS);
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(Error::io(IoOp::List, &dir, e)),
+        };
+        let mut targets = Vec::new();
+        for entry in entries {
+            let entry = entry.at(IoOp::List, &dir)?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            match self.target(scan, &name) {
+                Ok(Some(record)) => targets.push(record),
+                Ok(None) => {}
+                Err(e) => tracing::warn!(scan = %scan, "target {name}: {e}"),
+            }
+        }
+        targets.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(targets)
+    }
+
+    /// Removes a scan's target (jobs keep their copies); `false` when there was none.
+    pub fn delete_target(&self, scan: ScanId, name: &str) -> Result<bool> {
+        if super::targets::check_target_name(name).is_err() {
+            return Ok(false);
+        }
+        let _one_at_a_time = lock(&self.targets);
+        self.remove_dir(&self.target_dir(scan, name))
+    }
+
+    /// Where a job's copy of its uploaded target is.
+    pub fn job_target_dir(&self, id: JobId) -> PathBuf {
+        self.job_dir(id).join(JOB_TARGET_DIR)
+    }
+
     /// A job's directory.
     pub fn job_dir(&self, id: JobId) -> PathBuf {
         self.root.join("jobs").join(id.to_string())
@@ -365,12 +508,39 @@ impl Store {
         self.job_dir(id).join(JOB_OUTPUT)
     }
 
-    /// Stores a new job: its request and its record, all at once.
-    pub fn put_job(&self, record: &JobRecord, request: &JobRequest) -> Result<()> {
+    /// Stores a new job: its request, its record and its copy of the uploaded target file
+    /// `target` (linked, else copied, into `target/` under the file's own name), all at once.
+    pub fn put_job(
+        &self,
+        record: &JobRecord,
+        request: &JobRequest,
+        target: Option<&Path>,
+    ) -> Result<()> {
         let staging = self.tmp_path("job");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
-        write_json(&staging.join(JOB_REQUEST), request)?;
-        write_json(&staging.join(JOB_RECORD), record)?;
+        let staged = (|| {
+            if let Some(source) = target {
+                let dir = staging.join(JOB_TARGET_DIR);
+                std::fs::create_dir(&dir).at(IoOp::CreateDir, &dir)?;
+                let copy = dir.join(source.file_name().unwrap_or_default());
+                let _one_at_a_time = lock(&self.targets);
+                // A link costs nothing and the scan's file is never written again (a new
+                // upload is a new file); a copy where links are not allowed.
+                if std::fs::hard_link(source, &copy).is_err() {
+                    std::fs::copy(source, &copy).at(IoOp::Read, source)?;
+                    std::fs::File::open(&copy)
+                        .and_then(|f| f.sync_all())
+                        .at(IoOp::Sync, &copy)?;
+                }
+                sync_dir(&dir);
+            }
+            write_json(&staging.join(JOB_REQUEST), request)?;
+            write_json(&staging.join(JOB_RECORD), record)
+        })();
+        if let Err(e) = staged {
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(e);
+        }
         publish_dir(&staging, &self.job_dir(record.job_id))
     }
 
@@ -531,6 +701,10 @@ fn dir_bytes(dir: &Path) -> u64 {
     total
 }
 
+fn lock(m: &Mutex<()>) -> std::sync::MutexGuard<'_, ()> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let bytes = serde_json::to_vec_pretty(value).map_err(|e| Error::Format {
         path: path.to_path_buf(),
@@ -591,7 +765,7 @@ mod tests {
             pacs_ct: None,
             push: false,
         };
-        store.put_job(&job, &request).unwrap();
+        store.put_job(&job, &request, None).unwrap();
         let mut running = store.job(job.job_id).unwrap().unwrap();
         assert_eq!(running.state, JobState::Queued);
         running.state = JobState::Running;
@@ -615,6 +789,94 @@ mod tests {
         std::fs::write(store.tmp_path("upload"), b"partial").unwrap();
         let store = Store::open(&dir).unwrap();
         assert_eq!(std::fs::read_dir(store.tmp_dir()).unwrap().count(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn target_record(name: &str) -> TargetRecord {
+        TargetRecord {
+            name: name.into(),
+            kind: super::super::targets::TargetKind::Mask,
+            format: "nifti".into(),
+            upload_bytes: 3,
+            created_at: now_rfc3339(),
+            file_name: format!("{name}.nii"),
+            labels: vec![],
+            rois: vec![],
+            notes: vec![],
+        }
+    }
+
+    #[test]
+    fn targets_are_replaced_whole_kept_when_a_replacement_fails_and_copied_into_jobs() {
+        let (dir, store) = temp_store("targets");
+        let upload = store.tmp_path("upload");
+        std::fs::write(&upload, b"ct").unwrap();
+        let scan = ScanRecord {
+            scan_id: ScanId::random(),
+            created_at: now_rfc3339(),
+            format: "nifti".into(),
+            upload_bytes: 2,
+            file_name: "scan.nii".into(),
+            ingest: serde_json::json!({}),
+        };
+        store.put_scan(&scan, &upload).unwrap();
+        let id = scan.scan_id;
+        let put = |bytes: &[u8], record: &TargetRecord| {
+            let file = store.tmp_path("target-upload");
+            std::fs::write(&file, bytes).unwrap();
+            store.put_target(id, record, &file)
+        };
+        let tumour = target_record("tumour");
+        assert_eq!(put(b"one", &tumour).unwrap(), TargetStored::Created);
+        assert_eq!(put(b"two", &tumour).unwrap(), TargetStored::Replaced);
+        let file = store.target_file(id, &tumour);
+        assert_eq!(std::fs::read(&file).unwrap(), b"two");
+        // A replacement whose file cannot be moved in leaves the stored one whole.
+        assert!(store
+            .put_target(id, &tumour, &store.tmp_path("missing"))
+            .is_err());
+        assert_eq!(std::fs::read(&file).unwrap(), b"two");
+        assert_eq!(store.target(id, "tumour").unwrap(), Some(tumour.clone()));
+        assert_eq!(
+            put(b"x", &target_record("gtv")).unwrap(),
+            TargetStored::Created
+        );
+        let names: Vec<String> = store
+            .list_targets(id)
+            .unwrap()
+            .into_iter()
+            .map(|t| t.name)
+            .collect();
+        assert_eq!(names, ["gtv", "tumour"]);
+        assert_eq!(store.target(id, "../scan.json").unwrap(), None);
+        // A job keeps its copy when the scan's target goes.
+        let job = JobRecord::queued(id);
+        let request = JobRequest {
+            config: RunConfig::default(),
+            time_s: vec![0.0, 1.0],
+            volume_ml: vec![0.0, 100.0],
+            trace_source: "test".into(),
+            points: vec![],
+            callback_url: None,
+            target: None,
+            pacs_ct: None,
+            push: false,
+        };
+        store.put_job(&job, &request, Some(&file)).unwrap();
+        assert!(store.delete_target(id, "tumour").unwrap());
+        assert!(!store.delete_target(id, "tumour").unwrap());
+        let copy = store.job_target_dir(job.job_id).join("tumour.nii");
+        assert_eq!(std::fs::read(copy).unwrap(), b"two");
+        // Nothing is stored for a scan that is gone, and the scan is not brought back.
+        assert!(store.delete_scan(id).unwrap());
+        assert_eq!(put(b"late", &tumour).unwrap(), TargetStored::ScanMissing);
+        assert!(!store.scan_dir(id).exists());
+        let left: Vec<_> = std::fs::read_dir(store.tmp_dir())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n != "writable")
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -1,5 +1,5 @@
-//! Receiving a scan upload: the body (raw, or the `file` part of a multipart form) is
-//! streamed to a file in the store's `tmp/` while its size is counted, so an oversized
+//! Receiving a scan or target upload: the body (raw, or the `file` part of a multipart form)
+//! is streamed to a file in the store's `tmp/` while its size is counted, so an oversized
 //! upload is cut off at the limit rather than buffered; then its format is told from its
 //! first bytes, never from a name or content type the client chose.
 
@@ -50,81 +50,32 @@ impl Drop for TempFileGuard {
     }
 }
 
+/// What an upload is, in the answers' words.
+#[derive(Debug, Clone, Copy)]
+struct Expected {
+    /// What the server accepts up to the limit (`scans`).
+    plural: &'static str,
+    /// The bytes to send (`the bytes of a NIfTI file or a zip of a DICOM series`).
+    bytes: &'static str,
+}
+
+const SCAN: Expected = Expected {
+    plural: "scans",
+    bytes: "the bytes of a NIfTI or NRRD file or a zip of a DICOM series",
+};
+
+const TARGET: Expected = Expected {
+    plural: "target files",
+    bytes: "the bytes of a NIfTI or NRRD label map (gzip or not) or of one DICOM RTSTRUCT file",
+};
+
 /// Streams the request's scan to `dest` within `limit` bytes and identifies it.
 pub async fn receive_scan(
     request: Request,
     dest: &Path,
     limit: u64,
 ) -> Result<ReceivedUpload, ApiError> {
-    let content_type = request
-        .headers()
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
-        .to_ascii_lowercase();
-    let too_large = |n: u64| {
-        ApiError::new(
-            StatusCode::PAYLOAD_TOO_LARGE,
-            "upload-too-large",
-            format!(
-                "the upload is {n} bytes or more; this server accepts scans up to {limit} bytes \
-                 ({} MiB, max_upload_mib)",
-                limit >> 20
-            ),
-        )
-    };
-    if let Some(declared) = request
-        .headers()
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-    {
-        if declared > limit {
-            return Err(too_large(declared));
-        }
-    }
-    if content_type.starts_with("application/json") || content_type.starts_with("text/") {
-        return Err(ApiError::new(
-            StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "unsupported-media-type",
-            format!(
-                "a scan upload is the bytes of a NIfTI file or a zip of a DICOM series \
-                 (application/octet-stream, application/zip, application/gzip or \
-                 multipart/form-data with a part named \"file\"), not {content_type}"
-            ),
-        ));
-    }
-    let bytes = if content_type.starts_with("multipart/form-data") {
-        let mut form = Multipart::from_request(request, &()).await.map_err(|e| {
-            ApiError::bad_request("bad-multipart", format!("multipart upload: {e}"))
-        })?;
-        loop {
-            let field = form.next_field().await.map_err(|e| {
-                ApiError::bad_request("bad-multipart", format!("multipart upload: {e}"))
-            })?;
-            let Some(field) = field else {
-                return Err(ApiError::bad_request(
-                    "bad-multipart",
-                    "multipart upload has no part named \"file\" holding the scan",
-                ));
-            };
-            if field.name() == Some("file") {
-                break write_stream(field, dest, limit).await?;
-            }
-        }
-    } else {
-        write_stream(Body::into_data_stream(request.into_body()), dest, limit).await?
-    };
-    let Some(bytes) = bytes else {
-        return Err(too_large(limit + 1));
-    };
-    if bytes == 0 {
-        return Err(ApiError::bad_request(
-            "empty-upload",
-            "the upload is empty; send the bytes of a NIfTI or NRRD file or a zip of a DICOM series",
-        ));
-    }
-    let head = read_head(dest).await?;
+    let (bytes, head) = receive_body(request, dest, limit, SCAN).await?;
     let format = classify_header(&head).ok_or_else(|| {
         ApiError::unprocessable(
             "unknown-scan-format",
@@ -147,6 +98,116 @@ pub async fn receive_scan(
         format,
         gzip: head.starts_with(&[0x1f, 0x8b]),
     })
+}
+
+/// Streams the request's target file to `dest` within `limit` bytes and identifies it: a
+/// NIfTI or NRRD label map, or a single DICOM file (an RTSTRUCT, checked when read).
+pub async fn receive_target(
+    request: Request,
+    dest: &Path,
+    limit: u64,
+) -> Result<ReceivedUpload, ApiError> {
+    let (bytes, head) = receive_body(request, dest, limit, TARGET).await?;
+    let format = classify_header(&head)
+        .filter(|f| !matches!(f, ScanFormat::DicomZip | ScanFormat::DicomDirectory))
+        .ok_or_else(|| {
+            ApiError::unprocessable(
+                "unknown-target-format",
+                format!(
+                    "the target upload ({bytes} bytes, starting {:02x?}) is neither a NIfTI \
+                     file (.nii or .nii.gz), an NRRD file nor a DICOM file (an RTSTRUCT); a \
+                     zip is not accepted: send the one file",
+                    &head[..head.len().min(8)]
+                ),
+            )
+        })?;
+    Ok(ReceivedUpload {
+        path: dest.to_path_buf(),
+        bytes,
+        format,
+        gzip: head.starts_with(&[0x1f, 0x8b]),
+    })
+}
+
+/// Streams the body (raw, or the multipart part `file`) to `dest` within `limit` bytes;
+/// its length and first bytes.
+async fn receive_body(
+    request: Request,
+    dest: &Path,
+    limit: u64,
+    expected: Expected,
+) -> Result<(u64, Vec<u8>), ApiError> {
+    let content_type = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let too_large = |n: u64| {
+        ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "upload-too-large",
+            format!(
+                "the upload is {n} bytes or more; this server accepts {} up to {limit} bytes \
+                 ({} MiB, max_upload_mib)",
+                expected.plural,
+                limit >> 20
+            ),
+        )
+    };
+    if let Some(declared) = request
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+    {
+        if declared > limit {
+            return Err(too_large(declared));
+        }
+    }
+    if content_type.starts_with("application/json") || content_type.starts_with("text/") {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!(
+                "an upload of {} is {} (application/octet-stream, application/zip, \
+                 application/gzip, application/dicom or multipart/form-data with a part \
+                 named \"file\"), not {content_type}",
+                expected.plural, expected.bytes
+            ),
+        ));
+    }
+    let bytes = if content_type.starts_with("multipart/form-data") {
+        let mut form = Multipart::from_request(request, &()).await.map_err(|e| {
+            ApiError::bad_request("bad-multipart", format!("multipart upload: {e}"))
+        })?;
+        loop {
+            let field = form.next_field().await.map_err(|e| {
+                ApiError::bad_request("bad-multipart", format!("multipart upload: {e}"))
+            })?;
+            let Some(field) = field else {
+                return Err(ApiError::bad_request(
+                    "bad-multipart",
+                    "multipart upload has no part named \"file\" holding the file",
+                ));
+            };
+            if field.name() == Some("file") {
+                break write_stream(field, dest, limit).await?;
+            }
+        }
+    } else {
+        write_stream(Body::into_data_stream(request.into_body()), dest, limit).await?
+    };
+    let Some(bytes) = bytes else {
+        return Err(too_large(limit + 1));
+    };
+    if bytes == 0 {
+        return Err(ApiError::bad_request(
+            "empty-upload",
+            format!("the upload is empty; send {}", expected.bytes),
+        ));
+    }
+    Ok((bytes, read_head(dest).await?))
 }
 
 /// Writes a body stream to `dest`; `None` when it passed `limit` (the file is then removed).

@@ -420,15 +420,8 @@ pub fn read_roi_mask(
     ct: &VolumeGeometry,
     ct_frame_of_reference: Option<&str>,
 ) -> Result<Volume<u8>> {
-    let obj = read_single_object(path)?;
+    let obj = read_structure_set(path)?;
     let bad = |reason: String| Error::format(path, reason);
-    let sop_class = text_of(&obj, tags::SOP_CLASS_UID);
-    if sop_class != uids::RT_STRUCTURE_SET_STORAGE {
-        return Err(bad(format!(
-            "not an RT Structure Set (SOPClassUID is `{sop_class}`, Modality `{}`)",
-            text_of(&obj, tags::MODALITY)
-        )));
-    }
     let (number, roi_frame) = find_roi(&obj, roi).map_err(bad)?;
     if let Some(ct_frame) = ct_frame_of_reference {
         if roi_frame != ct_frame {
@@ -451,6 +444,32 @@ pub fn read_roi_mask(
         fill_even_odd(&on_slice, ni, nj, slice);
     }
     Ok(mask)
+}
+
+/// The ROI names (ROIName of StructureSetROISequence, in file order) of the RT Structure Set
+/// at `path`; refuses a DICOM file that is not a structure set.
+pub fn roi_names(path: &Path) -> Result<Vec<String>> {
+    let obj = read_structure_set(path)?;
+    Ok(items_of(&obj, tags::STRUCTURE_SET_ROI_SEQUENCE)
+        .iter()
+        .map(|item| text_of(item, tags::ROI_NAME))
+        .collect())
+}
+
+/// The DICOM object at `path`, refused unless it is an RT Structure Set.
+fn read_structure_set(path: &Path) -> Result<dicom_object::DefaultDicomObject> {
+    let obj = read_single_object(path)?;
+    let sop_class = text_of(&obj, tags::SOP_CLASS_UID);
+    if sop_class != uids::RT_STRUCTURE_SET_STORAGE {
+        return Err(Error::format(
+            path,
+            format!(
+                "not an RT Structure Set (SOPClassUID is `{sop_class}`, Modality `{}`)",
+                text_of(&obj, tags::MODALITY)
+            ),
+        ));
+    }
+    Ok(obj)
 }
 
 /// An element's text, trimmed, or empty.

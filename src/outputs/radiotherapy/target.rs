@@ -280,8 +280,24 @@ pub fn describe_grid(g: &VolumeGeometry) -> String {
     )
 }
 
-/// Reads a NIfTI or NRRD label map, checks it lies on `ct`, and keeps `label` (or nonzero).
-fn read_mask(path: &Path, label: Option<u8>, ct: &VolumeGeometry) -> Result<Volume<u8>> {
+/// The voxels of each label (1–255) of the NIfTI or NRRD label map at `path`, checked to lie
+/// on `ct` as a `--target` mask must; labels with no voxel are left out. What an uploaded
+/// mask is checked with before a request names one of its labels.
+pub fn mask_label_counts(path: &Path, ct: &VolumeGeometry) -> Result<Vec<(u8, usize)>> {
+    let labels = read_label_map(path, ct)?;
+    let mut counts = [0usize; 256];
+    labels
+        .as_slice()
+        .iter()
+        .for_each(|&v| counts[v as usize] += 1);
+    Ok((1..=255u8)
+        .filter(|&l| counts[l as usize] > 0)
+        .map(|l| (l, counts[l as usize]))
+        .collect())
+}
+
+/// Reads a NIfTI or NRRD label map and checks it lies on `ct`.
+fn read_label_map(path: &Path, ct: &VolumeGeometry) -> Result<Volume<u8>> {
     let labels = match detect_scan_format(path)? {
         ScanFormat::Nrrd => {
             let size = std::fs::metadata(path).at(IoOp::Metadata, path)?.len();
@@ -323,6 +339,12 @@ fn read_mask(path: &Path, label: Option<u8>, ct: &VolumeGeometry) -> Result<Volu
             ),
         ));
     }
+    Ok(labels)
+}
+
+/// Reads a NIfTI or NRRD label map, checks it lies on `ct`, and keeps `label` (or nonzero).
+fn read_mask(path: &Path, label: Option<u8>, ct: &VolumeGeometry) -> Result<Volume<u8>> {
+    let labels = read_label_map(path, ct)?;
     let keep = |v: u8| match label {
         Some(l) => v == l,
         None => v != 0,

@@ -2,7 +2,8 @@
 //! manager, and answer JSON, files or a problem. Every handler is also described for
 //! `/openapi.json` by its `utoipa::path` attribute, so the document cannot drift from the code.
 //!
-//! One file per resource: [`scans`], [`simulations`] (jobs), [`results`] (summary, frames,
+//! One file per resource: [`scans`], [`targets`] (a scan's uploaded treatment targets),
+//! [`simulations`] (jobs), [`results`] (summary, frames,
 //! fields, trajectories), [`files`] (every output file), [`listing`] (pages of scans and jobs) and [`operations`] (probes, metrics, unknown routes); the router
 //! that puts them on paths is [`super::server::router`]. What they share is here.
 
@@ -26,6 +27,7 @@ pub mod operations;
 pub mod results;
 pub mod scans;
 pub mod simulations;
+pub mod targets;
 
 // Globs, so that each handler's `utoipa` path description (`__path_<handler>`) comes along
 // with it for `openapi.rs`.
@@ -36,6 +38,7 @@ pub use operations::*;
 pub use results::*;
 pub use scans::*;
 pub use simulations::*;
+pub use targets::*;
 
 /// What every handler shares.
 pub struct AppState {

@@ -13,7 +13,7 @@ use utoipa::ToSchema;
 use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
 use crate::formats::dicom::SeriesChoice;
 use crate::service::ids::ScanId;
-use crate::service::isolation::{ingest_isolated, IngestLimits};
+use crate::service::isolation::{ingest_isolated, IngestLimits, THE_UPLOAD};
 use crate::service::jobs::ScanRemoval;
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::store::{now_rfc3339, ScanRecord};
@@ -27,6 +27,8 @@ pub struct ScanLinks {
     pub self_: String,
     /// Where to POST simulations of it.
     pub simulations: String,
+    /// Its uploaded treatment targets (`PUT .../targets/{name}` adds one).
+    pub targets: String,
 }
 
 /// A stored scan as the API shows it.
@@ -45,6 +47,7 @@ impl From<ScanRecord> for ScanView {
         ScanView {
             links: ScanLinks {
                 simulations: format!("{base}/simulations"),
+                targets: format!("{base}/targets"),
                 self_: base,
             },
             record,
@@ -130,6 +133,7 @@ pub async fn upload_scan(
                 timeout: Duration::from_secs_f64(config.ingest_timeout_s),
                 memory_mib: config.ingest_memory_mib,
             },
+            THE_UPLOAD,
         )?;
         let record = ScanRecord {
             scan_id: ScanId::random(),

@@ -18,6 +18,7 @@ use crate::service::jobs::{CancelOutcome, SubmitRefusal};
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::request::{parse_simulation, SimulationRequest};
 use crate::service::store::{JobRecord, JobRequest};
+use crate::service::targets::{choose, JobTarget};
 
 /// Links of a job.
 #[derive(Debug, Serialize, ToSchema)]
@@ -68,8 +69,8 @@ impl From<JobRecord> for JobStatus {
 #[utoipa::path(
     post, path = "/v1/scans/{id}/simulations", tag = "jobs",
     params(("id" = String, Path, description = "Scan id")),
-    request_body(description = "JSON (trace, points and any `lungmotion run` option) or the \
-        CLI's CSV trace (time_s,volume_ml; volume as change from the scanned state)",
+    request_body(description = "JSON (trace, points, target and any `lungmotion run` option) \
+        or the CLI's CSV trace (time_s,volume_ml; volume as change from the scanned state)",
         content((SimulationRequest = "application/json"), (String = "text/csv"))),
     responses(
         (status = 202, description = "Queued", body = JobStatus,
@@ -78,7 +79,7 @@ impl From<JobRecord> for JobStatus {
         (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations; a target that is a path, or an uploaded target the scan does not have, a label not in its mask, an ROI missing from its RTSTRUCT or unusable on the CT, each named), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
@@ -110,7 +111,9 @@ pub async fn create_simulation(
                 ),
             ));
         }
-        submit(&worker_state, scan, &request)
+        let mut request = request;
+        let target_file = uploaded_target(&worker_state, scan, &mut request)?;
+        submit(&worker_state, scan, &request, target_file.as_deref())
     })
     .await?;
     tracing::info!(job = %record.job_id, scan = %scan, "job queued");
@@ -138,7 +141,7 @@ pub async fn create_simulation(
         (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "No `ct`, a UID that is not one, an unusable trace or option (invalid-simulation), no PACS configured (no-pacs), or a callback_url refused (invalid-callback)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No `ct`, a UID that is not one, an unusable trace or option, an uploaded target (it belongs to a stored scan; invalid-simulation), no PACS configured (no-pacs), or a callback_url refused (invalid-callback)", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Queue full (see Retry-After)", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "Shutting down (see Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
@@ -176,8 +179,22 @@ pub async fn create_pacs_simulation(
                  simulations go to POST /v1/scans/{id}/simulations",
             ));
         }
+        if let Some(JobTarget::Upload(choice)) = &request.target {
+            // An upload is checked against its scan's CT; this CT is not pulled yet.
+            return Err(ApiError::unprocessable(
+                "invalid-simulation",
+                format!(
+                    "target {{\"upload\": {:?}}}: uploaded targets belong to a stored scan and \
+                     are checked against its CT, which a CT still on the PACS is not yet; run \
+                     this series once (its job's scan_id is the stored scan), upload the target \
+                     to PUT /v1/scans/{{scan_id}}/targets/{{name}} and submit to POST \
+                     /v1/scans/{{scan_id}}/simulations, or give a point target here",
+                    choice.upload
+                ),
+            ));
+        }
         // The scan the series becomes once the job has pulled it.
-        submit(&worker_state, ScanId::random(), &request)
+        submit(&worker_state, ScanId::random(), &request, None)
     })
     .await?;
     tracing::info!(job = %record.job_id, scan = %record.scan_id, "job on a PACS series queued");
@@ -198,13 +215,53 @@ fn content_type_of(headers: &HeaderMap) -> String {
         .to_ascii_lowercase()
 }
 
-/// Checks the callback and queues the job, or says why not.
-fn submit(state: &SharedState, scan: ScanId, request: &JobRequest) -> ApiResult<JobRecord> {
+/// The scan's stored file of the target the request names as an upload, checked against its
+/// record (label or ROI present and usable); the request then names the job's copy.
+fn uploaded_target(
+    state: &SharedState,
+    scan: ScanId,
+    request: &mut JobRequest,
+) -> ApiResult<Option<std::path::PathBuf>> {
+    let Some(JobTarget::Upload(choice)) = &mut request.target else {
+        return Ok(None);
+    };
+    let record = state
+        .store
+        .target(scan, &choice.upload)
+        .map_err(store_error)?;
+    let uploaded: Vec<String> = match record {
+        Some(_) => Vec::new(),
+        None => state
+            .store
+            .list_targets(scan)
+            .map_err(store_error)?
+            .into_iter()
+            .map(|r| r.name)
+            .collect(),
+    };
+    choose(choice, record.as_ref(), &uploaded)?;
+    let record = record.ok_or_else(|| ApiError::internal("choose let a missing upload through"))?;
+    choice.file = Some(record.file_name.clone());
+    Ok(Some(state.store.target_file(scan, &record)))
+}
+
+/// Checks the callback and queues the job (with its copy of the uploaded target file
+/// `target`), or says why not.
+fn submit(
+    state: &SharedState,
+    scan: ScanId,
+    request: &JobRequest,
+    target: Option<&std::path::Path>,
+) -> ApiResult<JobRecord> {
     if let Some(url) = &request.callback_url {
         check_callback_url(url, &state.config.callbacks)
             .map_err(|m| ApiError::unprocessable("invalid-callback", m))?;
     }
-    match state.jobs.submit(scan, request).map_err(store_error)? {
+    match state
+        .jobs
+        .submit(scan, request, target)
+        .map_err(store_error)?
+    {
         Ok(record) => Ok(record),
         Err(SubmitRefusal::ShuttingDown) => Err(shutting_down()),
         Err(SubmitRefusal::ScanMissing) => Err(ApiError::not_found(format!("no scan {scan}"))),
