@@ -988,3 +988,85 @@ fn operational_endpoints_answer_and_every_response_has_a_request_id() {
     }
     assert!(doc["paths"]["/v1/scans"]["post"].is_object());
 }
+
+/// A zip of the bundled series twice: as it is, and as a second series (new series and
+/// instance UIDs, series number 2); the first series' UID.
+fn two_series_zip() -> (Vec<u8>, String) {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    let mut names: Vec<_> = std::fs::read_dir(sample("phantom-dicom"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    names.sort();
+    let mut bytes = Vec::new();
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(&mut bytes));
+    let options = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated);
+    let mut first_uid = String::new();
+    for (n, path) in names.iter().enumerate() {
+        zip.start_file(format!("a/{n:03}.dcm"), options).unwrap();
+        zip.write_all(&std::fs::read(path).unwrap()).unwrap();
+        let mut obj = dicom_object::open_file(path).unwrap();
+        first_uid = obj
+            .element(tags::SERIES_INSTANCE_UID)
+            .unwrap()
+            .to_str()
+            .unwrap()
+            .trim_end_matches('\0')
+            .to_string();
+        let put = |obj: &mut dicom_object::DefaultDicomObject, tag, vr, value: String| {
+            obj.put(DataElement::new(tag, vr, PrimitiveValue::from(value)));
+        };
+        put(
+            &mut obj,
+            tags::SERIES_INSTANCE_UID,
+            VR::UI,
+            "1.2.826.0.1.3680043.2.1125.55.2".into(),
+        );
+        put(
+            &mut obj,
+            tags::SOP_INSTANCE_UID,
+            VR::UI,
+            format!("1.2.826.0.1.3680043.2.1125.55.3.{}", n + 1),
+        );
+        put(&mut obj, tags::SERIES_NUMBER, VR::IS, "2".into());
+        obj.update_meta(|meta| {
+            meta.media_storage_sop_instance_uid =
+                format!("1.2.826.0.1.3680043.2.1125.55.3.{}", n + 1);
+        });
+        let mut copy = Vec::new();
+        obj.write_all(&mut copy).unwrap();
+        zip.start_file(format!("b/{n:03}.dcm"), options).unwrap();
+        zip.write_all(&copy).unwrap();
+    }
+    zip.finish().unwrap();
+    (bytes, first_uid)
+}
+
+#[test]
+fn a_scan_keeps_the_series_its_upload_named_for_its_jobs() {
+    let scratch = Scratch::new("series-choice");
+    let server = ServerProcess::start(&scratch.join("data"), &["--workers", "1"]);
+    let (zip, uid) = two_series_zip();
+    // Without a choice: refused, the series listed.
+    assert_problem(
+        server.post_scan_bytes(zip.clone(), "application/zip"),
+        422,
+        &["1.2.826.0.1.3680043.2.1125.55.2"],
+    );
+    let resp = server
+        .client()
+        .post(server.url(&format!("/v1/scans?series=uid:{uid}")))
+        .header("content-type", "application/zip")
+        .body(zip)
+        .send()
+        .unwrap();
+    assert_eq!(resp.status(), 201);
+    let scan: Value = resp.json().unwrap();
+    assert_eq!(scan["series"], format!("uid:{uid}"), "{scan:#}");
+    // The job reads the same series (the server's default would refuse the zip).
+    let job = server.submit(scan["scan_id"].as_str().unwrap(), &tiny_request(2));
+    let done = server.wait_for_state(&job, &["done", "failed"], Duration::from_secs(600));
+    assert_eq!(done["state"], "done", "{done:#}");
+}

@@ -749,6 +749,11 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         pacs_ct: _,
         push: _,
     } = request;
+    // The series the scan was ingested from, whatever the server's default is now.
+    let config = crate::run::RunConfig {
+        series: scan.series.clone().or(config.series),
+        ..config
+    };
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),
         trace: BreathingTrace::new(time_s, volume_ml)?,

@@ -85,6 +85,7 @@ impl PacsAccess {
             upload_bytes: bytes,
             file_name: PULLED_SERIES.into(),
             ingest,
+            series: None,
         };
         store.put_scan(&record, &dir)?;
         Ok(series_uid)

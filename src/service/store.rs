@@ -45,6 +45,11 @@ pub struct ScanRecord {
     /// The ingest summary (the CLI's `ingest.json`).
     #[schema(value_type = Object)]
     pub ingest: serde_json::Value,
+    /// The DICOM series the scan was ingested from when the upload named one (`?series=`)
+    /// or the server's `[run] series` chose it: its jobs and target checks read the same one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<String>)]
+    pub series: Option<crate::formats::dicom::SeriesChoice>,
 }
 
 /// A scan record and the bytes its directory holds.
@@ -746,6 +751,7 @@ mod tests {
             upload_bytes: 5,
             file_name: "scan.nii".into(),
             ingest: serde_json::json!({"elements": 3}),
+            series: None,
         };
         store.put_scan(&scan, &upload).unwrap();
         let back = store.scan(scan.scan_id).unwrap().unwrap();
@@ -818,6 +824,7 @@ mod tests {
             upload_bytes: 2,
             file_name: "scan.nii".into(),
             ingest: serde_json::json!({}),
+            series: None,
         };
         store.put_scan(&scan, &upload).unwrap();
         let id = scan.scan_id;

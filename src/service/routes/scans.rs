@@ -121,7 +121,7 @@ pub async fn upload_scan(
         let config = &worker_state.config;
         // The upload's series choice overrides the server's default for this scan only.
         let run = crate::run::RunConfig {
-            series,
+            series: series.clone(),
             ..config.run.clone()
         };
         // Isolated: a reader crashing on a hostile file must not take the server down.
@@ -142,6 +142,7 @@ pub async fn upload_scan(
             upload_bytes: bytes,
             file_name: file_name.to_string(),
             ingest,
+            series,
         };
         worker_state
             .store

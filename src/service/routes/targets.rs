@@ -177,7 +177,11 @@ fn scan_ct(
     scan: &ScanRecord,
 ) -> ApiResult<(VolumeGeometry, Option<DicomStudyContext>)> {
     let path = state.store.scan_file(scan);
-    let loaded = load_ct_with(&path, &state.config.run.dicom_read_options()).map_err(|e| {
+    let mut options = state.config.run.dicom_read_options();
+    if scan.series.is_some() {
+        options.series = scan.series.clone();
+    }
+    let loaded = load_ct_with(&path, &options).map_err(|e| {
         ApiError::internal(format!(
             "scan {} cannot be read again for a target check: {e}",
             scan.scan_id
