@@ -751,7 +751,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
     } = request;
     // The series the scan was ingested from, whatever the server's default is now.
     let config = crate::run::RunConfig {
-        series: scan.series.clone().or(config.series),
+        series: scan.series_or(config.series),
         ..config
     };
     let inputs = RunInputs {

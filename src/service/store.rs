@@ -52,6 +52,16 @@ pub struct ScanRecord {
     pub series: Option<crate::formats::dicom::SeriesChoice>,
 }
 
+impl ScanRecord {
+    /// The series to read this scan's CT with: the one it was ingested from, else `default`.
+    pub fn series_or(
+        &self,
+        default: Option<crate::formats::dicom::SeriesChoice>,
+    ) -> Option<crate::formats::dicom::SeriesChoice> {
+        self.series.clone().or(default)
+    }
+}
+
 /// A scan record and the bytes its directory holds.
 pub type StoredScan = (ScanRecord, u64);
 

@@ -178,9 +178,7 @@ fn scan_ct(
 ) -> ApiResult<(VolumeGeometry, Option<DicomStudyContext>)> {
     let path = state.store.scan_file(scan);
     let mut options = state.config.run.dicom_read_options();
-    if scan.series.is_some() {
-        options.series = scan.series.clone();
-    }
+    options.series = scan.series_or(options.series);
     let loaded = load_ct_with(&path, &options).map_err(|e| {
         ApiError::internal(format!(
             "scan {} cannot be read again for a target check: {e}",
