@@ -270,8 +270,13 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
     let (tolerance_mm, volume_tolerance_ml) = (0.1, 0.005 * 500.0 * 0.2);
     let mut driver =
         BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone()).unwrap();
-    let keys =
-        VolumeKeyframes::build(&mut driver, 0.0, 500.0, tolerance_mm, volume_tolerance_ml).unwrap();
+    let keys = VolumeKeyframes::build(
+        &mut driver,
+        &[0.0, 500.0],
+        tolerance_mm,
+        volume_tolerance_ml,
+    )
+    .unwrap();
     let r = &keys.report;
     println!("{r:?}");
     for s in &keys.states {

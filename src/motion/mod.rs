@@ -21,6 +21,7 @@ use serde::{Deserialize, Serialize};
 use crate::breathing::{BreathingTrace, OutputInstants};
 use crate::math::V3;
 use crate::model::Material;
+use crate::simulation::driver::DrivenState;
 use crate::simulation::keyframes::{KeyframeReport, VolumeKeyframes};
 use crate::simulation::{BreathingDriver, ImposedMotionShare, QuasiStaticSettings, Scene};
 use crate::{Error, Result};
@@ -203,13 +204,7 @@ pub fn run_motion(
     chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
     let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     let rest = scene.mesh.rest_positions_m.clone();
-    let keyframes = solve_key_volumes(
-        &mut driver,
-        settings,
-        times.len(),
-        (lo, hi),
-        volume_tolerance_ml,
-    )?;
+    let keyframes = solve_key_volumes(&mut driver, settings, &targets, volume_tolerance_ml)?;
     let mut solver = FrameSolver {
         driver,
         keyframes,
@@ -281,22 +276,19 @@ pub fn run_motion(
     })
 }
 
-/// The key volumes frames are interpolated from, spanning `volume_range_ml`: only with the
-/// volume driver, more than two frames and interpolation allowed.
+/// The key volumes the frames at `targets_ml` are interpolated from: only with the volume
+/// driver, more than two frames and interpolation allowed.
 fn solve_key_volumes(
     driver: &mut BreathingDriver,
     settings: &MotionSettings,
-    frame_count: usize,
-    volume_range_ml: (f64, f64),
+    targets_ml: &[f64],
     volume_tolerance_ml: f64,
 ) -> Result<Option<VolumeKeyframes>> {
-    let (lo, hi) = volume_range_ml;
     Ok(match settings.driver {
-        DriverKind::Volume if !settings.solve_every_frame && frame_count > 2 => Some(
+        DriverKind::Volume if !settings.solve_every_frame && targets_ml.len() > 2 => Some(
             VolumeKeyframes::build(
                 driver,
-                lo,
-                hi,
+                targets_ml,
                 settings.interpolation_tolerance_mm,
                 volume_tolerance_ml * 0.2,
             )
@@ -329,6 +321,20 @@ struct FrameSolve {
     interpolated: bool,
 }
 
+impl FrameSolve {
+    /// A frame solved on its own.
+    fn solved(s: &DrivenState) -> Self {
+        FrameSolve {
+            pressure_pa: s.pressure_pa,
+            solves: s.solves,
+            newton_iterations: s.newton_iterations,
+            linear_iterations: s.linear_iterations,
+            residual: s.residual,
+            interpolated: false,
+        }
+    }
+}
+
 impl FrameSolver<'_> {
     /// Writes the positions of the frame whose volume change is `target` mL into `positions`.
     fn positions_at(
@@ -339,6 +345,14 @@ impl FrameSolver<'_> {
     ) -> Result<FrameSolve> {
         match (&self.keyframes, self.kind) {
             (Some(keys), _) => {
+                if let Some(from) = keys.direct_start(target) {
+                    // Across a jump of the shape: solved, continuing from the key on the
+                    // scanned state's side, as the breath reaches it.
+                    self.driver.warm_start(from);
+                    let s = self.driver.solve_volume(target, self.volume_tolerance_ml)?;
+                    positions.copy_from_slice(&s.positions_m);
+                    return Ok(FrameSolve::solved(&s));
+                }
                 keys.positions_at(rest, target, positions);
                 let nearest = keys
                     .states
@@ -368,14 +382,7 @@ impl FrameSolver<'_> {
                         .solve_pressure(-target / self.compliance_ml_per_pa),
                 }?;
                 positions.copy_from_slice(&s.positions_m);
-                Ok(FrameSolve {
-                    pressure_pa: s.pressure_pa,
-                    solves: s.solves,
-                    newton_iterations: s.newton_iterations,
-                    linear_iterations: s.linear_iterations,
-                    residual: s.residual,
-                    interpolated: false,
-                })
+                Ok(FrameSolve::solved(&s))
             }
         }
     }

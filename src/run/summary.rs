@@ -12,6 +12,7 @@ use crate::model::{Material, NodeConstraint};
 use crate::motion::dynamic::DynamicReport;
 use crate::motion::{FrameSummary, MotionReport};
 use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
+use crate::simulation::keyframes::KeyframeReport;
 use crate::simulation::Scene;
 use crate::volume::VolumeGeometry;
 
@@ -187,6 +188,20 @@ pub struct PointTrajectory {
 /// Below one element edge the departure is within the mesh's own approximation of the wall
 /// (the phantom's 500 mL breath at 8 mm: at most 7.1 mm).
 pub const COSTAL_WALL_GAP_WARNING_MIN_MM: f64 = 5.0;
+
+/// One warning per volume interval where the lung's shape jumps between key volumes: where,
+/// which node, by how much, and that the frames there were solved rather than interpolated.
+fn jump_warnings(keys: &KeyframeReport) -> impl Iterator<Item = String> + '_ {
+    keys.direct_intervals.iter().map(|j| {
+        let p = j.rest_position_mm;
+        format!(
+            "the lung's shape does not follow its volume smoothly between {:.0} and {:.0} mL \
+             (node {} at rest LPS ({:.0}, {:.0}, {:.0}) mm is {:.2} mm off the interpolation of \
+             its neighbours: the equilibrium jumps); frames there were solved, not interpolated",
+            j.from_ml, j.to_ml, j.node, p[0], p[1], p[2], j.error_mm
+        )
+    })
+}
 
 /// The costal wall-gap warning bound for elements of `element_size_mm`, mm.
 pub fn costal_wall_gap_warning_mm(element_size_mm: f64) -> f64 {
@@ -469,6 +484,7 @@ impl RunSummary {
         let model = &outcome.model;
         let mut warnings = outcome.summary.warnings.clone();
         warnings.extend(extremes.iter().filter_map(|e| e.wall_gap_warning()));
+        warnings.extend(motion.keyframes.iter().flat_map(jump_warnings));
         let extreme = |kind| extremes.iter().find(|e| e.kind == kind).cloned();
         let groups = ConstraintGroup::ALL
             .iter()

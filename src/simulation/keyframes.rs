@@ -17,6 +17,19 @@
 //! by new keys and the new and failing keys are checked again, so keys gather where the
 //! response bends and a smooth response costs its first sweep only.
 //!
+//! Halving stops where it no longer helps: at [`MIN_KEY_STEP_FRACTION`] of the range, or
+//! when halving a key's intervals left its miss above [`STALLED_MISS_RATIO`] of what it was
+//! (a smooth response's miss falls about 16-fold, a kink's 2-fold). Such a key is not at a
+//! bend more keys would resolve but at a jump: below the scanned volume the compressed
+//! lung can snap from one equilibrium to another (on the CIP lungs at 8 mm a −500 mL dip
+//! kept missing by 2.3 mm near −484 mL with keys 4 mL apart, and halving went on for 94 keys
+//! and 5 minutes before it gave up). The intervals beside such a key become *direct*: the
+//! keys split into smooth segments there, each interpolated on its own (no stencil reaches
+//! across a jump), and a frame whose volume falls inside a direct interval is solved, from
+//! the key on the scanned state's side of it. Every frame then meets the tolerance, by
+//! interpolation or by its own solve, and the report names each jump: where, which node, by
+//! how much.
+//!
 //! The first sweep is solved in ascending volume from the lowest key and each later key is
 //! solved from the key just below it, so all states lie on one gradual-inflation path. The
 //! loaded lung can have more than one equilibrium (on the phantom at 6 mm a mediastinal corner
@@ -39,6 +52,19 @@ pub const FIRST_SWEEP_KEYS: usize = 9;
 /// Keys in one local interpolant.
 const STENCIL: usize = 4;
 
+/// A key whose miss is still above this share of its miss before its intervals were halved
+/// sits at a jump (a smooth response's miss falls about 16-fold, a kink's 2-fold).
+const STALLED_MISS_RATIO: f64 = 0.7;
+
+/// Frames across a stalled key that are solved rather than halving on: about the solves
+/// two more rounds of halving beside it would take.
+const DIRECT_FRAMES_FOR_A_HALVING: usize = 4;
+
+/// Smallest key step refinement makes, as a fraction of the key range (500 mL: 7.8 mL).
+/// A kink from the wall's distance field was met at 15 mL steps on the POPI lungs; a key
+/// still missing at this step sits at a jump.
+pub const MIN_KEY_STEP_FRACTION: f64 = 1.0 / 64.0;
+
 /// Solved key volumes and the interpolant over them.
 #[derive(Debug, Clone)]
 pub struct VolumeKeyframes {
@@ -48,6 +74,8 @@ pub struct VolumeKeyframes {
     pub states: Vec<DrivenState>,
     /// What building the keys measured.
     pub report: KeyframeReport,
+    /// Per interval between neighbouring keys: solved directly (a jump), not interpolated.
+    direct: Vec<bool>,
 }
 
 /// How the keys were chosen and how well they interpolate.
@@ -72,6 +100,23 @@ pub struct KeyframeReport {
     pub linear_iterations: usize,
     /// Solver wall time, s.
     pub solve_time_s: f64,
+    /// Volume intervals where the shape jumps: frames there are solved, not interpolated.
+    pub direct_intervals: Vec<DirectInterval>,
+}
+
+/// A volume interval over which the lung's shape does not follow its volume smoothly.
+#[derive(Debug, Clone, Serialize)]
+pub struct DirectInterval {
+    /// Lower end, mL from the scanned state.
+    pub from_ml: f64,
+    /// Upper end, mL.
+    pub to_ml: f64,
+    /// Node that missed its interpolation most.
+    pub node: usize,
+    /// That node's rest position, LPS mm.
+    pub rest_position_mm: [f64; 3],
+    /// By how much it missed at the key between the two ends, mm.
+    pub error_mm: f64,
 }
 
 /// Where a key's leave-one-out check failed worst.
@@ -118,19 +163,28 @@ fn first_sweep(
 }
 
 impl VolumeKeyframes {
-    /// Solves key volumes covering `lo_ml..=hi_ml` until interpolation reproduces direct
-    /// solves within `tolerance_mm`; each key meets its volume within `volume_tolerance_ml`.
+    /// Solves key volumes covering the frames' volume changes `frames_ml` until
+    /// interpolation reproduces direct solves within `tolerance_mm` (or the frame is solved,
+    /// across a jump); each key meets its volume within `volume_tolerance_ml`.
     pub fn build(
         driver: &mut BreathingDriver,
-        lo_ml: f64,
-        hi_ml: f64,
+        frames_ml: &[f64],
         tolerance_mm: f64,
         volume_tolerance_ml: f64,
     ) -> Result<Self> {
-        if !(lo_ml.is_finite() && hi_ml.is_finite() && lo_ml <= hi_ml) {
+        let (lo_ml, hi_ml) = frames_ml
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        if !(lo_ml.is_finite() && hi_ml.is_finite() && frames_ml.iter().all(|v| v.is_finite())) {
             return Err(Error::Argument {
-                what: "key volume range".into(),
-                reason: format!("{lo_ml} … {hi_ml} mL is not an ordered finite range"),
+                what: "key volumes".into(),
+                reason: format!(
+                    "the frames' volume changes ({} of them, {lo_ml} … {hi_ml} mL) are not a \
+                     finite range",
+                    frames_ml.len()
+                ),
             });
         }
         if !(tolerance_mm.is_finite() && tolerance_mm > 0.0) {
@@ -146,7 +200,7 @@ impl VolumeKeyframes {
             0.5 * (lo_ml + hi_ml) + 0.5 * span,
         );
         let rest = driver.rest_positions().to_vec();
-        Self::refine(&rest, lo, hi, tolerance_mm, |volume_ml, from| {
+        Self::refine(&rest, lo, hi, frames_ml, tolerance_mm, |volume_ml, from| {
             if let Some(below) = from {
                 driver.warm_start(below);
             }
@@ -154,23 +208,33 @@ impl VolumeKeyframes {
         })
     }
 
-    /// The adaptive key placement over `lo..=hi` mL, whatever solves the states: `solve(v,
-    /// from)` returns the equilibrium at volume change `v`, continuing from the solved state
-    /// `from` when given, else from the previous solve.
+    /// The adaptive key placement over `lo..=hi` mL for frames at `frames_ml`, whatever
+    /// solves the states: `solve(v, from)` returns the equilibrium at volume change `v`,
+    /// continuing from the solved state `from` when given, else from the previous solve.
     pub fn refine(
         rest: &[V3],
         lo: f64,
         hi: f64,
+        frames_ml: &[f64],
         tolerance_mm: f64,
         mut solve: impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
     ) -> Result<Self> {
         let mut scratch = vec![V3::zeros(); rest.len()];
         let mut states = first_sweep(lo, hi, &mut solve)?;
-        // The end keys have no keys beyond them to check them against: the checks of their
-        // neighbours cover the intervals beside them.
+        let min_step = (hi - lo) * MIN_KEY_STEP_FRACTION;
+        let mut frames: Vec<f64> = frames_ml.to_vec();
+        frames.sort_by(f64::total_cmp);
+        let frames_within = |a: f64, b: f64| {
+            frames.partition_point(|&v| v <= b) - frames.partition_point(|&v| v < a)
+        };
+        // Per interval (between keys i and i + 1): a jump, solved directly.
+        let mut direct = vec![false; states.len() - 1];
+        let mut jumps: Vec<DirectInterval> = Vec::new();
+        // The end keys of the range and of every smooth segment have no keys beyond them to
+        // check them against: the checks of their neighbours cover the intervals beside them.
         let mut checked = vec![false; states.len()];
-        checked[0] = true;
-        checked[states.len() - 1] = true;
+        // Each key's miss at its last check (NaN before its first).
+        let mut last_miss_mm = vec![f64::NAN; states.len()];
         let mut worst_passed: f64 = 0.0;
         let mut refinements = 0;
         loop {
@@ -178,10 +242,12 @@ impl VolumeKeyframes {
             let mut failing = Vec::new();
             let mut worst: Option<Miss> = None;
             for (k, done) in checked.iter_mut().enumerate() {
-                if *done {
+                let (first, last) = segment(&direct, k);
+                if *done || k == first || k == last {
+                    *done = true;
                     continue;
                 }
-                let miss = leave_one_out(&states, &volumes, k, rest, &mut scratch);
+                let miss = leave_one_out(&states, &volumes, (first, last), k, rest, &mut scratch);
                 tracing::debug!(
                     keys = states.len(),
                     volume_ml = miss.volume_ml,
@@ -189,11 +255,15 @@ impl VolumeKeyframes {
                     node = miss.node,
                     "key volume checked against the interpolant of its neighbours"
                 );
+                let previous = std::mem::replace(&mut last_miss_mm[k], miss.error_mm);
                 if miss.error_mm <= tolerance_mm {
                     *done = true;
                     worst_passed = worst_passed.max(miss.error_mm);
                 } else {
-                    failing.push(k);
+                    // Halving the intervals beside a key cuts a smooth response's miss about
+                    // 16-fold and a kink's 2-fold; a miss that barely moves is a jump.
+                    let stalled = miss.error_mm > STALLED_MISS_RATIO * previous;
+                    failing.push((miss, stalled));
                     if worst.is_none_or(|w| miss.error_mm > w.error_mm) {
                         worst = Some(miss);
                     }
@@ -203,14 +273,54 @@ impl VolumeKeyframes {
                 let mut out = Self::from_states(states, tolerance_mm);
                 out.report.measured_error_mm = worst_passed;
                 out.report.refinements = refinements;
+                out.report.direct_intervals = jumps;
+                out.direct = direct;
                 return Ok(out);
             };
-            // Halve the intervals on both sides of every failing key (interval i lies between
-            // keys i and i + 1; failing keys are never end keys).
+            // A failing key sits at a jump when its intervals are both down to the smallest
+            // step, or when its miss stalled and solving the frames between its neighbours
+            // costs no more than halving further would. The worst such key makes its two
+            // intervals direct, and the keys are checked again with stencils that stop there,
+            // before any key is added (keys near a jump fail only because their stencils
+            // reach across it).
+            let wide = |i: usize| volumes[i + 1] - volumes[i] > min_step * (1.0 + 1e-9);
+            let at_jump = failing
+                .iter()
+                .filter(|(m, stalled)| {
+                    let k = m.key;
+                    (!wide(k - 1) && !wide(k))
+                        || (*stalled
+                            && frames_within(volumes[k - 1], volumes[k + 1])
+                                <= DIRECT_FRAMES_FOR_A_HALVING)
+                })
+                .map(|(m, _)| m)
+                .max_by(|a, b| a.error_mm.total_cmp(&b.error_mm));
+            if let Some(miss) = at_jump {
+                let k = miss.key;
+                direct[k - 1] = true;
+                direct[k] = true;
+                let p = rest[miss.node] * 1e3;
+                jumps.push(DirectInterval {
+                    from_ml: volumes[k - 1],
+                    to_ml: volumes[k + 1],
+                    node: miss.node,
+                    rest_position_mm: [p.x, p.y, p.z],
+                    error_mm: miss.error_mm,
+                });
+                for (j, done) in checked.iter_mut().enumerate() {
+                    let (first, last) = segment(&direct, j);
+                    if j - first < STENCIL || last - j < STENCIL {
+                        *done = false;
+                    }
+                }
+                continue;
+            }
+            // Otherwise halve the intervals beside every failing key (interval i lies between
+            // keys i and i + 1; failing keys are never segment ends).
             let mut split = vec![false; states.len() - 1];
-            for &k in &failing {
-                split[k - 1] = true;
-                split[k] = true;
+            for (miss, _) in &failing {
+                split[miss.key - 1] |= wide(miss.key - 1);
+                split[miss.key] |= wide(miss.key);
             }
             let added = split.iter().filter(|&&s| s).count();
             if states.len() + added > MAX_KEYS {
@@ -225,6 +335,8 @@ impl VolumeKeyframes {
             refinements += 1;
             let mut refined = Vec::with_capacity(states.len() + added);
             let mut refined_checked = Vec::with_capacity(states.len() + added);
+            let mut refined_miss = Vec::with_capacity(states.len() + added);
+            let mut refined_direct = Vec::with_capacity(states.len() + added - 1);
             let mut old = states.into_iter().enumerate().peekable();
             while let Some((i, state)) = old.next() {
                 let split_after = split.get(i).copied().unwrap_or(false);
@@ -239,14 +351,34 @@ impl VolumeKeyframes {
                 };
                 refined.push(state);
                 refined_checked.push(checked[i]);
+                refined_miss.push(last_miss_mm[i]);
                 if let Some(mid) = solved_mid {
                     refined.push(mid);
                     refined_checked.push(false);
+                    refined_miss.push(f64::NAN);
+                    refined_direct.extend([false, false]);
+                } else if let Some(&d) = direct.get(i) {
+                    refined_direct.push(d);
                 }
             }
             states = refined;
             checked = refined_checked;
+            last_miss_mm = refined_miss;
+            direct = refined_direct;
         }
+    }
+
+    /// The direct interval `dv_ml` falls in, if any: the solved key on the scanned state's
+    /// side of it, to continue from.
+    pub fn direct_start(&self, dv_ml: f64) -> Option<&DrivenState> {
+        let i = interval_of(&self.volumes_ml, dv_ml)?;
+        self.direct[i].then(|| {
+            if self.volumes_ml[i + 1] <= 0.0 {
+                &self.states[i + 1]
+            } else {
+                &self.states[i]
+            }
+        })
     }
 
     fn from_states(states: Vec<DrivenState>, tolerance_mm: f64) -> Self {
@@ -269,8 +401,10 @@ impl VolumeKeyframes {
             newton_iterations: states.iter().map(|s| s.newton_iterations).sum(),
             linear_iterations: states.iter().map(|s| s.linear_iterations).sum(),
             solve_time_s: states.iter().map(|s| s.wall_time_s).sum(),
+            direct_intervals: Vec::new(),
         };
         VolumeKeyframes {
+            direct: vec![false; volumes.len().saturating_sub(1)],
             volumes_ml: volumes,
             states,
             report,
@@ -284,14 +418,14 @@ impl VolumeKeyframes {
         out.clear();
         out.resize(self.volumes_ml.len(), 0.0);
         let mut stencil = [0usize; STENCIL];
-        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        let used = self.stencil(dv_ml, &mut stencil);
         lagrange(&self.volumes_ml, &stencil[..used], dv_ml, |k, w| out[k] = w);
     }
 
     /// Node positions at volume change `dv_ml`, written into `out`.
     pub fn positions_at(&self, rest_m: &[V3], dv_ml: f64, out: &mut [V3]) {
         let mut stencil = [0usize; STENCIL];
-        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        let used = self.stencil(dv_ml, &mut stencil);
         interpolate(
             &self.states,
             &self.volumes_ml,
@@ -302,16 +436,59 @@ impl VolumeKeyframes {
         );
     }
 
+    /// The keys interpolating at `dv_ml`: the nearest within its smooth segment.
+    fn stencil(&self, dv_ml: f64, out: &mut [usize; STENCIL]) -> usize {
+        let i = interval_of(&self.volumes_ml, dv_ml).unwrap_or(0);
+        let (first, last) = segment(&self.direct, i);
+        segment_stencil(&self.volumes_ml, (first, last), None, dv_ml, out)
+    }
+
     /// Surface pressure at volume change `dv_ml`, Pa.
     pub fn pressure_at(&self, dv_ml: f64) -> f64 {
         let mut stencil = [0usize; STENCIL];
-        let used = local_stencil(&self.volumes_ml, None, dv_ml, &mut stencil);
+        let used = self.stencil(dv_ml, &mut stencil);
         let mut p = 0.0;
         lagrange(&self.volumes_ml, &stencil[..used], dv_ml, |k, w| {
             p += w * self.states[k].pressure_pa
         });
         p
     }
+}
+
+/// The interval between neighbouring keys that holds `dv_ml` (the end intervals hold the
+/// volumes beyond them); `None` with fewer than two keys.
+fn interval_of(volumes: &[f64], dv_ml: f64) -> Option<usize> {
+    let intervals = volumes.len().checked_sub(1).filter(|&n| n > 0)?;
+    Some(
+        volumes
+            .partition_point(|&v| v <= dv_ml)
+            .saturating_sub(1)
+            .min(intervals - 1),
+    )
+}
+
+/// First and last key of the smooth segment holding key `at`, or the interval from key
+/// `at` to the next (segments end where an interval is direct).
+fn segment(direct: &[bool], at: usize) -> (usize, usize) {
+    let first = direct[..at].iter().rposition(|&d| d).map_or(0, |b| b + 1);
+    let last = direct[at..]
+        .iter()
+        .position(|&d| d)
+        .map_or(direct.len(), |b| at + b);
+    (first, last)
+}
+
+/// [`local_stencil`] within the keys `first..=last` of a smooth segment.
+fn segment_stencil(
+    volumes: &[f64],
+    (first, last): (usize, usize),
+    skip: Option<usize>,
+    dv_ml: f64,
+    out: &mut [usize; STENCIL],
+) -> usize {
+    let used = local_stencil(&volumes[first..=last], skip.map(|k| k - first), dv_ml, out);
+    out[..used].iter_mut().for_each(|k| *k += first);
+    used
 }
 
 /// The (up to) [`STENCIL`] keys nearest `dv_ml` in `volumes` (increasing), `skip` left out,
@@ -370,12 +547,13 @@ fn interpolate(
 fn leave_one_out(
     states: &[DrivenState],
     volumes: &[f64],
+    segment: (usize, usize),
     k: usize,
     rest_m: &[V3],
     scratch: &mut [V3],
 ) -> Miss {
     let mut stencil = [0usize; STENCIL];
-    let used = local_stencil(volumes, Some(k), volumes[k], &mut stencil);
+    let used = segment_stencil(volumes, segment, Some(k), volumes[k], &mut stencil);
     interpolate(
         states,
         volumes,
@@ -436,7 +614,7 @@ mod tests {
         let mut driver = BreathingDriver::new(&scene, -1.0, c, settings.clone()).unwrap();
         let (lo, hi) = (-0.02 * v0, 0.12 * v0);
         let tol_ml = 1e-4 * v0;
-        let keys = VolumeKeyframes::build(&mut driver, lo, hi, 0.01, tol_ml).unwrap();
+        let keys = VolumeKeyframes::build(&mut driver, &[lo, hi], 0.01, tol_ml).unwrap();
         assert!(keys.report.measured_error_mm <= 0.01, "{:?}", keys.report);
         assert!(keys.report.keys >= 5, "{:?}", keys.report);
         // Fresh direct solves at volumes that are not keys.
@@ -489,9 +667,10 @@ mod tests {
         // A smooth stretch plus a node that starts sliding at 713 mL (slope change 0.02
         // mm/mL), as a wall node crossing a cell of the distance field does.
         let x_mm = |v: f64| 0.03 * v + 2e-6 * v * v + 0.02 * (v - 713.0).max(0.0);
-        let keys =
-            VolumeKeyframes::refine(&rest(), 0.0, 1000.0, 0.1, |v, _| Ok(synthetic(v, x_mm)))
-                .unwrap();
+        let keys = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, &[], 0.1, |v, _| {
+            Ok(synthetic(v, x_mm))
+        })
+        .unwrap();
         let r = &keys.report;
         assert!(r.refinements > 0 && r.keys < 40, "{r:?}");
         assert!(r.measured_error_mm <= 0.1, "{r:?}");
@@ -520,7 +699,7 @@ mod tests {
         // A kink below the scan forces a refinement there too.
         let x_mm = |v: f64| 0.03 * v + 0.02 * (-250.0 - v).max(0.0);
         let mut calls: Vec<(f64, Option<f64>)> = Vec::new();
-        let keys = VolumeKeyframes::refine(&rest(), -400.0, 100.0, 0.1, |v, from| {
+        let keys = VolumeKeyframes::refine(&rest(), -400.0, 100.0, &[], 0.1, |v, from| {
             calls.push((v, from.map(|s| s.volume_change_ml)));
             Ok(synthetic(v, x_mm))
         })
@@ -579,7 +758,7 @@ mod tests {
 
     #[test]
     fn a_smooth_response_takes_the_first_sweep_only() {
-        let keys = VolumeKeyframes::refine(&rest(), 0.0, 500.0, 0.1, |v, _| {
+        let keys = VolumeKeyframes::refine(&rest(), 0.0, 500.0, &[], 0.1, |v, _| {
             Ok(synthetic(v, |v| 0.05 * v - 1e-5 * v * v))
         })
         .unwrap();
@@ -588,20 +767,88 @@ mod tests {
     }
 
     #[test]
-    fn a_jump_is_refused_naming_where_and_which_node() {
+    fn a_jump_becomes_a_direct_interval_and_the_rest_is_interpolated_within_the_tolerance() {
         // Two equilibria: node 0 snaps 1 mm at 480 mL. No number of keys interpolates that.
-        let e = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, 0.1, |v, _| {
-            Ok(synthetic(v, |v| {
-                0.03 * v + if v > 480.0 { 1.0 } else { 0.0 }
-            }))
+        let x_mm = |v: f64| 0.03 * v + if v > 480.0 { 1.0 } else { 0.0 };
+        // Many frames (a long recording): narrowing the jump down is cheaper than solving them.
+        let frames: Vec<f64> = (0..=2000).map(|i| i as f64 * 0.5).collect();
+        let mut solves = 0;
+        let keys = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, &frames, 0.1, |v, _| {
+            solves += 1;
+            Ok(synthetic(v, x_mm))
         })
-        .unwrap_err()
-        .to_string();
+        .unwrap();
+        let jumps = &keys.report.direct_intervals;
+        assert_eq!(jumps.len(), 1, "{jumps:?}");
+        let jump = &jumps[0];
+        assert!(jump.from_ml < 480.0 && jump.to_ml > 480.0, "{jump:?}");
         assert!(
-            e.contains("does not follow its volume smoothly near 48")
-                && e.contains("node 0")
-                && e.contains("solve_every_frame"),
-            "{e}"
+            jump.to_ml - jump.from_ml <= 2.0 * 1000.0 / 64.0 + 1e-9,
+            "{jump:?}"
         );
+        assert_eq!(jump.node, 0);
+        assert!(jump.error_mm > 0.1, "{jump:?}");
+        assert!(keys.report.keys < 40, "{:?}", keys.report);
+        // Outside the jump every volume interpolates within the tolerance; inside it the
+        // frame is solved from the key just below it (above the scan, the side the breath
+        // comes from).
+        let mut x = rest();
+        for i in 0..=2000 {
+            let v = i as f64 * 0.5;
+            match keys.direct_start(v) {
+                Some(from) => {
+                    assert!(v >= jump.from_ml && v <= jump.to_ml, "{v}");
+                    let f = from.volume_change_ml;
+                    assert!(
+                        f >= jump.from_ml && f <= v && v - f <= 1000.0 / 64.0,
+                        "{v}: {f}"
+                    );
+                }
+                None => {
+                    keys.positions_at(&rest(), v, &mut x);
+                    let e = (x[0].x * 1e3 - x_mm(v)).abs();
+                    assert!(e <= 0.1, "{v} mL: {e} mm");
+                }
+            }
+        }
+        // Ten frames: the jump is left wide as soon as halving stops helping, for fewer
+        // solves, and no more than a few frames fall inside it.
+        let ten: Vec<f64> = (0..10).map(|i| i as f64 * 111.0).collect();
+        let mut few_solves = 0;
+        let wide = VolumeKeyframes::refine(&rest(), 0.0, 999.0, &ten, 0.1, |v, _| {
+            few_solves += 1;
+            Ok(synthetic(v, x_mm))
+        })
+        .unwrap();
+        let jump = &wide.report.direct_intervals[0];
+        assert!(jump.from_ml < 480.0 && jump.to_ml > 480.0, "{jump:?}");
+        let inside = ten
+            .iter()
+            .filter(|&&v| wide.direct_start(v).is_some())
+            .count();
+        assert!(
+            (1..=DIRECT_FRAMES_FOR_A_HALVING).contains(&inside),
+            "{inside}"
+        );
+        assert!(few_solves < solves, "{few_solves} vs {solves}");
+    }
+
+    #[test]
+    fn below_the_scan_a_jump_is_solved_from_the_key_nearer_the_scan() {
+        let x_mm = |v: f64| 0.03 * v + if v < -300.0 { -2.0 } else { 0.0 };
+        let frames: Vec<f64> = (0..=600).map(|i| i as f64 - 500.0).collect();
+        let keys = VolumeKeyframes::refine(&rest(), -500.0, 100.0, &frames, 0.1, |v, _| {
+            Ok(synthetic(v, x_mm))
+        })
+        .unwrap();
+        let jump = &keys.report.direct_intervals[0];
+        assert!(jump.from_ml < -300.0 && jump.to_ml > -300.0, "{jump:?}");
+        let from = keys.direct_start(-300.0).expect("inside the jump");
+        let f = from.volume_change_ml;
+        assert!(
+            f >= -300.0 && f <= jump.to_ml && f + 300.0 <= 600.0 / 64.0,
+            "{f}"
+        );
+        assert!(keys.direct_start(-450.0).is_none() && keys.direct_start(0.0).is_none());
     }
 }

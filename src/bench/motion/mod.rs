@@ -547,9 +547,6 @@ fn bench_serving(
     repeats: usize,
 ) -> Result<(FieldServing, VolumeKeyframes)> {
     let (targets, volume_tolerance_ml) = frame_targets(trace, settings)?;
-    let (lo, hi) = targets
-        .iter()
-        .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
     let scene = &case.scene;
     let rest_volume_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;
     let t = Instant::now();
@@ -564,8 +561,7 @@ fn bench_serving(
     // The same tolerances as `run_motion`, so these are the keys the cycle served from.
     let keys = VolumeKeyframes::build(
         &mut driver,
-        lo,
-        hi,
+        &targets,
         settings.interpolation_tolerance_mm,
         volume_tolerance_ml * 0.2,
     )?;
