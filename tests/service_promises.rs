@@ -486,3 +486,179 @@ fn the_openapi_document_declares_401s_upload_formats_and_the_run_options() {
     assert!(doc["paths"]["/v1/scans"]["get"].is_object());
     assert!(doc["components"]["schemas"]["JobPage"].is_object());
 }
+
+/// The server of the stored-ingest tests: one worker, 12 mm elements and two phases by
+/// default, so the upload's ingest settings are a job's unless it asks for others.
+fn coarse_server(scratch: &Scratch) -> ServerProcess {
+    let config = scratch.join("service.toml");
+    std::fs::write(
+        &config,
+        "[run]\nelement_size_mm = 12\n[run.motion]\ninstants = { kind = \"phases\", count = 2 }\n\
+         [run.outputs]\nquicklooks = false\n",
+    )
+    .unwrap();
+    ServerProcess::start(
+        &scratch.join("data"),
+        &["--workers", "1", "--config", config.to_str().unwrap()],
+    )
+}
+
+/// The stored ingest of `scan` in the server's data directory.
+fn stored_ingest(server: &ServerProcess, scan: &str) -> PathBuf {
+    server
+        .data_dir()
+        .join("scans")
+        .join(scan)
+        .join("ingest.bin")
+}
+
+/// Runs a two-breath job of `scan` at 12 mm to `done`; its id and summary.
+fn run_coarse_job(server: &ServerProcess, scan: &str) -> (String, Value) {
+    let job = server.submit(scan, &simulation_request(2, &[], 12.0, 2));
+    server.wait_for_state(&job, &["done"], JOB_TIMEOUT);
+    let summary = server.get_json(&format!("/v1/jobs/{job}/summary"));
+    (job, summary)
+}
+
+/// The frames' displacement fields of a finished job, by path.
+fn displacement_fields(server: &ServerProcess, job: &str) -> Vec<(String, Vec<u8>)> {
+    let out = server.data_dir().join("jobs").join(job).join("out");
+    let mut paths = Vec::new();
+    files_under(&out, "", &mut paths);
+    paths.sort();
+    let fields: Vec<(String, Vec<u8>)> = paths
+        .into_iter()
+        .filter(|p| p.ends_with("displacement.nii.gz"))
+        .map(|p| {
+            let bytes = std::fs::read(out.join(&p)).unwrap();
+            (p, bytes)
+        })
+        .collect();
+    assert_eq!(fields.len(), 2, "two phases");
+    fields
+}
+
+#[test]
+fn the_first_job_takes_the_ingest_its_upload_stored_with_the_same_fields() {
+    let scratch = Scratch::new("stored-ingest");
+    let server = coarse_server(&scratch);
+    let scan = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    let stored = stored_ingest(&server, &scan);
+    assert!(stored.is_file(), "the upload stored no ingest");
+    let (job, summary) = run_coarse_job(&server, &scan);
+    assert_eq!(metric(&server, "lungmotion_job_ingests_stored_total"), 1.0);
+    assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 0.0);
+    let timings = &summary["timings_s"];
+    assert!(timings["stored_ingest_read"].is_number(), "{timings}");
+    assert!(timings["load_ct"].is_number(), "{timings}");
+    println!(
+        "phantom at 12 mm: ingest stage {:.3} s from the stored ingest ({} bytes)",
+        timings["ingest"],
+        std::fs::metadata(&stored).unwrap().len()
+    );
+
+    // The same CT ingested by its job: the same fields, byte for byte.
+    let other = server.upload_scan(&sample("phantom-ct.nii.gz"));
+    std::fs::remove_file(stored_ingest(&server, &other)).unwrap();
+    let (own_job, own_summary) = run_coarse_job(&server, &other);
+    assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 1.0);
+    assert!(own_summary["timings_s"].get("stored_ingest_read").is_none());
+    println!(
+        "phantom at 12 mm: ingest stage {:.3} s ingesting",
+        own_summary["timings_s"]["ingest"]
+    );
+    assert_eq!(
+        displacement_fields(&server, &job),
+        displacement_fields(&server, &own_job)
+    );
+    assert_eq!(
+        summary["ingest"]["elements"],
+        own_summary["ingest"]["elements"]
+    );
+    assert_eq!(
+        summary["ingest"]["group_nodes"],
+        own_summary["ingest"]["group_nodes"]
+    );
+
+    // A job with other ingest settings ingests, and leaves the stored ingest alone.
+    let coarser = server.submit(&scan, &simulation_request(2, &[], 14.0, 2));
+    server.wait_for_state(&coarser, &["done"], JOB_TIMEOUT);
+    assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 2.0);
+    assert_eq!(metric(&server, "lungmotion_job_ingests_stored_total"), 1.0);
+
+    // Deleting the scan deletes its stored ingest.
+    assert_eq!(server.delete(&format!("/v1/scans/{scan}")).status(), 204);
+    assert!(!stored.exists());
+}
+
+#[test]
+fn a_truncated_corrupt_or_other_version_stored_ingest_is_ignored_and_the_job_succeeds() {
+    let scratch = Scratch::new("stored-ingest-bad");
+    let server = coarse_server(&scratch);
+    type Spoil = fn(&mut Vec<u8>);
+    let spoils: [(&str, Spoil); 3] = [
+        ("truncated", |b| b.truncate(b.len() / 2)),
+        ("corrupt", |b| {
+            let middle = b.len() / 2;
+            b[middle] ^= 0x01;
+        }),
+        ("other version", |b| {
+            b[8..12].copy_from_slice(&999u32.to_le_bytes())
+        }),
+    ];
+    for (n, (what, spoil)) in spoils.iter().enumerate() {
+        let scan = server.upload_scan(&sample("phantom-ct.nii.gz"));
+        let path = stored_ingest(&server, &scan);
+        let mut bytes = std::fs::read(&path).unwrap();
+        spoil(&mut bytes);
+        std::fs::write(&path, bytes).unwrap();
+        let (_, summary) = run_coarse_job(&server, &scan);
+        assert!(
+            summary["timings_s"].get("stored_ingest_read").is_none(),
+            "{what}: {}",
+            summary["timings_s"]
+        );
+        assert_eq!(
+            metric(&server, "lungmotion_job_ingests_total"),
+            (n + 1) as f64,
+            "{what}"
+        );
+    }
+    assert_eq!(metric(&server, "lungmotion_job_ingests_stored_total"), 0.0);
+    let log = server.log();
+    assert_eq!(
+        log.matches("stored ingest ignored").count(),
+        3,
+        "{}",
+        tail(&log, 30)
+    );
+    for reason in ["header announces", "checksum", "format version 999"] {
+        assert!(log.contains(reason), "{reason}: {}", tail(&log, 30));
+    }
+}
+
+#[test]
+fn a_job_deleted_during_its_ingest_is_cancelled_without_finishing_the_ingest() {
+    use lungmotion::phantom::{generate_thorax_phantom, PhantomSettings};
+    let scratch = Scratch::new("cancel-ingest");
+    // A phantom at 1.25 mm: 304 × 224 × 272 voxels, a clinical CT's ingest in seconds.
+    let phantom = generate_thorax_phantom(&PhantomSettings {
+        spacing_mm: [1.25; 3],
+        ..PhantomSettings::default()
+    })
+    .unwrap();
+    let ct = scratch.join("fine-ct.nii.gz");
+    lungmotion::formats::nifti::write_nifti_ct(&ct, &phantom.ct).unwrap();
+    let server = coarse_server(&scratch);
+    let scan = server.upload_scan(&ct);
+    // Other ingest settings than the upload's, so the job segments and meshes anew.
+    let job = server.submit(&scan, &simulation_request(2, &[], 10.0, 2));
+    wait_until(&server, &job, |s| s["progress"]["stage"] == "ingest");
+    let asked = Instant::now();
+    assert_eq!(server.delete(&format!("/v1/jobs/{job}")).status(), 202);
+    let status = server.wait_for_state(&job, &["cancelled"], JOB_TIMEOUT);
+    let seconds = asked.elapsed().as_secs_f64();
+    println!("1.25 mm phantom: cancelled {seconds:.2} s after a DELETE during the ingest");
+    assert_eq!(status["state"], "cancelled", "{status}");
+    assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 0.0);
+}

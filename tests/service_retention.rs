@@ -143,16 +143,21 @@ fn finished_jobs_and_unused_scans_past_the_age_bound_go_while_live_ones_stay() {
             "lungmotion_retention_removed_bytes_total{kind=\"job\"}"
         ) > 1000.0
     );
-    // The scan directory holds the upload (about 0.5 MB) and its record.
+    // The scan directory holds the upload (about 0.5 MB), its record and its stored ingest,
+    // of the same size for both uploads of the phantom (same CT, same settings).
     let upload_bytes = std::fs::metadata(sample("phantom-ct.nii.gz"))
         .unwrap()
         .len() as f64;
+    let stored_ingest = data.join("scans").join(&live_scan).join("ingest.bin");
+    let stored_bytes = std::fs::metadata(&stored_ingest).unwrap().len() as f64;
+    assert!(stored_bytes > 100_000.0, "{stored_bytes}");
     let scan_bytes = metric(
         &server,
         "lungmotion_retention_removed_bytes_total{kind=\"scan\"}",
     );
     assert!(
-        scan_bytes > upload_bytes && scan_bytes < upload_bytes + 100_000.0,
+        scan_bytes > upload_bytes + stored_bytes
+            && scan_bytes < upload_bytes + stored_bytes + 100_000.0,
         "{scan_bytes}"
     );
     assert!(metric(&server, "lungmotion_store_bytes") > upload_bytes);

@@ -7,12 +7,14 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::lung_model::{
-    build_lung_model, ConstraintGroup, LungModel, LungModelReport, LungModelSettings,
+    build_lung_model_with, ConstraintGroup, LungModel, LungModelReport, LungModelSettings,
+    PrebuiltWall,
 };
 use super::scan::LoadedScan;
 use super::segmentation::{
-    segment_lungs, LungSegmentation, SegmentationReport, SegmentationSettings,
+    segment_lungs_cancellable, LungSegmentation, SegmentationReport, SegmentationSettings,
 };
+use super::Cancel;
 use crate::volume::VolumeGeometry;
 use crate::{Error, Result};
 
@@ -111,8 +113,34 @@ pub struct ScanSummary {
 /// # Ok::<(), lungmotion::Error>(())
 /// ```
 pub fn ingest_scan(scan: &LoadedScan, settings: &IngestSettings) -> Result<IngestOutcome> {
+    ingest_scan_cancellable(scan, settings, Cancel::NEVER)
+}
+
+/// [`ingest_scan`], stopped with [`Error::Cancelled`] once `cancel` is raised (looked at
+/// between the steps of the segmentation and of the model and inside their long loops).
+pub fn ingest_scan_cancellable(
+    scan: &LoadedScan,
+    settings: &IngestSettings,
+    cancel: Cancel<'_>,
+) -> Result<IngestOutcome> {
+    ingest_from_parts(scan, settings, None, None, cancel)
+}
+
+/// The ingest of `scan`, with its segmentation and wall taken from `segmentation` and
+/// `wall` when given (an earlier ingest of the same CT and settings: see
+/// [`super::stored`]) and computed otherwise.
+pub(crate) fn ingest_from_parts(
+    scan: &LoadedScan,
+    settings: &IngestSettings,
+    segmentation: Option<LungSegmentation>,
+    wall: Option<PrebuiltWall>,
+    cancel: Cancel<'_>,
+) -> Result<IngestOutcome> {
     let t0 = Instant::now();
-    let segmentation = segment_lungs(&scan.ct, &settings.segmentation)?;
+    let segmentation = match segmentation {
+        Some(stored) => stored,
+        None => segment_lungs_cancellable(&scan.ct, &settings.segmentation, cancel)?,
+    };
     let report = &segmentation.report;
     check_lung_volume(
         report.right_volume_ml,
@@ -121,7 +149,13 @@ pub fn ingest_scan(scan: &LoadedScan, settings: &IngestSettings) -> Result<Inges
     )?;
     let t_seg = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    let model = build_lung_model(&segmentation.lungs, &segmentation.airways, &settings.model)?;
+    let model = build_lung_model_with(
+        &segmentation.lungs,
+        &segmentation.airways,
+        &settings.model,
+        wall,
+        cancel,
+    )?;
     let t_model = t1.elapsed().as_secs_f64();
 
     let mut warnings = scan.warnings.clone();

@@ -110,11 +110,21 @@ pub fn load_ct(path: &Path) -> Result<LoadedScan> {
 
 /// [`load_ct`] with DICOM options (which series of several to read).
 pub fn load_ct_with(path: &Path, dicom_options: &dicom::DicomReadOptions) -> Result<LoadedScan> {
+    load_ct_cancellable(path, dicom_options, None)
+}
+
+/// [`load_ct_with`], stopped with [`Error::Cancelled`] once `cancel` is raised (a DICOM
+/// series is checked before each slice; a NIfTI or NRRD file is one read).
+pub fn load_ct_cancellable(
+    path: &Path,
+    dicom_options: &dicom::DicomReadOptions,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+) -> Result<LoadedScan> {
     let start = std::time::Instant::now();
     let format = detect_scan_format(path)?;
     let (ct, series, study, warnings) = match format {
         ScanFormat::DicomDirectory | ScanFormat::DicomZip | ScanFormat::DicomFile => {
-            let s = dicom::read_dicom_series_with(path, dicom_options)?;
+            let s = dicom::read_dicom_series_cancellable(path, dicom_options, cancel)?;
             (s.volume, Some(s.info), Some(s.study), s.warnings)
         }
         ScanFormat::Nifti => (nifti::read_nifti(path)?, None, None, Vec::new()),

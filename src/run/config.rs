@@ -346,6 +346,17 @@ impl RunConfig {
         Ok(config)
     }
 
+    /// What the ingest of a scan read with this configuration depends on, as one text: the
+    /// ingest settings and the DICOM read options (the series choice). Configurations with
+    /// the same text ingest a scan alike; the service keys its kept and stored ingests by it.
+    pub fn ingest_identity(&self) -> String {
+        format!(
+            "{:?} {:?}",
+            self.ingest_settings(),
+            self.dicom_read_options()
+        )
+    }
+
     /// The ingest settings these options imply (element size, material, diaphragm).
     pub fn ingest_settings(&self) -> crate::ingest::pipeline::IngestSettings {
         crate::ingest::pipeline::IngestSettings {

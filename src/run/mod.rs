@@ -44,8 +44,10 @@ use crate::breathing::{BreathingTrace, InstantPlan};
 use crate::durable::write_atomic;
 use crate::formats::dicom::DicomStudyContext;
 use crate::ingest::lung_model::ConstraintGroup;
-use crate::ingest::pipeline::{ingest_scan, IngestOutcome};
-use crate::ingest::scan::{load_ct_with, LoadedScan};
+use crate::ingest::pipeline::{ingest_scan_cancellable, IngestOutcome};
+use crate::ingest::scan::{load_ct_cancellable, LoadedScan};
+use crate::ingest::stored::{read_stored_ingest, StoredIngest};
+use crate::ingest::Cancel;
 use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
@@ -137,24 +139,74 @@ pub struct IngestedScan {
 
 impl IngestedScan {
     /// Reads `ct_path` and ingests it with `config`'s settings, reporting the two stages to
-    /// `observer` and stopping between them when it cancels; adds the stages' wall times to
-    /// `timings` (`load_ct`, `ingest`).
+    /// `observer` and stopping when it cancels (between the stages, before each DICOM slice
+    /// and between and inside the ingest's steps); adds the stages' wall times to `timings`
+    /// (`load_ct`, `ingest`).
     pub fn read(
         ct_path: &Path,
         config: &RunConfig,
         observer: &mut dyn RunObserver,
         timings: &mut BTreeMap<String, f64>,
     ) -> Result<Self> {
+        Self::read_using(ct_path, config, None, observer, timings).map(|(read, _)| read)
+    }
+
+    /// [`IngestedScan::read`], taking the segmentation and wall from the stored ingest at
+    /// `stored` (see [`crate::ingest::stored`]) when it was made for this CT with these
+    /// settings; a file that is missing or cannot be trusted is logged and the CT ingested
+    /// anew. Whether the stored ingest was used (then `timings` also holds
+    /// `stored_ingest_read`).
+    pub fn read_using(
+        ct_path: &Path,
+        config: &RunConfig,
+        stored: Option<&Path>,
+        observer: &mut dyn RunObserver,
+        timings: &mut BTreeMap<String, f64>,
+    ) -> Result<(Self, bool)> {
+        let flag = observer.cancel_flag();
+        let cancel = Cancel::new(flag.as_deref());
         observer.stage(RunStage::LoadingScan);
         let t = Instant::now();
-        let scan = load_ct_with(ct_path, &config.dicom_read_options())?;
+        let scan = load_ct_cancellable(ct_path, &config.dicom_read_options(), cancel.flag())?;
         timings.insert("load_ct".to_string(), t.elapsed().as_secs_f64());
         check_cancel(observer, "ingest")?;
         observer.stage(RunStage::Ingest);
         let t = Instant::now();
-        let outcome = ingest_scan(&scan, &config.ingest_settings())?;
+        let settings = config.ingest_settings();
+        let from_file = match stored {
+            Some(path) if path.is_file() => {
+                match read_stored_ingest(path, &config.ingest_identity(), &scan, &settings, cancel)
+                {
+                    Ok(StoredIngest::Used(outcome)) => Some(*outcome),
+                    Ok(StoredIngest::OtherSettings) => {
+                        tracing::info!("the stored ingest has other settings; ingesting");
+                        None
+                    }
+                    Err(e @ Error::Cancelled(_)) => return Err(e),
+                    Err(e) => {
+                        tracing::warn!("stored ingest ignored, ingesting anew: {e}");
+                        None
+                    }
+                }
+            }
+            Some(_) => {
+                tracing::info!("no stored ingest for this scan; ingesting");
+                None
+            }
+            None => None,
+        };
+        let used_stored = from_file.is_some();
+        let outcome = match from_file {
+            Some(outcome) => {
+                if let Some(&read_s) = outcome.summary.timings_s.get("stored_ingest_read") {
+                    timings.insert("stored_ingest_read".to_string(), read_s);
+                }
+                outcome
+            }
+            None => ingest_scan_cancellable(&scan, &settings, cancel)?,
+        };
         timings.insert("ingest".to_string(), t.elapsed().as_secs_f64());
-        Ok(IngestedScan { scan, outcome })
+        Ok((IngestedScan { scan, outcome }, used_stored))
     }
 
     /// Bytes held by its voxel grids and wall distance field (the bulk of it), for a

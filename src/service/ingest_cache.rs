@@ -3,10 +3,13 @@
 //! material, diaphragm motion, series choice and segmentation settings), so several jobs on
 //! one scan read and ingest it once, and a job with other settings ingests anew.
 //!
-//! The upload's own ingest is not among them: it runs in a child process (see
-//! [`super::isolation`]) and its result cannot be handed over (the ingest of the POPI CT is
-//! about 0.6 GB, most of it the CT and the wall's 1 mm distance field, and the model has no
-//! file form yet), so the first job of a scan and settings reads and ingests it once more.
+//! The upload's own ingest runs in a child process (see [`super::isolation`]), whose memory
+//! cannot be handed over (about 0.6 GB for the POPI CT, most of it the CT and the wall's 1 mm
+//! distance field). It leaves its costly part in the scan's directory instead, in the file
+//! form of [`crate::ingest::stored`] (segmentation and wall field, keyed by the same ingest
+//! identity as this cache): the first job of a scan whose settings match reads the CT and
+//! that file and rebuilds the rest of the model (on the POPI CT at 8 mm, 1.4 s of ingest
+//! stage instead of 9.7 s, measured under load); a job with other settings, or a file that cannot be trusted, ingests anew.
 //!
 //! Bounded by `ingest_cache_mib`: the least recently used entries go first, and an entry
 //! larger than the whole budget is not kept.
@@ -32,11 +35,7 @@ impl IngestKey {
     pub fn new(scan: ScanId, config: &RunConfig) -> Self {
         IngestKey {
             scan,
-            settings: format!(
-                "{:?} {:?}",
-                config.ingest_settings(),
-                config.dicom_read_options()
-            ),
+            settings: config.ingest_identity(),
         }
     }
 }
@@ -55,6 +54,8 @@ pub struct IngestCache {
     pub reused: Counter,
     /// Jobs that read and ingested their scan.
     pub ingested: Counter,
+    /// Jobs that read their scan and took its ingest from the file its upload stored.
+    pub stored: Counter,
     /// Bytes held.
     pub bytes: Gauge,
 }
@@ -67,6 +68,7 @@ impl IngestCache {
             entries: Mutex::new(VecDeque::new()),
             reused: Counter::default(),
             ingested: Counter::default(),
+            stored: Counter::default(),
             bytes: Gauge::default(),
         }
     }
@@ -90,6 +92,13 @@ impl IngestCache {
     /// recently used entries beyond the budget.
     pub fn insert_ingested(&self, key: IngestKey, ingested: Arc<IngestedScan>) {
         self.ingested.inc();
+        self.insert(key, ingested);
+    }
+
+    /// Keeps `ingested` under `key` (a job's ingest taken from its scan's stored ingest,
+    /// counted as one), dropping the least recently used entries beyond the budget.
+    pub fn insert_from_stored(&self, key: IngestKey, ingested: Arc<IngestedScan>) {
+        self.stored.inc();
         self.insert(key, ingested);
     }
 

@@ -27,9 +27,12 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::config::IngestIsolation;
+use super::ids::ScanId;
 use super::problem::{ApiError, ApiResult};
+use super::store::Store;
 use crate::ingest::pipeline::ingest_scan;
 use crate::ingest::scan::load_ct_with;
+use crate::ingest::stored::write_stored_ingest;
 use crate::run::RunConfig;
 
 /// Largest request a child reads on stdin and answer the server reads on stdout.
@@ -64,6 +67,9 @@ struct ChildRequest {
     /// What the client calls the file in the refusals (`the upload`).
     #[serde(default = "the_upload")]
     shown_as: String,
+    /// Where to leave the ingest in its file form for the scan's first job, if anywhere.
+    #[serde(default)]
+    stored_ingest: Option<PathBuf>,
 }
 
 /// What a scan upload is called in its refusals.
@@ -87,10 +93,16 @@ enum ChildAnswer {
     },
 }
 
-/// Reads and meshes the upload at `upload` with the ingest settings of `run`; the ingest
-/// summary, or the refusal with the file called `shown_as` ("the upload", "the series pulled
-/// from the PACS"; never a server path).
-pub fn ingest_upload(upload: &Path, run: &RunConfig, shown_as: &str) -> ApiResult<Value> {
+/// Reads and meshes the upload at `upload` with the ingest settings of `run`, and leaves
+/// the ingest at `stored_ingest` in its file form (see [`crate::ingest::stored`]; a failure to
+/// write it is logged, the upload stands); the ingest summary, or the refusal with the file
+/// called `shown_as` ("the upload", "the series pulled from the PACS"; never a server path).
+pub fn ingest_upload(
+    upload: &Path,
+    run: &RunConfig,
+    shown_as: &str,
+    stored_ingest: Option<&Path>,
+) -> ApiResult<Value> {
     let shown = upload.display().to_string();
     // The scan field names the upload (or `upload:entry` in a zip); reasons may list the
     // files a DICOM reader skipped, so their text is redacted too.
@@ -102,24 +114,48 @@ pub fn ingest_upload(upload: &Path, run: &RunConfig, shown_as: &str) -> ApiResul
     };
     let scan = load_ct_with(upload, &run.dicom_read_options()).map_err(refused)?;
     let outcome = ingest_scan(&scan, &run.ingest_settings()).map_err(refused)?;
+    if let Some(path) = stored_ingest {
+        let t = std::time::Instant::now();
+        match write_stored_ingest(path, &run.ingest_identity(), &scan.ct.geometry, &outcome) {
+            Ok(bytes) => tracing::info!(
+                bytes,
+                seconds = t.elapsed().as_secs_f64(),
+                "ingest stored for the scan's jobs"
+            ),
+            Err(e) => tracing::warn!("the ingest could not be stored; jobs ingest anew: {e}"),
+        }
+    }
     serde_json::to_value(&outcome.summary)
         .map_err(|e| ApiError::internal(format!("ingest summary: {e}")))
 }
 
 /// [`ingest_upload`] where `isolation` says, a child held to `limits`, the file called
-/// `shown_as` in refusals. Blocks.
+/// `shown_as` in refusals, the ingest stored at `stored_ingest`. Blocks.
 pub fn ingest_isolated(
     isolation: &IngestIsolation,
     upload: &Path,
     run: &RunConfig,
     limits: IngestLimits,
     shown_as: &str,
+    stored_ingest: Option<&Path>,
 ) -> ApiResult<Value> {
     match isolation {
-        IngestIsolation::Thread => ingest_upload(upload, run, shown_as),
+        IngestIsolation::Thread => ingest_upload(upload, run, shown_as, stored_ingest),
         IngestIsolation::ChildProcess { program } => {
-            in_child(program, upload, run, limits, shown_as)
+            in_child(program, upload, run, limits, shown_as, stored_ingest)
         }
+    }
+}
+
+/// Moves the ingest the upload's child stored at `stored` into scan `id`'s directory, where
+/// its first job looks for it; without it (not written, or the scan already deleted) the job
+/// ingests anew.
+pub fn adopt_stored_ingest(store: &Store, id: ScanId, stored: &Path) {
+    if !stored.is_file() {
+        return;
+    }
+    if let Err(e) = std::fs::rename(stored, store.stored_ingest_file(id)) {
+        tracing::warn!(scan = %id, "cannot keep the stored ingest; the first job ingests anew: {e}");
     }
 }
 
@@ -187,7 +223,12 @@ pub fn serve_ingest_child(input: impl Read, mut output: impl Write) -> std::io::
             };
             let ingest = limited.and_then(|()| {
                 on_worker_sized_thread(|| {
-                    ingest_upload(&request.upload, &request.run, &request.shown_as)
+                    ingest_upload(
+                        &request.upload,
+                        &request.run,
+                        &request.shown_as,
+                        request.stored_ingest.as_deref(),
+                    )
                 })
             });
             match ingest {
@@ -216,6 +257,7 @@ fn in_child(
     run: &RunConfig,
     limits: IngestLimits,
     shown_as: &str,
+    stored_ingest: Option<&Path>,
 ) -> ApiResult<Value> {
     let timeout = limits.timeout;
     let request = serde_json::to_vec(&ChildRequest {
@@ -223,6 +265,7 @@ fn in_child(
         run: run.clone(),
         memory_mib: limits.memory_mib,
         shown_as: shown_as.to_string(),
+        stored_ingest: stored_ingest.map(Path::to_path_buf),
     })
     .map_err(|e| ApiError::internal(format!("ingest child request: {e}")))?;
     let mut child = Command::new(program)
@@ -430,7 +473,7 @@ mod tests {
         let series = dir.join("series");
         std::fs::create_dir_all(&series).unwrap();
         std::fs::write(series.join("IM0001"), b"not a DICOM file").unwrap();
-        let e = ingest_upload(&series, &RunConfig::default(), "the series").unwrap_err();
+        let e = ingest_upload(&series, &RunConfig::default(), "the series", None).unwrap_err();
         assert!(e.status == 422, "{e}");
         assert!(e.detail.contains("the series"), "{e}");
         assert!(!e.detail.contains("the upload"), "{e}");

@@ -532,9 +532,10 @@ impl JobManager {
             }
         }
         drop(board);
-        // A run checks for cancellation between stages and frames and in every Newton and
-        // Krylov iteration, but not inside the ingest; a worker still busy after this is left
-        // behind, and its job, still `running` on disk, is re-run at the next start.
+        // A run checks for cancellation between stages and frames, before each DICOM slice,
+        // between and inside the ingest's steps and in every Newton and Krylov iteration; a
+        // worker still busy after this is left behind, and its job, still `running` on disk,
+        // is re-run at the next start.
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             for t in workers.threads {
@@ -847,7 +848,8 @@ fn push_outputs(shared: &Shared, id: JobId, live: &LiveJob) -> Result<()> {
 }
 
 /// The job's scan read and ingested with its settings: from the cache when an earlier job
-/// did it (no wall times then), else read and ingested now and kept there.
+/// did it (no wall times then), else read now, its ingest taken from the file its upload
+/// stored when that was made with these settings or computed, and kept in the cache.
 fn ingested_scan(
     shared: &Shared,
     scan_id: ScanId,
@@ -861,12 +863,20 @@ fn ingested_scan(
         return Ok((ingested, Default::default()));
     }
     let mut timings = Default::default();
-    let ingested = Arc::new(IngestedScan::read(
+    let stored = shared.store.stored_ingest_file(scan_id);
+    let (ingested, used_stored) = IngestedScan::read_using(
         &inputs.ct_path,
         config,
+        Some(&stored),
         observer,
         &mut timings,
-    )?);
-    shared.ingests.insert_ingested(key, ingested.clone());
+    )?;
+    let ingested = Arc::new(ingested);
+    if used_stored {
+        tracing::info!(scan = %scan_id, "ingest taken from the scan's stored ingest");
+        shared.ingests.insert_from_stored(key, ingested.clone());
+    } else {
+        shared.ingests.insert_ingested(key, ingested.clone());
+    }
     Ok((ingested, timings))
 }

@@ -213,8 +213,8 @@ impl ServiceMetrics {
             .inc();
     }
 
-    /// Adds the ingest cache's series: jobs that reused an ingest, jobs that ingested, and
-    /// the bytes the cache holds.
+    /// Adds the ingest cache's series: jobs that reused an ingest, jobs that ingested, jobs
+    /// that took their scan's stored ingest, and the bytes the cache holds.
     pub fn register_ingest_cache(&self, cache: &IngestCache) {
         let mut registry = self.registry.lock().unwrap_or_else(|p| p.into_inner());
         registry.register(
@@ -226,6 +226,11 @@ impl ServiceMetrics {
             "lungmotion_job_ingests",
             "Jobs that read and ingested their scan",
             cache.ingested.clone(),
+        );
+        registry.register(
+            "lungmotion_job_ingests_stored",
+            "Jobs that read their scan and took its segmentation and wall from the ingest its upload stored",
+            cache.stored.clone(),
         );
         registry.register(
             "lungmotion_ingest_cache_bytes",

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 
 use super::config::IngestIsolation;
 use super::ids::ScanId;
-use super::isolation::{ingest_isolated, IngestLimits};
+use super::isolation::{adopt_stored_ingest, ingest_isolated, IngestLimits};
 use super::pacs_settings::PacsSettings;
 use super::store::{now_rfc3339, PacsSeries, ScanRecord, Store};
 use crate::pacs::{pull_series, push_with, PushReport};
@@ -65,12 +65,14 @@ impl PacsAccess {
             .filter_map(|f| std::fs::metadata(f).ok())
             .map(|m| m.len())
             .sum();
+        let stored_ingest = staging.0.join("ingest.bin");
         let ingest = ingest_isolated(
             &self.isolation,
             &dir,
             run,
             self.limits,
             PULLED_SERIES_SHOWN_AS,
+            Some(&stored_ingest),
         )
         .map_err(|e| {
             Error::Ingest(format!(
@@ -88,6 +90,7 @@ impl PacsAccess {
             series: None,
         };
         store.put_scan(&record, &dir)?;
+        adopt_stored_ingest(store, scan_id, &stored_ingest);
         Ok(series_uid)
     }
 

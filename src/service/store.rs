@@ -314,6 +314,7 @@ pub enum TargetStored {
 }
 
 const SCAN_RECORD: &str = "scan.json";
+const STORED_INGEST: &str = "ingest.bin";
 const JOB_RECORD: &str = "job.json";
 const JOB_REQUEST: &str = "request.json";
 const TARGET_RECORD: &str = "target.json";
@@ -371,6 +372,12 @@ impl Store {
     /// The uploaded file of a scan.
     pub fn scan_file(&self, record: &ScanRecord) -> PathBuf {
         self.scan_dir(record.scan_id).join(&record.file_name)
+    }
+
+    /// Where the ingest of a scan's upload is stored (see [`crate::ingest::stored`]); inside
+    /// the scan's directory, so deleting the scan deletes it and retention counts its bytes.
+    pub fn stored_ingest_file(&self, id: ScanId) -> PathBuf {
+        self.scan_dir(id).join(STORED_INGEST)
     }
 
     /// Stores a scan: moves the received `upload` in and writes its record, all at once.

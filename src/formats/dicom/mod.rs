@@ -23,7 +23,9 @@ use crate::formats::archive::ArchiveLimits;
 use crate::volume::Volume;
 
 pub(crate) use read::read_single_object;
-pub use read::{read_dicom_series, read_dicom_series_with, SeriesChoice};
+pub use read::{
+    read_dicom_series, read_dicom_series_cancellable, read_dicom_series_with, SeriesChoice,
+};
 pub use study::{ContentKey, DicomStudyContext, SliceReference};
 pub(crate) use write::put_study_attributes;
 pub use write::{write_ct_series, DerivedSeries, HuSample, RespiratoryPhase};

@@ -10,7 +10,8 @@ use super::mesh::mesh_lungs;
 use super::paint::paint_groups;
 use super::report::{summarise, LungModelReport, MaskVoxels, StepClock};
 use super::settings::{LungModelSettings, LEFT_LUNG};
-use super::wall::build_wall;
+use super::wall::{build_wall, PrebuiltWall};
+use crate::ingest::Cancel;
 use crate::model::grid::GridMesh;
 use crate::model::{ConstraintSet, SignedDistanceField, VoxelGrid};
 use crate::volume::Volume;
@@ -70,31 +71,45 @@ pub fn build_lung_model(
     airways: &Volume<u8>,
     settings: &LungModelSettings,
 ) -> Result<LungModel> {
+    build_lung_model_with(lungs, airways, settings, None, Cancel::NEVER)
+}
+
+/// [`build_lung_model`] with the wall field `prebuilt` for these masks and settings when
+/// there is one (refused unless it lies on the grid this build samples), stopped with
+/// [`Error::Cancelled`] once `cancel` is raised (looked at after each step and inside the
+/// wall's long loops).
+pub fn build_lung_model_with(
+    lungs: &Volume<u8>,
+    airways: &Volume<u8>,
+    settings: &LungModelSettings,
+    prebuilt: Option<PrebuiltWall>,
+    cancel: Cancel<'_>,
+) -> Result<LungModel> {
     let start = Instant::now();
-    let mut steps = StepClock::new(start);
+    let mut steps = StepClock::new(start, cancel);
     settings.validate()?;
     check_inputs(lungs, airways, settings)?;
     let mask = MaskVoxels::count(lungs);
-    steps.mark("checks and voxel counts");
+    steps.mark("checks and voxel counts")?;
 
     // Cubic lattice over the lungs, and each cell's lung by partial-volume rule.
     let lattice = CellLattice::covering(lungs, settings.element_size_mm)?;
     let cell_lung = lattice.classify_cells(lungs, settings.occupancy_threshold);
-    steps.mark("lattice and cell classes");
+    steps.mark("lattice and cell classes")?;
     let cells = shape_lung_cells(&cell_lung, lattice.cells);
-    steps.mark("cell shaping");
+    steps.mark("cell shaping")?;
     let meshes = mesh_lungs(&lattice, &cells, settings.material, mask.per_lung)?;
-    steps.mark("mesh");
+    steps.mark("mesh")?;
 
     // The wall: distance to the CT lung surface; then groups and constraints on it.
-    let wall = build_wall(lungs, &lattice, &mut steps)?;
+    let wall = build_wall(lungs, &lattice, &mut steps, prebuilt)?;
     let groups = assign_groups(lungs, airways, settings, &meshes, &wall.wall);
-    steps.mark("groups and hilum");
+    steps.mark("groups and hilum")?;
     let nodes = constrain_nodes(&meshes, &groups.node_group, &wall.wall, settings)?;
     let fit = wall_rest_fit(&meshes.grid_mesh.mesh, &nodes.sliding, &wall.wall);
-    steps.mark("constraints");
+    steps.mark("constraints")?;
     let groups_volume = paint_groups(lungs, &lattice, &meshes, &groups.node_group)?;
-    steps.mark("groups painted on the CT grid");
+    steps.mark("groups painted on the CT grid")?;
 
     let mut report = summarise(settings, &mask, &cells, &meshes, &wall, &groups, &fit);
     report.wall_time_s = start.elapsed().as_secs_f64();

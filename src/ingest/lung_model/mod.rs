@@ -81,10 +81,11 @@ mod report;
 mod settings;
 mod wall;
 
-pub use build::{build_lung_model, LungModel};
+pub use build::{build_lung_model, build_lung_model_with, LungModel};
 pub use groups::{BoundaryCondition, ConstraintGroup, DIAPHRAGM_MAX_NORMAL_Z};
 pub use report::LungModelReport;
 pub use settings::{
     DiaphragmMotion, LungModelSettings, SlidingMode, DEFAULT_ELEMENT_SIZE_MM, LEFT_LUNG,
     MAX_ELEMENT_SIZE_MM, MIN_ELEMENT_SIZE_MM, RIGHT_LUNG,
 };
+pub use wall::PrebuiltWall;

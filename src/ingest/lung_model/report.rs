@@ -16,7 +16,9 @@ use super::settings::{
     lung_name, DiaphragmMotion, LungModelSettings, SlidingMode, LEFT_LUNG, RIGHT_LUNG,
 };
 use super::wall::WallBuild;
+use crate::ingest::Cancel;
 use crate::volume::Volume;
+use crate::Result;
 
 /// What the model builder did, for the ingest report.
 #[derive(Debug, Clone, Serialize)]
@@ -84,29 +86,35 @@ pub struct LungModelReport {
     pub step_times_s: Vec<(String, f64)>,
 }
 
-/// Step timer of the build: records (step, seconds since the previous mark) and logs each.
-pub(super) struct StepClock {
+/// Step timer of the build: records (step, seconds since the previous mark) and logs each;
+/// where a cancelled build stops.
+pub(super) struct StepClock<'c> {
     last: Instant,
     /// The steps timed so far.
     pub(super) times: Vec<(String, f64)>,
+    /// The flag looked at after each step and inside the long ones.
+    pub(super) cancel: Cancel<'c>,
 }
 
-impl StepClock {
-    /// A clock whose first step starts at `start`.
-    pub(super) fn new(start: Instant) -> Self {
+impl<'c> StepClock<'c> {
+    /// A clock whose first step starts at `start`, stopping when `cancel` is raised.
+    pub(super) fn new(start: Instant, cancel: Cancel<'c>) -> Self {
         StepClock {
             last: start,
             times: Vec::new(),
+            cancel,
         }
     }
 
-    /// Records the time since the previous mark under `step`.
-    pub(super) fn mark(&mut self, step: &str) {
+    /// Records the time since the previous mark under `step`; [`crate::Error::Cancelled`]
+    /// when the flag was raised meanwhile.
+    pub(super) fn mark(&mut self, step: &str) -> Result<()> {
         let now = Instant::now();
         let seconds = (now - self.last).as_secs_f64();
         tracing::debug!(step, seconds, "lung model step");
         self.times.push((step.to_string(), seconds));
         self.last = now;
+        self.cancel.check("the lung model's construction")
     }
 }
 

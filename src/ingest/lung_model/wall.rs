@@ -10,10 +10,11 @@ use super::report::StepClock;
 use ndarray::Zip;
 
 use crate::ingest::segmentation::crop::Crop;
-use crate::ingest::segmentation::morphology::{grid_view, squared_distance_mm2};
+use crate::ingest::segmentation::morphology::{grid_view, squared_distance_mm2_cancellable};
+use crate::ingest::Cancel;
 use crate::model::SignedDistanceField;
 use crate::volume::Volume;
-use crate::Result;
+use crate::{Error, Result};
 
 /// Elements of margin between the lattice box and the wall field's border.
 const WALL_MARGIN_CELLS: i64 = 2;
@@ -51,36 +52,69 @@ impl WallGrid {
     }
 }
 
-/// Builds the wall over `lattice` from the CT lung mask.
+/// A wall built earlier from the same lung mask and element size (the upload's stored
+/// ingest, see [`crate::ingest::stored`]), with what the report says of it.
+#[derive(Debug, Clone)]
+pub struct PrebuiltWall {
+    /// The smoothed distance field, metres.
+    pub field: SignedDistanceField,
+    /// Lung voxels of the CT mask touching the other lung.
+    pub contact_voxels: usize,
+}
+
+/// Builds the wall over `lattice` from the CT lung mask, or takes `prebuilt` when it lies on
+/// the very grid this build would sample (else the build is refused: a stale or foreign
+/// field is never used).
 pub(super) fn build_wall(
     lungs: &Volume<u8>,
     lattice: &CellLattice,
     steps: &mut StepClock,
+    prebuilt: Option<PrebuiltWall>,
 ) -> Result<WallBuild> {
     let g = &lungs.geometry;
     let finest_ct_mm = g.spacing_mm.iter().cloned().fold(f64::INFINITY, f64::min);
     let coarsest_ct_mm = g.spacing_mm.iter().cloned().fold(0.0, f64::max);
     let grid = WallGrid::refining(lattice, finest_ct_mm);
-    let contact = contact_voxels(lungs);
-    let inside = sample_inside(lungs, &contact, &grid);
-    steps.mark("wall: samples inside the lungs");
-
-    // One CT voxel of Gaussian smoothing rounds the voxel staircase into continuous normals.
     let s_mm = grid.spacing_mm;
     let s_m = s_mm * 1e-3;
+    if let Some(prebuilt) = prebuilt {
+        let f = &prebuilt.field;
+        let origin_m = grid.origin_mm * 1e-3;
+        if f.samples != grid.dims || f.spacing_m != [s_m; 3] || f.origin_m != origin_m {
+            return Err(Error::Ingest(format!(
+                "the stored wall field ({:?} samples of {:?} m from {:?} m) is not the one \
+                 this lung mask gives ({:?} samples of {s_m} m from {:?} m)",
+                f.samples,
+                f.spacing_m,
+                f.origin_m.as_slice(),
+                grid.dims,
+                origin_m.as_slice()
+            )));
+        }
+        steps.mark("wall: stored field")?;
+        return Ok(WallBuild {
+            wall: prebuilt.field,
+            contact_voxels: prebuilt.contact_voxels,
+        });
+    }
+    let contact = contact_voxels(lungs);
+    let inside = sample_inside(lungs, &contact, &grid, steps.cancel);
+    steps.mark("wall: samples inside the lungs")?;
+
+    // One CT voxel of Gaussian smoothing rounds the voxel staircase into continuous normals.
     let ct_sigma = (coarsest_ct_mm / s_mm).clamp(0.5, 4.0);
-    let mut signed = signed_distance(&inside, grid.dims);
+    let mut signed = signed_distance(&inside, grid.dims, steps.cancel)?;
     drop(inside);
-    steps.mark("wall: signed distance");
+    steps.mark("wall: signed distance")?;
     let weights = gaussian_weights(ct_sigma);
     blur_rows_and_columns(&mut signed, grid.dims, &weights);
-    steps.mark("wall: smoothing");
+    steps.mark("wall: smoothing")?;
     // The blur across slices writes the field in metres directly: one pass and one
     // volume-sized buffer fewer than blurring in place and converting after.
     let anatomy_m = blur_slices_to_metres(&signed, grid.dims, &weights, s_m);
     drop(signed);
     let anatomy = SignedDistanceField::new(grid.origin_mm * 1e-3, [s_m; 3], grid.dims, anatomy_m)?;
-    steps.mark("wall: field in metres");
+    steps.mark("wall: field in metres")?;
 
     Ok(WallBuild {
         wall: anatomy,
@@ -90,7 +124,14 @@ pub(super) fn build_wall(
 
 /// 1 at each wall sample whose nearest CT voxel is inside: a lung voxel not touching the
 /// other lung (so touching lungs stay two surfaces); 0 elsewhere.
-fn sample_inside(lungs: &Volume<u8>, contact: &[usize], grid: &WallGrid) -> Vec<u8> {
+/// Once `cancel` is raised the remaining slabs are left empty (the caller's next step
+/// check stops the build).
+fn sample_inside(
+    lungs: &Volume<u8>,
+    contact: &[usize],
+    grid: &WallGrid,
+    cancel: Cancel<'_>,
+) -> Vec<u8> {
     let g = &lungs.geometry;
     let [nx, ny, _] = grid.dims;
     let n_samples: usize = grid.dims.iter().product();
@@ -113,6 +154,9 @@ fn sample_inside(lungs: &Volume<u8>, contact: &[usize], grid: &WallGrid) -> Vec<
         .par_chunks_mut(nx * ny)
         .enumerate()
         .for_each(|(k, slab)| {
+            if cancel.raised() {
+                return;
+            }
             for j in 0..ny {
                 for i in 0..nx {
                     let p = origin_mm + Vector3::new(i as f64, j as f64, k as f64) * s_mm;
@@ -198,12 +242,12 @@ fn dilate_columns(input: &[u8], out: &mut [u8], nx: usize) {
 
 /// Signed Euclidean distance in samples to the boundary of `inside` (negative inside; half
 /// a sample puts the surface between samples).
-fn signed_distance(inside: &[u8], dims: [usize; 3]) -> Vec<f32> {
+fn signed_distance(inside: &[u8], dims: [usize; 3], cancel: Cancel<'_>) -> Result<Vec<f32>> {
     // Unit spacing measures in samples, where the squared distances are exact integers.
     // Without a sample on one side the distance is capped rather than infinite, so the
     // field stays finite.
     const FAR: f32 = 1e12;
-    let mut signed = squared_distance_mm2(inside, dims, [1.0; 3], true, None);
+    let mut signed = squared_distance_mm2_cancellable(inside, dims, [1.0; 3], true, None, cancel)?;
     signed
         .par_iter_mut()
         .zip(inside)
@@ -213,11 +257,12 @@ fn signed_distance(inside: &[u8], dims: [usize; 3]) -> Vec<f32> {
     // by one: that box's border is all outside, and any sample beyond it is farther than its
     // projection onto the border. So the second transform runs on that box only.
     let Some((lo, hi)) = bounding_box_of_set(inside, dims) else {
-        return signed;
+        return Ok(signed);
     };
     let crop = Crop::around(lo, hi, [1; 3], dims);
     let inside_crop = crop.extract(inside, dims, |v| v);
-    let to_outside = squared_distance_mm2(&inside_crop, crop.dims, [1.0; 3], false, None);
+    let to_outside =
+        squared_distance_mm2_cancellable(&inside_crop, crop.dims, [1.0; 3], false, None, cancel)?;
     Zip::from(crop.view_mut(&mut signed, dims))
         .and(grid_view(&inside_crop, crop.dims))
         .and(grid_view(&to_outside, crop.dims))
@@ -226,7 +271,7 @@ fn signed_distance(inside: &[u8], dims: [usize; 3]) -> Vec<f32> {
                 *d = -(dout.min(FAR).sqrt() - 0.5);
             }
         });
-    signed
+    Ok(signed)
 }
 
 /// Smallest and largest sample indices of the non-zero samples of `mask`, if any.
@@ -369,6 +414,7 @@ fn blur_line(line: &mut [f32], input: &mut Vec<f32>, weights: &[f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ingest::segmentation::morphology::squared_distance_mm2;
     use crate::volume::VolumeGeometry;
 
     /// A pseudo-random mask: a ball with holes and specks, so both sides have near and far
@@ -405,10 +451,14 @@ mod tests {
                     }
                 })
                 .collect();
-            assert_eq!(signed_distance(&inside, dims), full, "{dims:?}");
+            assert_eq!(
+                signed_distance(&inside, dims, Cancel::NEVER).unwrap(),
+                full,
+                "{dims:?}"
+            );
         }
         // Without any inside sample the field is the capped distance everywhere.
-        let empty = signed_distance(&[0u8; 8], [2, 2, 2]);
+        let empty = signed_distance(&[0u8; 8], [2, 2, 2], Cancel::NEVER).unwrap();
         assert!(empty.iter().all(|&d| d == 1e6 - 0.5), "{empty:?}");
     }
 

@@ -148,12 +148,13 @@ pub(super) fn split_touching_lungs(
         ..*g
     };
     // Half a voxel, but at least 1 mm: finer steps only move the seeds, not the watershed cut.
-    steps.mark("left/right: distance map");
+    steps.mark("left/right: distance map")?;
     let step_mm = (0.5 * g.spacing_mm.iter().copied().fold(f64::INFINITY, f64::min)).max(1.0);
     let mut r = step_mm;
     let mut seeds = None;
     let mut core = vec![0u8; mask.len()];
     while r <= settings.separation_max_depth_mm {
+        steps.cancel.check("the separation of the lungs")?;
         let r2 = (r * r) as f32;
         core.par_iter_mut()
             .zip(&depth2)
@@ -198,7 +199,7 @@ pub(super) fn split_touching_lungs(
             settings.separation_max_depth_mm
         )));
     };
-    steps.mark("left/right: erosion until two cores");
+    steps.mark("left/right: erosion until two cores")?;
     watershed_from_seeds(&mut labels_crop, &depth2, cd, step_mm * 0.5);
     let mut labels = vec![0u8; g.voxel_count()];
     Zip::from(crop.view_mut(&mut labels, dims))

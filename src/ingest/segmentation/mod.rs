@@ -68,6 +68,7 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
+use crate::ingest::Cancel;
 use crate::volume::{Volume, VolumeGeometry};
 use crate::{Error, Result};
 
@@ -124,18 +125,28 @@ pub fn segment_lungs(
     ct: &Volume<f32>,
     settings: &SegmentationSettings,
 ) -> Result<LungSegmentation> {
+    segment_lungs_cancellable(ct, settings, Cancel::NEVER)
+}
+
+/// [`segment_lungs`], stopped with [`Error::Cancelled`] once `cancel` is raised (looked at
+/// after each step and inside the long ones).
+pub fn segment_lungs_cancellable(
+    ct: &Volume<f32>,
+    settings: &SegmentationSettings,
+    cancel: Cancel<'_>,
+) -> Result<LungSegmentation> {
     let start = Instant::now();
-    let mut steps = Steps::new(start);
+    let mut steps = Steps::new(start, cancel);
     settings.validate()?;
     let grid = ScanGrid::of(ct)?;
     let mut warnings = Vec::new();
     let mut dropped = DroppedAir::default();
 
     let body = segment_body(ct, &grid, settings)?;
-    steps.mark("body");
+    steps.mark("body")?;
     let threshold_hu = choose_threshold_hu(ct, &body.mask, settings, &mut warnings);
     let mut lung_air = lung_sized_air(ct, &body.mask, threshold_hu, &grid, settings, &mut dropped)?;
-    steps.mark("threshold and air components");
+    steps.mark("threshold and air components")?;
     let airways = remove_airways(
         ct,
         &mut lung_air,
@@ -145,7 +156,7 @@ pub fn segment_lungs(
         settings,
         &mut warnings,
     );
-    steps.mark("airways");
+    steps.mark("airways")?;
     let sides = label_left_right(
         lung_air,
         airways.midline_x_mm,
@@ -156,13 +167,20 @@ pub fn segment_lungs(
         &mut warnings,
     )?;
     let mut labels = sides.labels;
-    steps.mark("left/right: watershed and labels");
-    refine_lungs(&mut labels, &body.mask, &grid, settings, &mut dropped);
-    steps.mark("closing and hole filling");
+    steps.mark("left/right: watershed and labels")?;
+    refine_lungs(
+        &mut labels,
+        &body.mask,
+        &grid,
+        settings,
+        &mut dropped,
+        cancel,
+    )?;
+    steps.mark("closing and hole filling")?;
     let airway = airways_outside_lungs(airways.mask, &labels);
     let counts = count_voxels(&labels, &airway)?;
     warn_cut_by_field_of_view(&labels, &counts, &grid, &mut warnings);
-    steps.mark("airways output and volumes");
+    steps.mark("airways output and volumes")?;
 
     let g = grid.geometry;
     let voxel_ml = grid.voxel_ml;
@@ -458,12 +476,15 @@ fn refine_lungs(
     grid: &ScanGrid,
     settings: &SegmentationSettings,
     dropped: &mut DroppedAir,
-) {
+    cancel: Cancel<'_>,
+) -> Result<()> {
     for label in [RIGHT_LUNG, LEFT_LUNG] {
+        cancel.check("the lung refinement")?;
         let (n, v) = refine_lung(labels, body, label, &grid.geometry, grid.axial, settings);
         dropped.count += n;
         dropped.voxels += v;
     }
+    Ok(())
 }
 
 /// Step 7, airways output: the grown airway minus the final lungs, i.e. the trachea and main

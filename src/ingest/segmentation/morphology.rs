@@ -11,6 +11,9 @@ use ndarray::parallel::prelude::*;
 use ndarray::{ArrayView3, ArrayViewMut2, ArrayViewMut3, Axis};
 use rayon::prelude::*;
 
+use crate::ingest::Cancel;
+use crate::Result;
+
 /// The voxel axis closest to the patient's z (cranio-caudal) axis, and whether LPS z grows
 /// with the index along it (superior = higher index).
 pub(crate) fn axial_axis(direction_lps: &[[f64; 3]; 3]) -> (usize, bool) {
@@ -184,6 +187,29 @@ pub(crate) fn squared_distance_mm2(
     feature_is_set: bool,
     in_slices_across: Option<usize>,
 ) -> Vec<f32> {
+    squared_distance_mm2_cancellable(
+        mask,
+        dims,
+        spacing_mm,
+        feature_is_set,
+        in_slices_across,
+        Cancel::NEVER,
+    )
+    .expect("a transform nothing cancels ends")
+}
+
+/// [`squared_distance_mm2`], stopped with [`crate::Error::Cancelled`] once `cancel` is
+/// raised: each row and line looks at it first (and is skipped once it is up), so a large
+/// transform stops within one line's work per thread.
+pub(crate) fn squared_distance_mm2_cancellable(
+    mask: &[u8],
+    dims: [usize; 3],
+    spacing_mm: [f64; 3],
+    feature_is_set: bool,
+    in_slices_across: Option<usize>,
+    cancel: Cancel<'_>,
+) -> Result<Vec<f32>> {
+    const DURING: &str = "a distance transform";
     let mut d = vec![0f32; mask.len()];
     let [nx, ny, _] = dims;
     if in_slices_across == Some(2) {
@@ -192,9 +218,12 @@ pub(crate) fn squared_distance_mm2(
         d.par_chunks_mut(nx * ny)
             .zip(mask.par_chunks(nx * ny))
             .for_each_init(SliceScratch::default, |scratch, (out, m)| {
-                squared_distance_slice_mm2(m, [nx, ny], [su, sv], feature_is_set, out, scratch)
+                if !cancel.raised() {
+                    squared_distance_slice_mm2(m, [nx, ny], [su, sv], feature_is_set, out, scratch)
+                }
             });
-        return d;
+        cancel.check(DURING)?;
+        return Ok(d);
     }
     d.par_iter_mut()
         .zip(mask)
@@ -202,18 +231,24 @@ pub(crate) fn squared_distance_mm2(
     let sx = spacing_mm[0] as f32;
     let wanted = |axis: usize| in_slices_across != Some(axis);
     if wanted(0) {
-        d.par_chunks_mut(nx)
-            .for_each(|row| row_distance_to_zeros(row, sx));
+        d.par_chunks_mut(nx).for_each(|row| {
+            if !cancel.raised() {
+                row_distance_to_zeros(row, sx)
+            }
+        });
     }
+    cancel.check(DURING)?;
     // Without the i pass the values are still squared distances: 0 or ∞.
     for (axis, &spacing) in spacing_mm.iter().enumerate().skip(1) {
         if dims[axis] > 1 && wanted(axis) {
+            // A cancelled line is left as it is: the transform is thrown away.
             for_each_line(&mut d, dims, axis, EnvelopeScratch::default, |line, s| {
-                envelope_line(line, spacing as f32, s)
+                !cancel.raised() && envelope_line(line, spacing as f32, s)
             });
+            cancel.check(DURING)?;
         }
     }
-    d
+    Ok(d)
 }
 
 /// 0 at a feature voxel, ∞ elsewhere: the input of the transform.

@@ -3,13 +3,15 @@
 
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::settings::ThresholdMethod;
+use crate::ingest::Cancel;
 use crate::volume::Volume;
+use crate::Result;
 
 /// One point of the airway region-growing curve.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct AirwayGrowthPoint {
     /// Threshold, HU.
     pub threshold_hu: f32,
@@ -18,7 +20,7 @@ pub struct AirwayGrowthPoint {
 }
 
 /// Numbers and decisions of one segmentation, for logs and reports.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SegmentationReport {
     /// Volume of the right lung, mL.
     pub right_volume_ml: f64,
@@ -67,26 +69,31 @@ pub struct LungSegmentation {
     pub report: SegmentationReport,
 }
 
-/// Step timer that records (name, seconds).
-pub(super) struct Steps {
+/// Step timer that records (name, seconds), and where a cancelled segmentation stops.
+pub(super) struct Steps<'c> {
     last: Instant,
     pub times: Vec<(String, f64)>,
+    /// The flag looked at after each step and inside the long ones.
+    pub cancel: Cancel<'c>,
 }
 
-impl Steps {
-    /// A timer whose first step starts at `start`.
-    pub fn new(start: Instant) -> Self {
+impl<'c> Steps<'c> {
+    /// A timer whose first step starts at `start`, stopping when `cancel` is raised.
+    pub fn new(start: Instant, cancel: Cancel<'c>) -> Self {
         Steps {
             last: start,
             times: Vec::new(),
+            cancel,
         }
     }
 
-    /// Records the time since the previous mark under `name`.
-    pub fn mark(&mut self, name: &str) {
+    /// Records the time since the previous mark under `name`; [`crate::Error::Cancelled`]
+    /// when the flag was raised meanwhile.
+    pub fn mark(&mut self, name: &str) -> Result<()> {
         let now = Instant::now();
         self.times
             .push((name.into(), (now - self.last).as_secs_f64()));
         self.last = now;
+        self.cancel.check("the lung segmentation")
     }
 }

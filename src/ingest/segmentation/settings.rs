@@ -1,11 +1,11 @@
 //! Settings of the lung segmentation: thresholds, sizes in mL and lengths in mm, and their checks.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::{Error, Result};
 
 /// How the air/tissue threshold is chosen.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum ThresholdMethod {
     /// `air_threshold_hu` as given.
     Fixed,

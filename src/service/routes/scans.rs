@@ -13,7 +13,7 @@ use utoipa::ToSchema;
 use super::{blocking, created, load_scan, scan_id, shutting_down, store_error, SharedState};
 use crate::formats::dicom::SeriesChoice;
 use crate::service::ids::ScanId;
-use crate::service::isolation::{ingest_isolated, IngestLimits, THE_UPLOAD};
+use crate::service::isolation::{adopt_stored_ingest, ingest_isolated, IngestLimits, THE_UPLOAD};
 use crate::service::jobs::ScanRemoval;
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::store::{now_rfc3339, ScanRecord};
@@ -116,6 +116,9 @@ pub async fn upload_scan(
         .await
         .map_err(|_| shutting_down())?;
     let bytes = received.bytes;
+    // The ingest's file form is left beside the upload and moves into the scan with it.
+    let stored_ingest = PathBuf::from(format!("{}.ingest", dest.display()));
+    let _stored_guard = TempFileGuard(Some(stored_ingest.clone()));
     let worker_state = state.clone();
     let record = blocking(move || {
         let config = &worker_state.config;
@@ -134,6 +137,7 @@ pub async fn upload_scan(
                 memory_mib: config.ingest_memory_mib,
             },
             THE_UPLOAD,
+            Some(&stored_ingest),
         )?;
         let record = ScanRecord {
             scan_id: ScanId::random(),
@@ -148,6 +152,7 @@ pub async fn upload_scan(
             .store
             .put_scan(&record, &named)
             .map_err(store_error)?;
+        adopt_stored_ingest(&worker_state.store, record.scan_id, &stored_ingest);
         Ok(record)
     })
     .await?;

@@ -12,6 +12,7 @@ mod walk;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use dicom_core::value::{PrimitiveValue, Value};
 use dicom_core::Tag;
@@ -53,6 +54,17 @@ pub fn read_dicom_series(input: &Path) -> Result<DicomSeries> {
 
 /// Reads a CT series from `input` with explicit options (series choice, zip limits).
 pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Result<DicomSeries> {
+    read_dicom_series_cancellable(input, options, None)
+}
+
+/// [`read_dicom_series_with`], stopped with [`Error::Cancelled`] once `cancel` is raised:
+/// looked at before each file is parsed and each slice decoded (one atomic load per slice),
+/// so a series of hundreds of slices stops within a slice's work per thread.
+pub fn read_dicom_series_cancellable(
+    input: &Path,
+    options: &DicomReadOptions,
+    cancel: Option<&AtomicBool>,
+) -> Result<DicomSeries> {
     let what = input.display().to_string();
     let budget_bytes = options
         .memory_budget_bytes
@@ -61,11 +73,15 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
     if sources.is_empty() {
         return Err(Error::scan(what, "no files found"));
     }
+    check_cancel(cancel)?;
     let budget = MemoryBudget::new(budget_bytes);
     let parsed: Vec<std::result::Result<Parsed, Skipped>> = sources
         .into_par_iter()
-        .map(|source| parse_source(source, &budget))
-        .collect();
+        .map(|source| {
+            check_cancel(cancel)?;
+            Ok(parse_source(source, &budget))
+        })
+        .collect::<Result<_>>()?;
     let mut skipped = Vec::new();
     let mut files = Vec::new();
     let mut repairs: BTreeMap<String, Vec<String>> = BTreeMap::new();
@@ -113,7 +129,17 @@ pub fn read_dicom_series_with(input: &Path, options: &DicomReadOptions) -> Resul
         ));
     }
     let series = select_series(&what, files, options, &mut warnings)?;
-    build_volume(&what, series, warnings).map_err(|e| naming_skipped_files(e, &skipped))
+    build_volume(&what, series, warnings, cancel).map_err(|e| naming_skipped_files(e, &skipped))
+}
+
+/// [`Error::Cancelled`] once `cancel` is raised.
+fn check_cancel(cancel: Option<&AtomicBool>) -> Result<()> {
+    match cancel {
+        Some(flag) if flag.load(Ordering::Relaxed) => Err(Error::Cancelled(
+            "stopped while reading the DICOM series".into(),
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// A series refused as a whole (a gap, too few slices) may be refused because of files that
@@ -391,7 +417,12 @@ impl Slice<'_> {
 
 /// Turns the chosen series into a volume: checks, orders and decodes its slices (the
 /// single-frame files, or the frames of Enhanced CT files).
-fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> Result<DicomSeries> {
+fn build_volume(
+    what: &str,
+    series: SeriesFiles,
+    mut warnings: Vec<String>,
+    cancel: Option<&AtomicBool>,
+) -> Result<DicomSeries> {
     let SeriesFiles { uid, files } = series;
     let label = SeriesLabel { what, uid: &uid };
     let frames = expand_frames(&files, &label)?;
@@ -420,7 +451,7 @@ fn build_volume(what: &str, series: SeriesFiles, mut warnings: Vec<String>) -> R
         ],
     };
     geometry.validate(&format!("{what}: series {uid}"))?;
-    let data = decode_slices(&slices, &layout, geometry.voxel_count())?;
+    let data = decode_slices(&slices, &layout, geometry.voxel_count(), cancel)?;
     let info = describe_series(&label, &slices, &layout, &mut warnings);
     let study = study_context(&slices, &uid);
     let volume = Volume::from_data(geometry, data)?;
@@ -686,12 +717,20 @@ fn uniform_slice_spacing_mm(
 }
 
 /// Decodes every slice in parallel into its frame of the volume, HU after rescale.
-fn decode_slices(slices: &[Slice], layout: &FrameLayout, voxel_count: usize) -> Result<Vec<f32>> {
+fn decode_slices(
+    slices: &[Slice],
+    layout: &FrameLayout,
+    voxel_count: usize,
+    cancel: Option<&AtomicBool>,
+) -> Result<Vec<f32>> {
     let frame_len = layout.columns * layout.rows;
     let mut data = vec![0f32; voxel_count];
     data.par_chunks_mut(frame_len)
         .zip(slices.par_iter())
-        .try_for_each(|(out, slice)| decode_slice(slice, layout, out))?;
+        .try_for_each(|(out, slice)| {
+            check_cancel(cancel)?;
+            decode_slice(slice, layout, out)
+        })?;
     Ok(data)
 }
 
@@ -776,4 +815,21 @@ fn summarize_skips(skipped: &[Skipped]) -> String {
         })
         .collect();
     summarize(&described, 3)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_raised_flag_stops_the_series_read_and_a_lowered_one_does_not() {
+        let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-dicom");
+        let options = DicomReadOptions::default();
+        let flag = AtomicBool::new(true);
+        let e = read_dicom_series_cancellable(&series, &options, Some(&flag)).unwrap_err();
+        assert!(matches!(e, Error::Cancelled(_)), "{e}");
+        flag.store(false, Ordering::SeqCst);
+        let read = read_dicom_series_cancellable(&series, &options, Some(&flag)).unwrap();
+        assert!(read.info.slice_count > 10, "{}", read.info.slice_count);
+    }
 }
