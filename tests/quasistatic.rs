@@ -397,3 +397,28 @@ fn an_explicit_relaxation_that_stagnates_gives_up_instead_of_running_to_its_step
     assert!(!report.converged);
     assert!(report.steps < 1_000_000, "{report:?}");
 }
+
+#[test]
+fn a_solve_that_may_bisect_gives_up_after_two_krylov_solves_at_their_limit() {
+    // One Krylov iteration per Newton step cannot reach the linear tolerance on a block
+    // under a large pressure: every Krylov solve stops at its limit.
+    let scene = symmetric_block_under_pressure([6, 5, 4], 0.004, Material::LUNG, -40.0).unwrap();
+    let settings = QuasiStaticSettings {
+        max_linear_iterations: 1,
+        relaxation_max_steps: 0,
+        ..QuasiStaticSettings::default()
+    };
+    // A caller that bisects its load step on failure (the breathing driver) hears at once.
+    let mut solver = QuasiStaticSolver::new(&scene, settings.clone()).unwrap();
+    match solver.solve_load_factor_from(None, 1.0, false) {
+        Err(Error::NotConverged { iterations, .. }) => assert_eq!(iterations, 2),
+        other => panic!("expected NotConverged after 2 iterations, got {other:?}"),
+    }
+    // One that cannot bisect keeps its Newton iterations.
+    let mut solver = QuasiStaticSolver::new(&scene, settings).unwrap();
+    match solver.solve_load_factor_from(None, 1.0, true) {
+        Err(Error::NotConverged { iterations, .. }) => assert!(iterations > 2, "{iterations}"),
+        Ok((_, report)) => assert!(report.newton_iterations > 2, "{report:?}"),
+        other => panic!("{other:?}"),
+    }
+}

@@ -100,8 +100,10 @@ pub struct KeyframeReport {
     /// Number of key volumes solved.
     pub keys: usize,
     /// Largest node-position difference between a key's direct solve and the local
-    /// interpolant of the keys around it without it, mm (a bound on the interpolation error).
-    pub measured_error_mm: f64,
+    /// interpolant of the keys around it without it, mm (a bound on the interpolation error);
+    /// `None` when no key could be checked (every interval direct: each frame was solved),
+    /// which once read as a perfect 0.0.
+    pub measured_error_mm: Option<f64>,
     /// Tolerance asked for, mm.
     pub tolerance_mm: f64,
     /// Rounds of refinement after the first sweep.
@@ -252,7 +254,7 @@ impl VolumeKeyframes {
         let mut checked = vec![false; states.len()];
         // Each key's miss at its last check (NaN before its first).
         let mut last_miss_mm = vec![f64::NAN; states.len()];
-        let mut worst_passed: f64 = 0.0;
+        let mut worst_passed: Option<f64> = None;
         let mut refinements = 0;
         loop {
             let volumes: Vec<f64> = states.iter().map(|s| s.volume_change_ml).collect();
@@ -275,7 +277,8 @@ impl VolumeKeyframes {
                 let previous = std::mem::replace(&mut last_miss_mm[k], miss.error_mm);
                 if miss.error_mm <= tolerance_mm {
                     *done = true;
-                    worst_passed = worst_passed.max(miss.error_mm);
+                    worst_passed =
+                        Some(worst_passed.map_or(miss.error_mm, |w| w.max(miss.error_mm)));
                 } else {
                     // Halving the intervals beside a key cuts a smooth response's miss about
                     // 16-fold and a kink's 2-fold; a miss that barely moves is a jump.
@@ -406,7 +409,7 @@ impl VolumeKeyframes {
             .fold(f64::INFINITY, f64::min);
         let report = KeyframeReport {
             keys: states.len(),
-            measured_error_mm: f64::NAN,
+            measured_error_mm: None,
             tolerance_mm,
             refinements: 0,
             smallest_key_step_ml: if smallest_key_step_ml.is_finite() {
@@ -632,7 +635,11 @@ mod tests {
         let (lo, hi) = (-0.02 * v0, 0.12 * v0);
         let tol_ml = 1e-4 * v0;
         let keys = VolumeKeyframes::build(&mut driver, &[lo, hi], 0.01, tol_ml).unwrap();
-        assert!(keys.report.measured_error_mm <= 0.01, "{:?}", keys.report);
+        assert!(
+            keys.report.measured_error_mm.is_some_and(|e| e <= 0.01),
+            "{:?}",
+            keys.report
+        );
         assert!(keys.report.keys >= 5, "{:?}", keys.report);
         // Fresh direct solves at volumes that are not keys.
         let mut direct = BreathingDriver::new(&scene, -1.0, c, settings).unwrap();
@@ -690,7 +697,7 @@ mod tests {
         .unwrap();
         let r = &keys.report;
         assert!(r.refinements > 0 && r.keys < 40, "{r:?}");
-        assert!(r.measured_error_mm <= 0.1, "{r:?}");
+        assert!(r.measured_error_mm.is_some_and(|e| e <= 0.1), "{r:?}");
         // The refinement went to the kink: the closest keys sit beside it, the far end of
         // the range kept the first sweep's spacing.
         let v = &keys.volumes_ml;
@@ -745,7 +752,7 @@ mod tests {
                 assert!(from > v, "key {v} started from {from}");
             }
         }
-        assert!(keys.report.measured_error_mm <= 0.1);
+        assert!(keys.report.measured_error_mm.is_some_and(|e| e <= 0.1));
     }
 
     #[test]
@@ -806,7 +813,11 @@ mod tests {
         })
         .unwrap();
         assert_eq!((keys.report.keys, keys.report.refinements), (9, 0));
-        assert!(keys.report.measured_error_mm < 1e-9, "{:?}", keys.report);
+        assert!(
+            keys.report.measured_error_mm.is_some_and(|e| e < 1e-9),
+            "{:?}",
+            keys.report
+        );
     }
 
     #[test]

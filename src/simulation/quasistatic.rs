@@ -238,7 +238,18 @@ impl<'s> QuasiStaticSolver<'s> {
             } else {
                 self.settings.tolerance.max(1e-4)
             };
-            match self.newton(&constraints, lambda, tol, &mut x, &mut work, &mut report) {
+            // A caller that would otherwise relax retries a smaller load step instead: for it, a
+            // Newton solve whose Krylov solves cannot converge gives up early.
+            let may_bisect = !allow_relaxation;
+            match self.newton(
+                &constraints,
+                lambda,
+                tol,
+                may_bisect,
+                &mut x,
+                &mut work,
+                &mut report,
+            ) {
                 Err(Error::NotConverged { .. })
                     if allow_relaxation && self.settings.relaxation_max_steps > 0 =>
                 {
@@ -261,12 +272,16 @@ impl<'s> QuasiStaticSolver<'s> {
     /// (a mechanism such as the element's twist modes, or a very large load), switches to
     /// pseudo-transient continuation: solves (σ·M + J)·δ = r, an implicit pseudo-time step,
     /// and lets σ shrink with the residual (switched evolution relaxation), which returns
-    /// to plain Newton near the solution.
+    /// to plain Newton near the solution. With `may_bisect` (the caller retries a smaller
+    /// load step on failure) a solve whose Krylov solves reach their limit
+    /// [`BISECT_AFTER_CAPPED_KRYLOV`] times stops there.
+    #[allow(clippy::too_many_arguments)]
     fn newton(
         &mut self,
         constraints: &ConstraintSet,
         lambda: f64,
         tol: f64,
+        may_bisect: bool,
         x: &mut [V3],
         w: &mut Work,
         report: &mut SolveReport,
@@ -280,6 +295,7 @@ impl<'s> QuasiStaticSolver<'s> {
         let mut sigma = 0.0;
         let mut res = residual(scene, constraints, lambda, x, w);
         let mut stalled = 0;
+        let mut capped_krylov = 0;
         for it in 0..self.settings.max_newton_iterations {
             self.check_cancelled()?;
             if !res.is_finite() {
@@ -342,6 +358,20 @@ impl<'s> QuasiStaticSolver<'s> {
             } else {
                 0
             };
+            capped_krylov += usize::from(taken.1 >= self.settings.max_linear_iterations);
+            if may_bisect && new_res > tol && capped_krylov >= BISECT_AFTER_CAPPED_KRYLOV {
+                tracing::debug!(
+                    it,
+                    capped_krylov,
+                    "newton: the caller bisects the load step"
+                );
+                report.residual = new_res;
+                return Err(Error::NotConverged {
+                    iterations: it + 1,
+                    residual: new_res,
+                    tolerance: tol,
+                });
+            }
             res = new_res;
             if stalled >= STALLED_NEWTON_LIMIT {
                 report.residual = res;
@@ -593,6 +623,12 @@ impl<'s> QuasiStaticSolver<'s> {
 /// Explicit relaxation steps without a tenth's fall of the residual after which the fallback
 /// gives up: the fallback is for mechanisms Newton cannot cross, not for a buckling mesh.
 const RELAXATION_STALL_STEPS: usize = 50_000;
+
+/// Krylov solves stopped by their iteration limit after which a solve that may bisect its
+/// load step gives up: from a warm start inside Newton's basin they converge in 10–80
+/// iterations; on the POPI lungs a load step outside it made them hit the 300 limit (5–12 s
+/// each) for 40 Newton iterations.
+const BISECT_AFTER_CAPPED_KRYLOV: usize = 2;
 
 /// Consecutive Newton iterations with a stuck Krylov solve and under 1 % residual decrease
 /// after which a solve is declared stalled.

@@ -514,7 +514,7 @@ fn bench_cycle(
         keys: keys.map_or(0, |k| k.keys),
         key_solves: keys.map_or(0, |k| k.solves),
         key_solve_time_s: keys.map_or(0.0, |k| k.solve_time_s),
-        key_measured_error_mm: keys.map_or(f64::NAN, |k| k.measured_error_mm),
+        key_measured_error_mm: keys.and_then(|k| k.measured_error_mm).unwrap_or(f64::NAN),
         frame_wall_s: report.frames.iter().map(|f| f.wall_time_s).collect(),
         tidal_volume_ml: report.tidal_volume_ml,
         rest_volume_ml: report.rest_volume_ml,
