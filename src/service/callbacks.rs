@@ -248,8 +248,8 @@ async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
         finish(state, id, "this server has no callback secret any more").await;
         return;
     };
-    let store = state.store.clone();
-    let url = tokio::task::spawn_blocking(move || store.job_request(id))
+    let records = state.records.clone();
+    let url = tokio::task::spawn_blocking(move || records.job_request(id))
         .await
         .ok()
         .and_then(|r| r.ok())

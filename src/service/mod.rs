@@ -5,7 +5,8 @@
 //!   [`pacs_settings`]: the DICOMweb server jobs pull their CT from and push to;
 //!   [`pacs_jobs`]: a job's CT pulled and stored as a scan, its DICOM outputs pushed;
 //! * [`ids`]: unguessable scan and job ids; [`ingest_cache`]: scans ingested for jobs, by settings;
-//! * [`store`]: the on-disk store with atomic records;
+//! * [`store`]: the on-disk store with atomic records; [`records`]: the job and scan records
+//!   behind one interface (that store, or PostgreSQL);
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
 //!   [`progress`]: a running job's progress and time left;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
@@ -35,6 +36,7 @@ pub mod pacs_jobs;
 pub mod pacs_settings;
 pub mod problem;
 mod progress;
+pub mod records;
 pub mod request;
 pub mod retention;
 pub mod routes;

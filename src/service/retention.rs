@@ -16,6 +16,7 @@ use std::time::{Duration, SystemTime};
 use super::config::RetentionSettings;
 use super::ids::{JobId, ScanId};
 use super::jobs::{JobManager, ScanRemoval};
+use super::records::Records;
 use super::routes::SharedState;
 use super::store::{JobRecord, Store};
 use crate::Result;
@@ -57,11 +58,12 @@ struct Candidate {
 pub fn sweep(
     jobs: &JobManager,
     store: &Store,
+    scan_records: &dyn Records,
     settings: &RetentionSettings,
     now: SystemTime,
 ) -> Result<SweepReport> {
     let records = jobs.records();
-    let (scans, problems) = store.list_scans()?;
+    let (scans, problems) = scan_records.list_scans()?;
     for p in problems {
         tracing::warn!("store: {p}");
     }
@@ -176,6 +178,7 @@ pub fn spawn_retention(state: SharedState) {
                 sweep(
                     &worker.jobs,
                     &worker.store,
+                    &*worker.records,
                     &worker.config.retention,
                     SystemTime::now(),
                 )

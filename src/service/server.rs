@@ -28,6 +28,7 @@ use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
 use super::pacs_jobs::PacsAccess;
 use super::problem::{ApiError, PROBLEM_JSON};
+use super::records::Records;
 use super::retention::spawn_retention;
 use super::routes::{self, AppState, SharedState};
 use super::store::Store;
@@ -316,6 +317,7 @@ struct Background {
 fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     config.validate()?;
     let store = Store::open(&config.data_dir)?;
+    let records: Arc<dyn Records> = Arc::new(store.clone());
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
     let metrics = ServiceMetrics::default();
     metrics.register_ingest_cache(&ingests);
@@ -331,6 +333,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     });
     let (jobs, workers) = JobManager::start(
         store.clone(),
+        records.clone(),
         config.workers,
         config.queue_capacity,
         config.max_attempts,
@@ -342,6 +345,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
         ingest_slots: tokio::sync::Semaphore::new(config.workers),
         metrics,
         store,
+        records,
         jobs,
         config,
     });
@@ -456,7 +460,7 @@ pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
 }
 
 /// Resolves on SIGTERM or Ctrl-C.
-async fn termination() {
+pub(super) async fn termination() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };

@@ -319,6 +319,9 @@ const JOB_RECORD: &str = "job.json";
 const JOB_REQUEST: &str = "request.json";
 const TARGET_RECORD: &str = "target.json";
 const SCAN_TARGETS: &str = "targets";
+/// Age after which an entry of a shared store's `tmp/` is a killed process's leftover: longer
+/// than any upload or ingest is allowed to take.
+pub const SHARED_TMP_MAX_AGE: std::time::Duration = std::time::Duration::from_secs(86_400);
 /// The run's output directory inside a job's directory.
 pub const JOB_OUTPUT: &str = "out";
 
@@ -339,6 +342,35 @@ impl Store {
         }
         std::fs::create_dir_all(&tmp).at(IoOp::CreateDir, &tmp)?;
         // Proves the store is writable now rather than at the first upload.
+        write_durable(&tmp.join("writable"), b"ok")?;
+        Ok(store)
+    }
+
+    /// Opens (creating) a store that other processes use at the same time (API and worker
+    /// processes on PostgreSQL): `tmp/` keeps what they are writing, and only entries older
+    /// than [`SHARED_TMP_MAX_AGE`] (left by a killed process) are removed.
+    pub fn open_shared(root: &Path) -> Result<Self> {
+        let store = Store {
+            root: root.to_path_buf(),
+            targets: Arc::default(),
+        };
+        for dir in ["scans", "jobs", "tmp"] {
+            let dir = root.join(dir);
+            std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
+        }
+        let tmp = store.tmp_dir();
+        for entry in std::fs::read_dir(&tmp).at(IoOp::List, &tmp)?.flatten() {
+            let old = entry
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > SHARED_TMP_MAX_AGE);
+            if old {
+                let path = entry.path();
+                let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
+            }
+        }
         write_durable(&tmp.join("writable"), b"ok")?;
         Ok(store)
     }
@@ -382,12 +414,30 @@ impl Store {
 
     /// Stores a scan: moves the received `upload` in and writes its record, all at once.
     pub fn put_scan(&self, record: &ScanRecord, upload: &Path) -> Result<()> {
+        self.put_scan_files(record, upload, true)
+    }
+
+    /// Moves the received `upload` into the scan's new directory, with `scan.json` when
+    /// `with_record` (the directory store's record; PostgreSQL keeps its own), all at once.
+    pub fn put_scan_files(
+        &self,
+        record: &ScanRecord,
+        upload: &Path,
+        with_record: bool,
+    ) -> Result<()> {
         let staging = self.tmp_path("scan");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let file = staging.join(&record.file_name);
         std::fs::rename(upload, &file).at(IoOp::Rename, upload)?;
-        write_json(&staging.join(SCAN_RECORD), record)?;
+        if with_record {
+            write_json(&staging.join(SCAN_RECORD), record)?;
+        }
         publish_dir(&staging, &self.scan_dir(record.scan_id))
+    }
+
+    /// Bytes held by a scan's directory (upload, stored ingest, targets).
+    pub fn scan_bytes(&self, id: ScanId) -> u64 {
+        dir_bytes(&self.scan_dir(id))
     }
 
     /// A scan's record, `None` when there is no such scan.
@@ -538,6 +588,17 @@ impl Store {
         request: &JobRequest,
         target: Option<&Path>,
     ) -> Result<()> {
+        self.put_job_files(record.job_id, target, Some((record, request)))
+    }
+
+    /// Makes a new job's directory with its copy of the target file `target`, and with
+    /// `records` (`job.json`, `request.json`) for the directory store, all at once.
+    pub fn put_job_files(
+        &self,
+        id: JobId,
+        target: Option<&Path>,
+        records: Option<(&JobRecord, &JobRequest)>,
+    ) -> Result<()> {
         let staging = self.tmp_path("job");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let staged = (|| {
@@ -556,14 +617,17 @@ impl Store {
                 }
                 sync_dir(&dir);
             }
-            write_json(&staging.join(JOB_REQUEST), request)?;
-            write_json(&staging.join(JOB_RECORD), record)
+            if let Some((record, request)) = records {
+                write_json(&staging.join(JOB_REQUEST), request)?;
+                write_json(&staging.join(JOB_RECORD), record)?;
+            }
+            Ok(())
         })();
         if let Err(e) = staged {
             let _ = std::fs::remove_dir_all(&staging);
             return Err(e);
         }
-        publish_dir(&staging, &self.job_dir(record.job_id))
+        publish_dir(&staging, &self.job_dir(id))
     }
 
     /// Replaces a job's record.

@@ -170,7 +170,7 @@ pub async fn list_scans(
 ) -> ApiResult<Json<ScanPage>> {
     let page = PageRequest::of(&query)?;
     blocking(move || {
-        let (scans, problems) = state.store.list_scans().map_err(store_error)?;
+        let (scans, problems) = state.records.list_scans().map_err(store_error)?;
         for problem in problems {
             tracing::warn!(%problem, "scan listing skipped a directory");
         }
