@@ -238,7 +238,7 @@ struct Attempt {
 /// POSTs one job's callback until it is delivered, refused, given up, or the job deleted.
 async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
     let settings = &state.config.callbacks;
-    let Some(record) = state.jobs.status(id) else {
+    let Ok(Some(record)) = state.jobs.status(id) else {
         return;
     };
     let Some(delivery) = record.callback.clone() else {

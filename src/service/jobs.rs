@@ -78,6 +78,8 @@ pub struct JobCounts {
     pub queued: usize,
     /// Jobs running.
     pub running: usize,
+    /// With PostgreSQL, the worker processes that reported lately, with their counts.
+    pub workers: Vec<super::postgres::WorkerStatus>,
 }
 
 /// Runs whose wall times estimate `Retry-After` (the latest; the server may run for months).
@@ -89,6 +91,9 @@ const SHUTDOWN_JOIN_LIMIT: Duration = Duration::from_secs(60);
 const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
+/// A PostgreSQL worker's lease was taken back: another worker runs the job now, so this run
+/// stops and writes nothing.
+const CANCEL_LEASE_LOST: u8 = 3;
 
 /// A job the server knows of: its record (shared with the run's progress callbacks), and
 /// while it runs the flag that stops it (seen by the run's stages, frames and the solver's
@@ -123,7 +128,7 @@ struct Board {
     run_times_s: VecDeque<f64>,
 }
 
-struct Shared {
+pub(super) struct Shared {
     /// The data directory: uploads, targets and outputs.
     store: Store,
     /// The job and scan records.
@@ -665,6 +670,11 @@ fn run_job(shared: &Shared, live: &LiveJob) {
             .unwrap_or_else(|| "unknown panic".into());
         Err(Error::InvalidModel(format!("internal error: {what}")))
     });
+    if live.cancel.load(Ordering::SeqCst) == CANCEL_LEASE_LOST {
+        // Its files and record are another worker's now.
+        tracing::warn!(job = %id, "lease lost during the run; stopped, nothing written");
+        return;
+    }
     let cancelled_by_client = live.cancel.load(Ordering::SeqCst) == CANCEL_CLIENT;
     let mut record = lock(&live.record);
     match outcome {
@@ -921,4 +931,174 @@ fn ingested_scan(
         shared.ingests.insert_ingested(key, ingested.clone());
     }
     Ok((ingested, timings))
+}
+
+/// Counts of a PostgreSQL worker process's jobs, reported to the database for the metrics.
+#[derive(Debug, Default)]
+pub(super) struct LeasedStats {
+    pub(super) running: std::sync::atomic::AtomicI64,
+    pub(super) done: std::sync::atomic::AtomicI64,
+    pub(super) failed: std::sync::atomic::AtomicI64,
+    pub(super) cancelled: std::sync::atomic::AtomicI64,
+}
+
+/// The state a PostgreSQL worker process's threads share: the files, its leased records,
+/// the ingest cache and the PACS; its board holds only the jobs it runs now.
+pub(super) fn leased_shared(
+    store: Store,
+    records: Arc<dyn Records>,
+    workers: usize,
+    ingests: Arc<IngestCache>,
+    pacs: Option<PacsAccess>,
+) -> Arc<Shared> {
+    // Callbacks are not delivered with PostgreSQL (submissions with one are refused), so
+    // nothing listens here.
+    let (finished, _) = tokio::sync::mpsc::unbounded_channel();
+    Arc::new(Shared {
+        store,
+        records,
+        board: Mutex::new(Board {
+            jobs: HashMap::new(),
+            queue: VecDeque::new(),
+            running: 0,
+            shutting_down: false,
+            run_times_s: VecDeque::new(),
+        }),
+        changed: Condvar::new(),
+        queue_capacity: 0,
+        workers,
+        ingests,
+        finished,
+        pacs,
+    })
+}
+
+/// How often a PostgreSQL worker renews the lease of the job it runs, which also tells it of
+/// a client's cancellation: a third of the lease, at most a second, so a DELETE reaches the run
+/// within about a second.
+fn renewal_interval(lease: Duration) -> Duration {
+    (lease / 3).min(Duration::from_secs(1))
+}
+
+/// One simulation thread of `lungmotion worker`: takes jobs from the PostgreSQL queue as
+/// `worker`, runs each with its lease renewed, until the process shuts down.
+pub(super) fn leased_worker_loop(
+    shared: &Shared,
+    pg: &super::postgres::Postgres,
+    worker: &str,
+    stats: &LeasedStats,
+) {
+    use super::postgres::{Lease, POLL_INTERVAL};
+    loop {
+        if lock(&shared.board).shutting_down {
+            return;
+        }
+        let record = match pg.claim(worker) {
+            Ok(Some(record)) => record,
+            Ok(None) => {
+                pg.wait_for_work(POLL_INTERVAL);
+                continue;
+            }
+            Err(e) => {
+                tracing::warn!("taking a job: {e}; trying again");
+                std::thread::sleep(POLL_INTERVAL);
+                continue;
+            }
+        };
+        let id = record.job_id;
+        let live = LiveJob::new(record);
+        {
+            let mut board = lock(&shared.board);
+            board.jobs.insert(id, live.clone());
+            board.running += 1;
+        }
+        stats.running.fetch_add(1, Ordering::SeqCst);
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        let renewer = {
+            let live = live.clone();
+            let pg = pg.clone();
+            let worker = worker.to_string();
+            std::thread::Builder::new()
+                .name(format!("lungmotion-lease-{id}"))
+                .spawn(move || loop {
+                    match done_rx.recv_timeout(renewal_interval(pg.lease())) {
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                        _ => return,
+                    }
+                    match pg.renew(id, &worker) {
+                        Ok(Lease::Held) => {}
+                        Ok(Lease::Cancelling) => {
+                            if live.cancel.load(Ordering::SeqCst) == CANCEL_NONE {
+                                tracing::info!(job = %id, "cancellation requested; the run stops at its next check");
+                                live.request_stop(CANCEL_CLIENT);
+                            }
+                        }
+                        Ok(Lease::Lost) => {
+                            live.request_stop(CANCEL_LEASE_LOST);
+                            return;
+                        }
+                        // The reaper takes the job back if this lasts a whole lease; until
+                        // then the run goes on.
+                        Err(e) => tracing::warn!(job = %id, "cannot renew the lease: {e}"),
+                    }
+                })
+        };
+        run_job(shared, &live);
+        drop(done_tx);
+        if let Ok(renewer) = renewer {
+            let _ = renewer.join();
+        }
+        let state = lock(&live.record).state;
+        let counter = match state {
+            JobState::Done => Some(&stats.done),
+            JobState::Failed => Some(&stats.failed),
+            JobState::Cancelled => Some(&stats.cancelled),
+            _ => None,
+        };
+        if let Some(counter) = counter {
+            counter.fetch_add(1, Ordering::SeqCst);
+        }
+        stats.running.fetch_sub(1, Ordering::SeqCst);
+        let mut board = lock(&shared.board);
+        board.jobs.remove(&id);
+        board.running -= 1;
+        drop(board);
+        shared.changed.notify_all();
+    }
+}
+
+/// Stops a PostgreSQL worker process's threads: no new jobs, `grace` for the running ones,
+/// then they stop and go back to the queue without using an attempt.
+pub(super) fn stop_leased_workers(shared: &Shared, grace: Duration) {
+    let deadline = Instant::now() + grace;
+    let mut board = lock(&shared.board);
+    board.shutting_down = true;
+    while board.running > 0 {
+        let now = Instant::now();
+        if now >= deadline {
+            break;
+        }
+        board = shared
+            .changed
+            .wait_timeout(board, deadline - now)
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
+    if board.running > 0 {
+        tracing::info!(
+            running = board.running,
+            "grace period over; stopping running jobs and re-queueing them"
+        );
+        for live in board.jobs.values() {
+            live.request_stop(CANCEL_SHUTDOWN);
+        }
+    }
+    let limit = Instant::now() + SHUTDOWN_JOIN_LIMIT;
+    while board.running > 0 && Instant::now() < limit {
+        board = shared
+            .changed
+            .wait_timeout(board, Duration::from_millis(200))
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
 }

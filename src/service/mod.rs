@@ -8,6 +8,9 @@
 //! * [`store`]: the on-disk store with atomic records; [`records`]: the job and scan records
 //!   behind one interface (that store, or PostgreSQL);
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
+//!   [`backend`]: the jobs as the HTTP side sees them, in this process or in PostgreSQL;
+//!   [`postgres`]: the records and the queue in PostgreSQL, leases; [`worker`]: the
+//!   `lungmotion worker` process that runs them;
 //!   [`progress`]: a running job's progress and time left;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
@@ -22,6 +25,7 @@
 //!
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
 
+pub mod backend;
 pub mod body_timeout;
 pub mod callbacks;
 pub mod config;
@@ -34,6 +38,7 @@ pub mod metrics;
 pub mod openapi;
 pub mod pacs_jobs;
 pub mod pacs_settings;
+pub mod postgres;
 pub mod problem;
 mod progress;
 pub mod records;
@@ -44,6 +49,7 @@ pub mod server;
 pub mod store;
 pub mod targets;
 pub mod upload;
+pub mod worker;
 
 pub use config::{IngestIsolation, ServeOverrides, ServiceConfig};
 pub use server::{router, serve_blocking, start, ServerHandle};

@@ -242,6 +242,7 @@ pub async fn list_jobs(
     let records = state
         .jobs
         .records()
+        .map_err(store_error)?
         .into_iter()
         .filter(|r| wanted_state.is_none_or(|s| r.state == s))
         .filter(|r| wanted_scan.is_none_or(|id| r.scan_id == id))

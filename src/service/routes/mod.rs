@@ -14,9 +14,9 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::Serialize;
 
+use super::backend::Jobs;
 use super::config::ServiceConfig;
 use super::ids::{JobId, ScanId};
-use super::jobs::JobManager;
 use super::metrics::ServiceMetrics;
 use super::problem::{ApiError, ApiResult};
 use super::records::Records;
@@ -50,7 +50,7 @@ pub struct AppState {
     /// The job and scan records.
     pub records: Arc<dyn Records>,
     /// Queue and workers.
-    pub jobs: JobManager,
+    pub jobs: Jobs,
     /// Prometheus series.
     pub metrics: ServiceMetrics,
     /// Ingests at once (CPU-bound, beside the simulation workers).
@@ -98,6 +98,7 @@ fn load_job(state: &AppState, id: JobId) -> ApiResult<JobRecord> {
     state
         .jobs
         .status(id)
+        .map_err(store_error)?
         .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
 }
 
