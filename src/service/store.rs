@@ -300,6 +300,8 @@ pub struct Store {
     /// Held while a target directory is replaced or removed, or a job copies a target, so
     /// that two uploads of one name never interleave their renames.
     targets: Arc<Mutex<()>>,
+    /// Whether other processes use it at the same time (see [`Store::open_shared`]).
+    shared: bool,
 }
 
 /// What storing an uploaded target came to.
@@ -331,6 +333,7 @@ impl Store {
         let store = Store {
             root: root.to_path_buf(),
             targets: Arc::default(),
+            shared: false,
         };
         for dir in ["scans", "jobs"] {
             let dir = root.join(dir);
@@ -353,6 +356,7 @@ impl Store {
         let store = Store {
             root: root.to_path_buf(),
             targets: Arc::default(),
+            shared: true,
         };
         for dir in ["scans", "jobs", "tmp"] {
             let dir = root.join(dir);
@@ -371,8 +375,16 @@ impl Store {
                 let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
             }
         }
-        write_durable(&tmp.join("writable"), b"ok")?;
+        store.probe_writable()?;
         Ok(store)
+    }
+
+    /// Writes and removes a probe file of this call's own in `tmp/`: processes sharing the
+    /// store must not race for one name.
+    fn probe_writable(&self) -> Result<()> {
+        let probe = self.tmp_path("writable");
+        write_durable(&probe, b"ok")?;
+        std::fs::remove_file(&probe).at(IoOp::Remove, &probe)
     }
 
     /// The data directory.
@@ -393,6 +405,9 @@ impl Store {
 
     /// Whether the store can be written (for readiness).
     pub fn is_writable(&self) -> bool {
+        if self.shared {
+            return self.probe_writable().is_ok();
+        }
         write_durable(&self.tmp_dir().join("writable"), b"ok").is_ok()
     }
 
