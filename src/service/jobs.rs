@@ -175,13 +175,12 @@ pub struct Workers {
 }
 
 impl JobManager {
-    /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads, which
+    /// Recovers the jobs in `records` (their files in `store`; see the module doc) and starts `workers` threads, which
     /// keep the scans they ingest in `ingests` and reach the PACS through `pacs`; jobs with a
     /// callback to deliver (ended now or left pending by an earlier process) are announced on
     /// `finished`.
     pub fn start(
-        store: Store,
-        records: Arc<dyn Records>,
+        (store, records): (Store, Arc<dyn Records>),
         workers: usize,
         queue_capacity: usize,
         max_attempts: u32,

@@ -341,8 +341,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     let (jobs, workers, records) = match &config.postgres {
         None => {
             let (manager, workers) = JobManager::start(
-                store.clone(),
-                records.clone(),
+                (store.clone(), records.clone()),
                 config.workers,
                 config.queue_capacity,
                 config.max_attempts,
