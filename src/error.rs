@@ -136,6 +136,34 @@ pub enum Error {
         reason: String,
     },
 
+    /// The service's PostgreSQL database cannot be reached or used.
+    #[error("database {server}: {reason}")]
+    Database {
+        /// The server as `user@host:port/dbname` (never the password).
+        server: String,
+        /// What went wrong, as the server or the client said it.
+        reason: String,
+    },
+
+    /// The database's schema was written by a newer lungmotion than this one.
+    #[error(
+        "database {server}: its schema is version {found}, written by lungmotion {written_by}; \
+         this lungmotion ({ours}) knows versions up to {known} and does not use it: upgrade \
+         lungmotion, or give it another database"
+    )]
+    SchemaTooNew {
+        /// The server as `user@host:port/dbname`.
+        server: String,
+        /// The schema version found.
+        found: i32,
+        /// The lungmotion version that wrote it.
+        written_by: String,
+        /// The newest version this lungmotion knows.
+        known: i32,
+        /// This lungmotion's version.
+        ours: &'static str,
+    },
+
     /// An output location cannot be used (not a directory, or a foreign non-empty one).
     #[error("output {}: {reason}", path.display())]
     OutputDir {

@@ -13,7 +13,7 @@ use cli::ingest::IngestArgs;
 use cli::logging::init_logging;
 use cli::phantom::PhantomArgs;
 use cli::run::{DemoArgs, RunArgs};
-use cli::serve::ServeArgs;
+use cli::serve::{ServeArgs, WorkerArgs};
 use cli::validate::ValidateArgs;
 
 /// Predicts lung motion over a breathing curve with Baudet's parameterised hexahedral
@@ -82,6 +82,12 @@ enum Command {
     /// it gracefully: running jobs get shutdown_grace_s, then go back to the queue.
     #[command(verbatim_doc_comment)]
     Serve(ServeArgs),
+    /// Run simulation jobs from the PostgreSQL queue that `lungmotion serve` processes fill
+    /// ([store] postgres_url or LUNGMOTION_POSTGRES_URL), writing the outputs into the shared
+    /// data directory (see README, "Running it across machines"). SIGTERM or Ctrl-C stops it:
+    /// running jobs get shutdown_grace_s, then go back to the queue.
+    #[command(verbatim_doc_comment)]
+    Worker(WorkerArgs),
     /// Exchange DICOM with a PACS over DICOMweb: `pacs pull` fetches a CT series (QIDO-RS,
     /// WADO-RS), `pacs push` stores a run's DICOM outputs (STOW-RS), never twice.
     Pacs(cli::pacs::PacsArgs),
@@ -94,6 +100,10 @@ fn main() -> ExitCode {
         init_logging("info");
         return args.execute();
     }
+    if let Command::Worker(args) = cli.command {
+        init_logging("info");
+        return args.execute();
+    }
     init_logging("warn");
     finish(match cli.command {
         Command::Run(args) => args.execute(),
@@ -103,6 +113,6 @@ fn main() -> ExitCode {
         Command::Validate(args) => args.execute(),
         Command::Bench(args) => args.execute(),
         Command::Pacs(args) => args.execute(),
-        Command::Serve(_) => unreachable!("handled above"),
+        Command::Serve(_) | Command::Worker(_) => unreachable!("handled above"),
     })
 }

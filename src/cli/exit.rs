@@ -51,7 +51,8 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::Format { .. }
         | Error::OutputDir { .. }
         | Error::MissingData { .. }
-        | Error::Listen { .. } => true,
+        | Error::Listen { .. }
+        | Error::SchemaTooNew { .. } => true,
         // The PACS refused the request as asked (unknown study, no CT series): the input.
         Error::Pacs { status, .. } => status.is_some_and(|s| (400..500).contains(&s)),
         // An input that cannot be read is refused; an output that cannot be written failed.
@@ -66,7 +67,8 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::External(_)
         | Error::Cancelled(_)
         | Error::BudgetExceeded(_)
-        | Error::Store { .. } => false,
+        | Error::Store { .. }
+        | Error::Database { .. } => false,
     }
 }
 

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use lungmotion::service::isolation::serve_ingest_child;
+use lungmotion::service::worker::work_blocking;
 use lungmotion::service::{serve_blocking, IngestIsolation, ServeOverrides, ServiceConfig};
 
 use super::exit::exit_code;
@@ -84,6 +85,50 @@ impl ServeArgs {
             Ok(()) => ExitCode::SUCCESS,
             Err(e) => {
                 eprintln!("lungmotion serve: error: {e}");
+                exit_code(&e)
+            }
+        }
+    }
+}
+
+/// Options of `lungmotion worker`.
+#[derive(clap::Args)]
+pub struct WorkerArgs {
+    /// The shared data directory of the uploads and outputs (the API processes' own).
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+    /// Service configuration (TOML): its [store] postgres_url names the database.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Simulations this process runs at once (default: one per core).
+    #[arg(long)]
+    workers: Option<usize>,
+}
+
+impl WorkerArgs {
+    /// Takes jobs until SIGTERM or Ctrl-C. Refused settings exit 2 and a failure exits 1.
+    pub fn execute(self) -> ExitCode {
+        let env = |name: &str| std::env::var(name).ok();
+        let overrides = ServeOverrides {
+            data_dir: self.data_dir,
+            workers: self.workers,
+            ..ServeOverrides::default()
+        };
+        let mut settings = match ServiceConfig::resolve(self.config.as_deref(), &env, &overrides) {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("lungmotion worker: {e}");
+                return exit_code(&e);
+            }
+        };
+        // A job pulling its CT from the PACS ingests it in a child process, as uploads are.
+        if let Ok(program) = std::env::current_exe() {
+            settings.ingest_isolation = IngestIsolation::ChildProcess { program };
+        }
+        match work_blocking(settings) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("lungmotion worker: error: {e}");
                 exit_code(&e)
             }
         }

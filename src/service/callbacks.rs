@@ -238,7 +238,7 @@ struct Attempt {
 /// POSTs one job's callback until it is delivered, refused, given up, or the job deleted.
 async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
     let settings = &state.config.callbacks;
-    let Some(record) = state.jobs.status(id) else {
+    let Ok(Some(record)) = state.jobs.status(id) else {
         return;
     };
     let Some(delivery) = record.callback.clone() else {
@@ -248,8 +248,8 @@ async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
         finish(state, id, "this server has no callback secret any more").await;
         return;
     };
-    let store = state.store.clone();
-    let url = tokio::task::spawn_blocking(move || store.job_request(id))
+    let records = state.records.clone();
+    let url = tokio::task::spawn_blocking(move || records.job_request(id))
         .await
         .ok()
         .and_then(|r| r.ok())

@@ -30,6 +30,11 @@
 //! element_size_mm = 6
 //! [pacs]                      # the DICOMweb server of jobs' CTs and pushes (see pacs_settings)
 //! url = "dicomweb://127.0.0.1:8042/dicom-web"
+//! [store]                     # job and scan records in PostgreSQL (see postgres); default: data_dir
+//! postgres_url = "postgres://lungmotion@db.example:5432/lungmotion"
+//! postgres_password_file = "/etc/lungmotion/db-password"
+//! lease_s = 30                # a running job's lease, renewed while it runs
+//! connect_timeout_s = 60      # how long to keep trying to reach the database at start
 //! ```
 
 use std::net::SocketAddr;
@@ -38,6 +43,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 use super::pacs_settings::{self, PacsFile, PacsSettings, PACS_ENV_VARS};
+use super::postgres::PostgresSettings;
 use crate::error::{IoContext, IoOp};
 use crate::run::RunConfig;
 use crate::{Error, Result};
@@ -109,6 +115,9 @@ pub struct ServiceConfig {
     pub run: RunConfig,
     /// The DICOMweb server jobs take their CT from and push their outputs to, if any.
     pub pacs: Option<PacsSettings>,
+    /// Where the job and scan records and the queue are when not in `data_dir`: PostgreSQL,
+    /// shared by `lungmotion serve` (API) and `lungmotion worker` processes.
+    pub postgres: Option<PostgresSettings>,
 }
 
 /// How long finished jobs and unused scans are kept (see [`super::retention`]).
@@ -213,6 +222,7 @@ impl Default for ServiceConfig {
             callbacks: CallbackSettings::default(),
             run: RunConfig::default(),
             pacs: None,
+            postgres: None,
         }
     }
 }
@@ -246,6 +256,17 @@ struct ServiceFile {
     callback_allow_plain_http: Option<bool>,
     run: Option<toml::Value>,
     pacs: Option<PacsFile>,
+    store: Option<StoreFile>,
+}
+
+/// The `[store]` table: where the records are when not in the data directory.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StoreFile {
+    postgres_url: Option<String>,
+    postgres_password_file: Option<PathBuf>,
+    lease_s: Option<f64>,
+    connect_timeout_s: Option<f64>,
 }
 
 /// What the command line (`lungmotion serve`) may override, each over the file and the
@@ -269,7 +290,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 22 + PACS_ENV_VARS.len()] = [
+pub const ENV_VARS: [&str; 26 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -292,6 +313,10 @@ pub const ENV_VARS: [&str; 22 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_CALLBACK_RETRY_BASE_S",
     "LUNGMOTION_CALLBACK_TIMEOUT_S",
     "LUNGMOTION_CALLBACK_ALLOW_PLAIN_HTTP",
+    "LUNGMOTION_POSTGRES_URL",
+    "LUNGMOTION_POSTGRES_PASSWORD_FILE",
+    "LUNGMOTION_LEASE_S",
+    "LUNGMOTION_POSTGRES_CONNECT_TIMEOUT_S",
     PACS_ENV_VARS[0],
     PACS_ENV_VARS[1],
     PACS_ENV_VARS[2],
@@ -405,6 +430,9 @@ impl ServiceConfig {
         if let Some(pacs) = file.pacs {
             pacs_settings::apply_file(&mut self.pacs, pacs).map_err(|e| bad(e.to_string()))?;
         }
+        if let Some(store) = file.store {
+            self.apply_store_file(store)?;
+        }
         if let Some(run) = file.run {
             let text = toml::to_string(&run).map_err(|e| bad(format!("[run]: {e}")))?;
             self.run = RunConfig::from_toml(&text).map_err(|e| bad(format!("[run]: {e}")))?;
@@ -461,6 +489,7 @@ impl ServiceConfig {
             self.ingest_cache_mib = parsed("LUNGMOTION_INGEST_CACHE_MIB", &v)?;
         }
         self.apply_retention_and_callback_env(env)?;
+        self.apply_store_env(env)?;
         pacs_settings::apply_env(&mut self.pacs, env)?;
         if let Some(v) = env("LUNGMOTION_API_TOKEN_FILE") {
             self.api_token = Some(read_token_file(Path::new(&v))?);
@@ -594,6 +623,9 @@ impl ServiceConfig {
             ));
         }
         self.validate_retention_and_callbacks()?;
+        if let Some(postgres) = &self.postgres {
+            postgres.validate()?;
+        }
         if let Some(pacs) = &self.pacs {
             pacs.validate()?;
         }
@@ -669,6 +701,62 @@ impl ServiceConfig {
                      spaces; it has {}",
                     secret.chars().count()
                 ));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl ServiceConfig {
+    /// The `[store]` table over the defaults: lease and timeouts apply once a URL is set
+    /// (here or in the environment).
+    fn apply_store_file(&mut self, file: StoreFile) -> Result<()> {
+        let postgres = self
+            .postgres
+            .get_or_insert_with(|| PostgresSettings::new(String::new()));
+        set(&mut postgres.url, file.postgres_url);
+        if let Some(path) = file.postgres_password_file {
+            postgres.password = Some(read_token_file(&path)?);
+        }
+        set(&mut postgres.lease_s, file.lease_s);
+        set(&mut postgres.connect_timeout_s, file.connect_timeout_s);
+        if postgres.url.is_empty() {
+            // Only tuning without a database: the directory store, as before.
+            self.postgres = None;
+        }
+        Ok(())
+    }
+
+    /// `LUNGMOTION_POSTGRES_URL`, `_PASSWORD_FILE`, `LUNGMOTION_LEASE_S` and
+    /// `LUNGMOTION_POSTGRES_CONNECT_TIMEOUT_S` over the file's `[store]`.
+    fn apply_store_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<()> {
+        if let Some(url) = env("LUNGMOTION_POSTGRES_URL") {
+            let url = url.trim().to_string();
+            match &mut self.postgres {
+                Some(p) => p.url = url,
+                None => self.postgres = Some(PostgresSettings::new(url)),
+            }
+        }
+        let Some(postgres) = self.postgres.as_mut() else {
+            return Ok(());
+        };
+        if let Some(path) = env("LUNGMOTION_POSTGRES_PASSWORD_FILE") {
+            postgres.password = Some(read_token_file(Path::new(&path))?);
+        }
+        for (name, slot) in [
+            ("LUNGMOTION_LEASE_S", &mut postgres.lease_s),
+            (
+                "LUNGMOTION_POSTGRES_CONNECT_TIMEOUT_S",
+                &mut postgres.connect_timeout_s,
+            ),
+        ] {
+            if let Some(v) = env(name) {
+                *slot = v.trim().parse().map_err(|_| {
+                    Error::settings(
+                        "service configuration",
+                        format!("environment {name}={v:?} is not a valid number"),
+                    )
+                })?;
             }
         }
         Ok(())

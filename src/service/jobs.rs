@@ -18,6 +18,7 @@ use super::ids::{JobId, ScanId};
 use super::ingest_cache::{IngestCache, IngestKey};
 use super::pacs_jobs::PacsAccess;
 use super::progress::JobObserver;
+use super::records::Records;
 use super::store::{
     now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, PacsActivity, PacsSeries, Store,
 };
@@ -77,6 +78,8 @@ pub struct JobCounts {
     pub queued: usize,
     /// Jobs running.
     pub running: usize,
+    /// With PostgreSQL, the worker processes that reported lately, with their counts.
+    pub workers: Vec<super::postgres::WorkerStatus>,
 }
 
 /// Runs whose wall times estimate `Retry-After` (the latest; the server may run for months).
@@ -88,6 +91,9 @@ const SHUTDOWN_JOIN_LIMIT: Duration = Duration::from_secs(60);
 const CANCEL_NONE: u8 = 0;
 const CANCEL_CLIENT: u8 = 1;
 const CANCEL_SHUTDOWN: u8 = 2;
+/// A PostgreSQL worker's lease was taken back: another worker runs the job now, so this run
+/// stops and writes nothing.
+const CANCEL_LEASE_LOST: u8 = 3;
 
 /// A job the server knows of: its record (shared with the run's progress callbacks), and
 /// while it runs the flag that stops it (seen by the run's stages, frames and the solver's
@@ -122,8 +128,11 @@ struct Board {
     run_times_s: VecDeque<f64>,
 }
 
-struct Shared {
+pub(super) struct Shared {
+    /// The data directory: uploads, targets and outputs.
     store: Store,
+    /// The job and scan records.
+    records: Arc<dyn Records>,
     board: Mutex<Board>,
     changed: Condvar,
     queue_capacity: usize,
@@ -166,12 +175,12 @@ pub struct Workers {
 }
 
 impl JobManager {
-    /// Recovers the jobs in `store` (see the module doc) and starts `workers` threads, which
+    /// Recovers the jobs in `records` (their files in `store`; see the module doc) and starts `workers` threads, which
     /// keep the scans they ingest in `ingests` and reach the PACS through `pacs`; jobs with a
     /// callback to deliver (ended now or left pending by an earlier process) are announced on
     /// `finished`.
     pub fn start(
-        store: Store,
+        (store, records): (Store, Arc<dyn Records>),
         workers: usize,
         queue_capacity: usize,
         max_attempts: u32,
@@ -179,7 +188,7 @@ impl JobManager {
         finished: FinishedJobs,
         pacs: Option<PacsAccess>,
     ) -> Result<(Self, Workers)> {
-        let (records, problems) = store.list_jobs()?;
+        let (stored, problems) = records.list_jobs()?;
         for p in problems {
             tracing::warn!("store: {p}");
         }
@@ -190,7 +199,7 @@ impl JobManager {
             shutting_down: false,
             run_times_s: VecDeque::new(),
         };
-        for mut record in records {
+        for mut record in stored {
             // No run of this process has started yet, so every partial output directory is
             // a leftover of a process that was killed (its pid may even be ours again, as in
             // a container where the server is always the same pid).
@@ -203,47 +212,24 @@ impl JobManager {
                     tracing::warn!(job = %record.job_id, "cannot remove partial outputs: {e}")
                 }
             }
-            match record.state {
-                JobState::Queued => board.queue.push_back(record.job_id),
-                JobState::Running if record.attempts >= max_attempts => {
-                    record.state = JobState::Failed;
-                    record.error = Some(format!(
-                        "the server stopped during each of this job's {} runs (last started {}); \
-                         not retried",
-                        record.attempts,
-                        record.started_at.as_deref().unwrap_or("at an unknown time")
-                    ));
-                    record.finished_at = Some(now_rfc3339());
-                    store.save_job(&record)?;
+            match recover(&mut record, max_attempts, "the server") {
+                Recovery::Unchanged if record.state == JobState::Queued => {
+                    board.queue.push_back(record.job_id)
+                }
+                Recovery::Unchanged => {}
+                Recovery::Failed => {
+                    records.save_job(&record)?;
                     tracing::warn!(job = %record.job_id, "interrupted too often, failed");
                 }
-                JobState::Cancelling => {
-                    // The client's wish stands: the run it stopped is not started again.
-                    record.state = JobState::Cancelled;
-                    record.error = Some(
-                        "cancelled by a client while running (the server stopped before the \
-                         run did)"
-                            .into(),
-                    );
-                    record.finished_at = Some(now_rfc3339());
-                    store.save_job(&record)?;
-                }
-                JobState::Running => {
-                    record.state = JobState::Queued;
-                    record.progress = JobProgress::default();
-                    record.error = Some(format!(
-                        "the server stopped during run {} (started {}); queued to run again",
-                        record.attempts,
-                        record.started_at.as_deref().unwrap_or("at an unknown time")
-                    ));
-                    store.save_job(&record)?;
+                Recovery::Cancelled => records.save_job(&record)?,
+                Recovery::Queued => {
+                    records.save_job(&record)?;
                     board.queue.push_back(record.job_id);
                     tracing::warn!(job = %record.job_id, "was running when the server stopped; re-queued");
                 }
-                _ => {}
             }
             if begin_callback(&mut record) {
-                store.save_job(&record)?;
+                records.save_job(&record)?;
             }
             if record
                 .callback
@@ -259,6 +245,7 @@ impl JobManager {
         }
         let shared = Arc::new(Shared {
             store,
+            records,
             board: Mutex::new(board),
             changed: Condvar::new(),
             queue_capacity,
@@ -309,7 +296,7 @@ impl JobManager {
         }
         // Under the board's lock, as scans are removed, so a job never waits for a scan that
         // is already gone.
-        if request.pacs_ct.is_none() && self.shared.store.scan(scan_id)?.is_none() {
+        if request.pacs_ct.is_none() && self.shared.records.scan(scan_id)?.is_none() {
             return Ok(Err(SubmitRefusal::ScanMissing));
         }
         let mut record = JobRecord::queued(scan_id);
@@ -326,7 +313,7 @@ impl JobManager {
             record.callback = Some(CallbackDelivery::waiting());
         }
         // On disk before it is acknowledged: an accepted job is never lost.
-        self.shared.store.put_job(&record, request, target)?;
+        self.shared.records.put_job(&record, request, target)?;
         board
             .jobs
             .insert(record.job_id, LiveJob::new(record.clone()));
@@ -367,7 +354,7 @@ impl JobManager {
                 record.error = Some("cancelled by a client before it ran".into());
                 record.finished_at = Some(now_rfc3339());
                 let announce = begin_callback(&mut record);
-                self.shared.store.save_job(&record)?;
+                self.shared.records.save_job(&record)?;
                 if announce {
                     self.shared.announce_finished(id);
                 }
@@ -377,7 +364,7 @@ impl JobManager {
                 // Visible (and on disk) before the flag is raised, so a client polling after
                 // its DELETE sees `cancelling`, never `running`.
                 record.state = JobState::Cancelling;
-                self.shared.store.save_job(&record)?;
+                self.shared.records.save_job(&record)?;
                 live.request_stop(CANCEL_CLIENT);
                 tracing::info!(job = %id, "cancellation requested; the run stops at its next check");
                 Ok(Some(CancelOutcome::Requested))
@@ -398,7 +385,7 @@ impl JobManager {
             return Ok(false);
         }
         board.jobs.remove(&id);
-        self.shared.store.delete_job(id)?;
+        self.shared.records.delete_job(id)?;
         Ok(true)
     }
 
@@ -428,7 +415,7 @@ impl JobManager {
             return Ok(false);
         }
         board.jobs.remove(&id);
-        self.shared.store.delete_job(id)?;
+        self.shared.records.delete_job(id)?;
         Ok(true)
     }
 
@@ -443,7 +430,7 @@ impl JobManager {
         if in_use {
             return Ok(ScanRemoval::InUse);
         }
-        if !self.shared.store.delete_scan(scan_id)? {
+        if !self.shared.records.delete_scan(scan_id)? {
             return Ok(ScanRemoval::Missing);
         }
         drop(board);
@@ -466,7 +453,7 @@ impl JobManager {
             return Ok(false);
         };
         change(callback);
-        self.shared.store.save_job(&record)?;
+        self.shared.records.save_job(&record)?;
         Ok(true)
     }
 
@@ -549,6 +536,70 @@ impl JobManager {
     }
 }
 
+/// What [`recover`] did to a job found unfinished by a new process (or with an expired lease).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Recovery {
+    /// Nothing: it was queued or finished.
+    Unchanged,
+    /// It was running and goes back to the queue (the run counted as an attempt).
+    Queued,
+    /// It was running and had used its `max_attempts` runs.
+    Failed,
+    /// A client had asked for its cancellation.
+    Cancelled,
+}
+
+/// Decides the fate of a job whose run was interrupted because `who` (`the server`, a worker)
+/// stopped: run again until `max_attempts` runs have started, then failed; a `cancelling` job
+/// is cancelled, since the client's wish stands.
+pub(super) fn recover(record: &mut JobRecord, max_attempts: u32, who: &str) -> Recovery {
+    let started = record
+        .started_at
+        .clone()
+        .unwrap_or_else(|| "at an unknown time".into());
+    match record.state {
+        JobState::Running if record.attempts >= max_attempts => {
+            record.state = JobState::Failed;
+            record.error = Some(format!(
+                "{who} stopped during each of this job's {} runs (last started {started}); not \
+                 retried",
+                record.attempts,
+            ));
+            record.finished_at = Some(now_rfc3339());
+            Recovery::Failed
+        }
+        JobState::Cancelling => {
+            record.state = JobState::Cancelled;
+            record.error = Some(format!(
+                "cancelled by a client while running ({who} stopped before the run did)"
+            ));
+            record.finished_at = Some(now_rfc3339());
+            Recovery::Cancelled
+        }
+        JobState::Running => {
+            record.state = JobState::Queued;
+            record.progress = JobProgress::default();
+            record.error = Some(format!(
+                "{who} stopped during run {} (started {started}); queued to run again",
+                record.attempts,
+            ));
+            Recovery::Queued
+        }
+        _ => Recovery::Unchanged,
+    }
+}
+
+/// Marks a job taken by a worker: running, one attempt more, its progress reset.
+pub(super) fn mark_running(record: &mut JobRecord) {
+    record.state = JobState::Running;
+    record.attempts += 1;
+    record.started_at = Some(now_rfc3339());
+    record.progress = JobProgress {
+        frames_total: record.progress.frames_total,
+        ..JobProgress::default()
+    };
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
@@ -571,13 +622,7 @@ fn worker_loop(shared: &Shared) {
                     if record.state != JobState::Queued {
                         continue;
                     }
-                    record.state = JobState::Running;
-                    record.attempts += 1;
-                    record.started_at = Some(now_rfc3339());
-                    record.progress = JobProgress {
-                        frames_total: record.progress.frames_total,
-                        ..JobProgress::default()
-                    };
+                    mark_running(&mut record);
                     drop(record);
                     board.running += 1;
                     break live;
@@ -606,7 +651,7 @@ fn worker_loop(shared: &Shared) {
 fn run_job(shared: &Shared, live: &LiveJob) {
     let (id, scan_id) = {
         let record = lock(&live.record);
-        if let Err(e) = shared.store.save_job(&record) {
+        if let Err(e) = shared.records.save_job(&record) {
             tracing::error!(job = %record.job_id, "cannot record the start: {e}");
         }
         (record.job_id, record.scan_id)
@@ -624,6 +669,11 @@ fn run_job(shared: &Shared, live: &LiveJob) {
             .unwrap_or_else(|| "unknown panic".into());
         Err(Error::InvalidModel(format!("internal error: {what}")))
     });
+    if live.cancel.load(Ordering::SeqCst) == CANCEL_LEASE_LOST {
+        // Its files and record are another worker's now.
+        tracing::warn!(job = %id, "lease lost during the run; stopped, nothing written");
+        return;
+    }
     let cancelled_by_client = live.cancel.load(Ordering::SeqCst) == CANCEL_CLIENT;
     let mut record = lock(&live.record);
     match outcome {
@@ -685,7 +735,7 @@ fn run_job(shared: &Shared, live: &LiveJob) {
     let announce = begin_callback(&mut record);
     live.cancel.store(CANCEL_NONE, Ordering::SeqCst);
     live.stop.store(false, Ordering::SeqCst);
-    if let Err(e) = shared.store.save_job(&record) {
+    if let Err(e) = shared.records.save_job(&record) {
         tracing::error!(job = %id, "cannot record the end: {e}");
     }
     if announce {
@@ -711,7 +761,7 @@ fn client_message(e: Error, root: &std::path::Path) -> String {
 
 /// Frames a job will write, from its trace and output instants (none when they are unusable:
 /// the run then fails saying why).
-fn frames_total(request: &JobRequest) -> Option<usize> {
+pub(super) fn frames_total(request: &JobRequest) -> Option<usize> {
     let trace = BreathingTrace::new(request.time_s.clone(), request.volume_ml.clone()).ok()?;
     let times = request
         .config
@@ -723,15 +773,15 @@ fn frames_total(request: &JobRequest) -> Option<usize> {
 }
 
 fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Result<()> {
-    let request = shared.store.job_request(id)?;
+    let request = shared.records.job_request(id)?;
     if let Some(series) = &request.pacs_ct {
         // A re-run finds the series it pulled before.
-        if shared.store.scan(scan_id)?.is_none() {
+        if shared.records.scan(scan_id)?.is_none() {
             pull_ct(shared, scan_id, series, &request.config, live)?;
         }
     }
     let push = request.push;
-    let scan = shared.store.scan(scan_id)?.ok_or_else(|| Error::Store {
+    let scan = shared.records.scan(scan_id)?.ok_or_else(|| Error::Store {
         record: format!("scans/{scan_id}"),
         reason: "the scan was deleted before the job ran".into(),
     })?;
@@ -764,7 +814,7 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
             .map(|t| t.spec(&shared.store.job_target_dir(id)))
             .transpose()?,
     };
-    let mut observer = JobObserver::new(&shared.store, live.record.clone(), live.stop.clone());
+    let mut observer = JobObserver::new(&*shared.records, live.record.clone(), live.stop.clone());
     let (ingested, read_timings) = ingested_scan(shared, scan_id, &inputs, &config, &mut observer)?;
     run_breathing_on(
         &inputs,
@@ -809,7 +859,8 @@ fn pull_ct(
 ) -> Result<()> {
     let pacs = pacs_of(shared)?;
     show_stage(live, "pulling_ct", "pulling the CT series from the PACS");
-    let series_uid = pacs.import_series(&shared.store, scan_id, series, config)?;
+    let series_uid =
+        pacs.import_series(&shared.store, &*shared.records, scan_id, series, config)?;
     let mut record = lock(&live.record);
     if let Some(activity) = record.pacs.as_mut() {
         activity.ct = Some(PacsSeries {
@@ -817,7 +868,7 @@ fn pull_ct(
             series: Some(series_uid),
         });
     }
-    shared.store.save_job(&record)
+    shared.records.save_job(&record)
 }
 
 /// Pushes the job's DICOM outputs to the PACS and records what it stored.
@@ -834,7 +885,7 @@ fn push_outputs(shared: &Shared, id: JobId, live: &LiveJob) -> Result<()> {
                 let root = format!("{}/", shared.store.root().display());
                 activity.push_error = Some(e.to_string().replace(&root, ""));
             }
-            shared.store.save_job(&record)?;
+            shared.records.save_job(&record)?;
             return Err(e);
         }
     };
@@ -844,7 +895,7 @@ fn push_outputs(shared: &Shared, id: JobId, live: &LiveJob) -> Result<()> {
         activity.stored = Some(report.stored);
         activity.already_stored = Some(report.already_stored);
     }
-    shared.store.save_job(&record)
+    shared.records.save_job(&record)
 }
 
 /// The job's scan read and ingested with its settings: from the cache when an earlier job
@@ -879,4 +930,174 @@ fn ingested_scan(
         shared.ingests.insert_ingested(key, ingested.clone());
     }
     Ok((ingested, timings))
+}
+
+/// Counts of a PostgreSQL worker process's jobs, reported to the database for the metrics.
+#[derive(Debug, Default)]
+pub(super) struct LeasedStats {
+    pub(super) running: std::sync::atomic::AtomicI64,
+    pub(super) done: std::sync::atomic::AtomicI64,
+    pub(super) failed: std::sync::atomic::AtomicI64,
+    pub(super) cancelled: std::sync::atomic::AtomicI64,
+}
+
+/// The state a PostgreSQL worker process's threads share: the files, its leased records,
+/// the ingest cache and the PACS; its board holds only the jobs it runs now.
+pub(super) fn leased_shared(
+    store: Store,
+    records: Arc<dyn Records>,
+    workers: usize,
+    ingests: Arc<IngestCache>,
+    pacs: Option<PacsAccess>,
+) -> Arc<Shared> {
+    // Callbacks are not delivered with PostgreSQL (submissions with one are refused), so
+    // nothing listens here.
+    let (finished, _) = tokio::sync::mpsc::unbounded_channel();
+    Arc::new(Shared {
+        store,
+        records,
+        board: Mutex::new(Board {
+            jobs: HashMap::new(),
+            queue: VecDeque::new(),
+            running: 0,
+            shutting_down: false,
+            run_times_s: VecDeque::new(),
+        }),
+        changed: Condvar::new(),
+        queue_capacity: 0,
+        workers,
+        ingests,
+        finished,
+        pacs,
+    })
+}
+
+/// How often a PostgreSQL worker renews the lease of the job it runs, which also tells it of
+/// a client's cancellation: a third of the lease, at most a second, so a DELETE reaches the run
+/// within about a second.
+fn renewal_interval(lease: Duration) -> Duration {
+    (lease / 3).min(Duration::from_secs(1))
+}
+
+/// One simulation thread of `lungmotion worker`: takes jobs from the PostgreSQL queue as
+/// `worker`, runs each with its lease renewed, until the process shuts down.
+pub(super) fn leased_worker_loop(
+    shared: &Shared,
+    pg: &super::postgres::Postgres,
+    worker: &str,
+    stats: &LeasedStats,
+) {
+    use super::postgres::{Lease, POLL_INTERVAL};
+    loop {
+        if lock(&shared.board).shutting_down {
+            return;
+        }
+        let record = match pg.claim(worker) {
+            Ok(Some(record)) => record,
+            Ok(None) => {
+                pg.wait_for_work(POLL_INTERVAL);
+                continue;
+            }
+            Err(e) => {
+                tracing::warn!("taking a job: {e}; trying again");
+                std::thread::sleep(POLL_INTERVAL);
+                continue;
+            }
+        };
+        let id = record.job_id;
+        let live = LiveJob::new(record);
+        {
+            let mut board = lock(&shared.board);
+            board.jobs.insert(id, live.clone());
+            board.running += 1;
+        }
+        stats.running.fetch_add(1, Ordering::SeqCst);
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
+        let renewer = {
+            let live = live.clone();
+            let pg = pg.clone();
+            let worker = worker.to_string();
+            std::thread::Builder::new()
+                .name(format!("lungmotion-lease-{id}"))
+                .spawn(move || loop {
+                    match done_rx.recv_timeout(renewal_interval(pg.lease())) {
+                        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                        _ => return,
+                    }
+                    match pg.renew(id, &worker) {
+                        Ok(Lease::Held) => {}
+                        Ok(Lease::Cancelling) => {
+                            if live.cancel.load(Ordering::SeqCst) == CANCEL_NONE {
+                                tracing::info!(job = %id, "cancellation requested; the run stops at its next check");
+                                live.request_stop(CANCEL_CLIENT);
+                            }
+                        }
+                        Ok(Lease::Lost) => {
+                            live.request_stop(CANCEL_LEASE_LOST);
+                            return;
+                        }
+                        // The reaper takes the job back if this lasts a whole lease; until
+                        // then the run goes on.
+                        Err(e) => tracing::warn!(job = %id, "cannot renew the lease: {e}"),
+                    }
+                })
+        };
+        run_job(shared, &live);
+        drop(done_tx);
+        if let Ok(renewer) = renewer {
+            let _ = renewer.join();
+        }
+        let state = lock(&live.record).state;
+        let counter = match state {
+            JobState::Done => Some(&stats.done),
+            JobState::Failed => Some(&stats.failed),
+            JobState::Cancelled => Some(&stats.cancelled),
+            _ => None,
+        };
+        if let Some(counter) = counter {
+            counter.fetch_add(1, Ordering::SeqCst);
+        }
+        stats.running.fetch_sub(1, Ordering::SeqCst);
+        let mut board = lock(&shared.board);
+        board.jobs.remove(&id);
+        board.running -= 1;
+        drop(board);
+        shared.changed.notify_all();
+    }
+}
+
+/// Stops a PostgreSQL worker process's threads: no new jobs, `grace` for the running ones,
+/// then they stop and go back to the queue without using an attempt.
+pub(super) fn stop_leased_workers(shared: &Shared, grace: Duration) {
+    let deadline = Instant::now() + grace;
+    let mut board = lock(&shared.board);
+    board.shutting_down = true;
+    while board.running > 0 {
+        let now = Instant::now();
+        if now >= deadline {
+            break;
+        }
+        board = shared
+            .changed
+            .wait_timeout(board, deadline - now)
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
+    if board.running > 0 {
+        tracing::info!(
+            running = board.running,
+            "grace period over; stopping running jobs and re-queueing them"
+        );
+        for live in board.jobs.values() {
+            live.request_stop(CANCEL_SHUTDOWN);
+        }
+    }
+    let limit = Instant::now() + SHUTDOWN_JOIN_LIMIT;
+    while board.running > 0 && Instant::now() < limit {
+        board = shared
+            .changed
+            .wait_timeout(board, Duration::from_millis(200))
+            .unwrap_or_else(|p| p.into_inner())
+            .0;
+    }
 }

@@ -45,6 +45,19 @@ struct OutcomeLabels {
     outcome: &'static str,
 }
 
+/// Labels of a worker process's series (PostgreSQL): its id.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WorkerLabels {
+    worker: String,
+}
+
+/// Labels of a worker process's finished jobs: its id and how they ended.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WorkerOutcomeLabels {
+    worker: String,
+    state: &'static str,
+}
+
 /// Labels of the job gauge.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct StateLabels {
@@ -72,6 +85,10 @@ pub struct ServiceMetrics {
     retention_removed: Family<KindLabels, Counter>,
     retention_removed_bytes: Family<KindLabels, Counter>,
     callback_attempts: Family<OutcomeLabels, Counter>,
+    worker_running: Family<WorkerLabels, Gauge>,
+    worker_threads: Family<WorkerLabels, Gauge>,
+    worker_seen: Family<WorkerLabels, Gauge<f64, std::sync::atomic::AtomicU64>>,
+    worker_finished: Family<WorkerOutcomeLabels, Gauge>,
 }
 
 fn latency_histogram() -> Histogram {
@@ -148,8 +165,37 @@ impl Default for ServiceMetrics {
             "Completion callback POSTs, by outcome (delivered: a 2xx answer)",
             callback_attempts.clone(),
         );
+        let worker_running = Family::<WorkerLabels, Gauge>::default();
+        registry.register(
+            "lungmotion_worker_running",
+            "Jobs a worker process runs now (PostgreSQL store), as it last reported",
+            worker_running.clone(),
+        );
+        let worker_threads = Family::<WorkerLabels, Gauge>::default();
+        registry.register(
+            "lungmotion_worker_threads",
+            "Simulation threads of a worker process (PostgreSQL store)",
+            worker_threads.clone(),
+        );
+        let worker_seen =
+            Family::<WorkerLabels, Gauge<f64, std::sync::atomic::AtomicU64>>::default();
+        registry.register(
+            "lungmotion_worker_last_report_age_seconds",
+            "Seconds since a worker process last reported (every third of a lease while alive)",
+            worker_seen.clone(),
+        );
+        let worker_finished = Family::<WorkerOutcomeLabels, Gauge>::default();
+        registry.register(
+            "lungmotion_worker_jobs_finished",
+            "Jobs a worker process finished since it started, by final state",
+            worker_finished.clone(),
+        );
         ServiceMetrics {
             registry: Mutex::new(registry),
+            worker_running,
+            worker_threads,
+            worker_seen,
+            worker_finished,
             store_bytes,
             retention_removed,
             retention_removed_bytes,
@@ -250,6 +296,31 @@ impl ServiceMetrics {
         }
         self.queue_depth.set(counts.queued as i64);
         self.running.set(counts.running as i64);
+        // Workers that stopped reporting drop out of the exposition.
+        self.worker_running.clear();
+        self.worker_threads.clear();
+        self.worker_seen.clear();
+        self.worker_finished.clear();
+        for w in &counts.workers {
+            let labels = WorkerLabels {
+                worker: w.worker_id.clone(),
+            };
+            self.worker_running.get_or_create(&labels).set(w.running);
+            self.worker_threads.get_or_create(&labels).set(w.threads);
+            self.worker_seen.get_or_create(&labels).set(w.seen_s_ago);
+            for (state, n) in [
+                ("done", w.done),
+                ("failed", w.failed),
+                ("cancelled", w.cancelled),
+            ] {
+                self.worker_finished
+                    .get_or_create(&WorkerOutcomeLabels {
+                        worker: w.worker_id.clone(),
+                        state,
+                    })
+                    .set(n);
+            }
+        }
         let mut text = String::new();
         let registry = self.registry.lock().unwrap_or_else(|p| p.into_inner());
         if encode(&mut text, &registry).is_err() {
@@ -272,6 +343,13 @@ mod tests {
             by_state: [2, 1, 0, 0, 0, 0],
             queued: 2,
             running: 1,
+            workers: vec![crate::service::postgres::WorkerStatus {
+                worker_id: "host-1-ab".into(),
+                threads: 2,
+                running: 1,
+                done: 5,
+                ..Default::default()
+            }],
         };
         let text = m.render(&counts);
         assert!(text.contains(
@@ -286,6 +364,12 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("lungmotion_queue_depth 2"), "{text}");
+        for series in [
+            "lungmotion_worker_running{worker=\"host-1-ab\"} 1",
+            "lungmotion_worker_jobs_finished{worker=\"host-1-ab\",state=\"done\"} 5",
+        ] {
+            assert!(text.contains(series), "{series} missing: {text}");
+        }
         m.observe_retention(&SweepReport {
             stored_bytes: 5000,
             jobs_removed: 2,

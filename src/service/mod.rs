@@ -5,8 +5,12 @@
 //!   [`pacs_settings`]: the DICOMweb server jobs pull their CT from and push to;
 //!   [`pacs_jobs`]: a job's CT pulled and stored as a scan, its DICOM outputs pushed;
 //! * [`ids`]: unguessable scan and job ids; [`ingest_cache`]: scans ingested for jobs, by settings;
-//! * [`store`]: the on-disk store with atomic records;
+//! * [`store`]: the on-disk store with atomic records; [`records`]: the job and scan records
+//!   behind one interface (that store, or PostgreSQL);
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
+//!   [`backend`]: the jobs as the HTTP side sees them, in this process or in PostgreSQL;
+//!   [`postgres`]: the records and the queue in PostgreSQL, leases; [`worker`]: the
+//!   `lungmotion worker` process that runs them;
 //!   [`progress`]: a running job's progress and time left;
 //! * [`upload`]: streaming, size-limited scan uploads told apart by content;
 //! * [`request`]: a simulation request (JSON or CSV) merged over the run defaults and checked;
@@ -21,6 +25,7 @@
 //!
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
 
+pub mod backend;
 pub mod body_timeout;
 pub mod callbacks;
 pub mod config;
@@ -33,8 +38,10 @@ pub mod metrics;
 pub mod openapi;
 pub mod pacs_jobs;
 pub mod pacs_settings;
+pub mod postgres;
 pub mod problem;
 mod progress;
+pub mod records;
 pub mod request;
 pub mod retention;
 pub mod routes;
@@ -42,6 +49,7 @@ pub mod server;
 pub mod store;
 pub mod targets;
 pub mod upload;
+pub mod worker;
 
 pub use config::{IngestIsolation, ServeOverrides, ServiceConfig};
 pub use server::{router, serve_blocking, start, ServerHandle};

@@ -11,6 +11,7 @@ use super::config::IngestIsolation;
 use super::ids::ScanId;
 use super::isolation::{adopt_stored_ingest, ingest_isolated, IngestLimits};
 use super::pacs_settings::PacsSettings;
+use super::records::Records;
 use super::store::{now_rfc3339, PacsSeries, ScanRecord, Store};
 use crate::pacs::{pull_series, push_with, PushReport};
 use crate::run::RunConfig;
@@ -51,6 +52,7 @@ impl PacsAccess {
     pub fn import_series(
         &self,
         store: &Store,
+        records: &dyn Records,
         scan_id: ScanId,
         series: &PacsSeries,
         run: &RunConfig,
@@ -89,7 +91,7 @@ impl PacsAccess {
             ingest,
             series: None,
         };
-        store.put_scan(&record, &dir)?;
+        records.put_scan(&record, &dir)?;
         adopt_stored_ingest(store, scan_id, &stored_ingest);
         Ok(series_uid)
     }

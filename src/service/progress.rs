@@ -7,7 +7,8 @@
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
-use super::store::{JobRecord, Store};
+use super::records::Records;
+use super::store::JobRecord;
 use crate::run::{RunObserver, RunStage};
 use crate::simulation::{CancelFlag, SolveProgress, SolveProgressSink};
 
@@ -55,7 +56,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 /// Carries a run's progress into the job record and the job's stop flag into the run.
 pub(super) struct JobObserver<'a> {
-    store: &'a Store,
+    store: &'a dyn Records,
     record: Arc<Mutex<JobRecord>>,
     stop: CancelFlag,
     started: Instant,
@@ -64,7 +65,11 @@ pub(super) struct JobObserver<'a> {
 
 impl<'a> JobObserver<'a> {
     /// An observer of the run of the job whose live record is `record`, stopped by `stop`.
-    pub(super) fn new(store: &'a Store, record: Arc<Mutex<JobRecord>>, stop: CancelFlag) -> Self {
+    pub(super) fn new(
+        store: &'a dyn Records,
+        record: Arc<Mutex<JobRecord>>,
+        stop: CancelFlag,
+    ) -> Self {
         JobObserver {
             store,
             record,

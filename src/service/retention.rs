@@ -13,9 +13,11 @@ use std::collections::{HashMap, HashSet};
 use std::path::Path;
 use std::time::{Duration, SystemTime};
 
+use super::backend::Jobs;
 use super::config::RetentionSettings;
 use super::ids::{JobId, ScanId};
-use super::jobs::{JobManager, ScanRemoval};
+use super::jobs::ScanRemoval;
+use super::records::Records;
 use super::routes::SharedState;
 use super::store::{JobRecord, Store};
 use crate::Result;
@@ -55,13 +57,14 @@ struct Candidate {
 
 /// One sweep over the store at time `now` (see the module doc).
 pub fn sweep(
-    jobs: &JobManager,
+    jobs: &Jobs,
     store: &Store,
+    scan_records: &dyn Records,
     settings: &RetentionSettings,
     now: SystemTime,
 ) -> Result<SweepReport> {
-    let records = jobs.records();
-    let (scans, problems) = store.list_scans()?;
+    let records = jobs.records()?;
+    let (scans, problems) = scan_records.list_scans()?;
     for p in problems {
         tracing::warn!("store: {p}");
     }
@@ -176,6 +179,7 @@ pub fn spawn_retention(state: SharedState) {
                 sweep(
                     &worker.jobs,
                     &worker.store,
+                    &*worker.records,
                     &worker.config.retention,
                     SystemTime::now(),
                 )

@@ -17,6 +17,7 @@ use subtle::ConstantTimeEq;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
+use super::backend::{Jobs, PgJobs};
 use super::body_timeout::limit_body_pauses;
 use super::callbacks::spawn_deliveries;
 use super::config::ServiceConfig;
@@ -27,7 +28,9 @@ use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
 use super::pacs_jobs::PacsAccess;
+use super::postgres::Postgres;
 use super::problem::{ApiError, PROBLEM_JSON};
+use super::records::Records;
 use super::retention::spawn_retention;
 use super::routes::{self, AppState, SharedState};
 use super::store::Store;
@@ -308,14 +311,20 @@ impl Drop for ServerHandle {
 
 /// The background work of a server besides its workers, started with the HTTP runtime.
 struct Background {
-    workers: Workers,
+    /// The embedded worker threads; none in an API process on PostgreSQL.
+    workers: Option<Workers>,
     finished: tokio::sync::mpsc::UnboundedReceiver<crate::service::ids::JobId>,
 }
 
 /// Opens the store, recovers its jobs, starts the workers and the HTTP state.
 fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     config.validate()?;
-    let store = Store::open(&config.data_dir)?;
+    // Other API and worker processes use a store shared through PostgreSQL at the same time.
+    let store = match config.postgres {
+        None => Store::open(&config.data_dir)?,
+        Some(_) => Store::open_shared(&config.data_dir)?,
+    };
+    let records: Arc<dyn Records> = Arc::new(store.clone());
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
     let metrics = ServiceMetrics::default();
     metrics.register_ingest_cache(&ingests);
@@ -329,19 +338,39 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
             memory_mib: config.ingest_memory_mib,
         },
     });
-    let (jobs, workers) = JobManager::start(
-        store.clone(),
-        config.workers,
-        config.queue_capacity,
-        config.max_attempts,
-        ingests,
-        finished_tx,
-        pacs,
-    )?;
+    let (jobs, workers, records) = match &config.postgres {
+        None => {
+            let (manager, workers) = JobManager::start(
+                (store.clone(), records.clone()),
+                config.workers,
+                config.queue_capacity,
+                config.max_attempts,
+                ingests,
+                finished_tx,
+                pacs,
+            )?;
+            (Jobs::Embedded(manager), Some(workers), records)
+        }
+        Some(settings) => {
+            // API only: the jobs run in `lungmotion worker` processes.
+            drop((ingests, finished_tx, pacs));
+            let pg = Postgres::connect(settings, store.clone())?;
+            tracing::info!(server = %pg.server(), "job and scan records in PostgreSQL; lungmotion worker processes run the jobs");
+            let records: Arc<dyn Records> = Arc::new(pg.clone());
+            let jobs = Jobs::Postgres(PgJobs {
+                pg,
+                queue_capacity: config.queue_capacity,
+                pacs: config.pacs.clone(),
+                shutting_down: Arc::default(),
+            });
+            (jobs, None, records)
+        }
+    };
     let state = Arc::new(AppState {
         ingest_slots: tokio::sync::Semaphore::new(config.workers),
         metrics,
         store,
+        records,
         jobs,
         config,
     });
@@ -456,7 +485,7 @@ pub fn serve_blocking(config: ServiceConfig) -> Result<()> {
 }
 
 /// Resolves on SIGTERM or Ctrl-C.
-async fn termination() {
+pub(super) async fn termination() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };

@@ -300,6 +300,8 @@ pub struct Store {
     /// Held while a target directory is replaced or removed, or a job copies a target, so
     /// that two uploads of one name never interleave their renames.
     targets: Arc<Mutex<()>>,
+    /// Whether other processes use it at the same time (see [`Store::open_shared`]).
+    shared: bool,
 }
 
 /// What storing an uploaded target came to.
@@ -319,6 +321,9 @@ const JOB_RECORD: &str = "job.json";
 const JOB_REQUEST: &str = "request.json";
 const TARGET_RECORD: &str = "target.json";
 const SCAN_TARGETS: &str = "targets";
+/// Age after which an entry of a shared store's `tmp/` is a killed process's leftover: longer
+/// than any upload or ingest is allowed to take.
+pub const SHARED_TMP_MAX_AGE: std::time::Duration = std::time::Duration::from_secs(86_400);
 /// The run's output directory inside a job's directory.
 pub const JOB_OUTPUT: &str = "out";
 
@@ -328,6 +333,7 @@ impl Store {
         let store = Store {
             root: root.to_path_buf(),
             targets: Arc::default(),
+            shared: false,
         };
         for dir in ["scans", "jobs"] {
             let dir = root.join(dir);
@@ -341,6 +347,44 @@ impl Store {
         // Proves the store is writable now rather than at the first upload.
         write_durable(&tmp.join("writable"), b"ok")?;
         Ok(store)
+    }
+
+    /// Opens (creating) a store that other processes use at the same time (API and worker
+    /// processes on PostgreSQL): `tmp/` keeps what they are writing, and only entries older
+    /// than [`SHARED_TMP_MAX_AGE`] (left by a killed process) are removed.
+    pub fn open_shared(root: &Path) -> Result<Self> {
+        let store = Store {
+            root: root.to_path_buf(),
+            targets: Arc::default(),
+            shared: true,
+        };
+        for dir in ["scans", "jobs", "tmp"] {
+            let dir = root.join(dir);
+            std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
+        }
+        let tmp = store.tmp_dir();
+        for entry in std::fs::read_dir(&tmp).at(IoOp::List, &tmp)?.flatten() {
+            let old = entry
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > SHARED_TMP_MAX_AGE);
+            if old {
+                let path = entry.path();
+                let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
+            }
+        }
+        store.probe_writable()?;
+        Ok(store)
+    }
+
+    /// Writes and removes a probe file of this call's own in `tmp/`: processes sharing the
+    /// store must not race for one name.
+    fn probe_writable(&self) -> Result<()> {
+        let probe = self.tmp_path("writable");
+        write_durable(&probe, b"ok")?;
+        std::fs::remove_file(&probe).at(IoOp::Remove, &probe)
     }
 
     /// The data directory.
@@ -361,6 +405,9 @@ impl Store {
 
     /// Whether the store can be written (for readiness).
     pub fn is_writable(&self) -> bool {
+        if self.shared {
+            return self.probe_writable().is_ok();
+        }
         write_durable(&self.tmp_dir().join("writable"), b"ok").is_ok()
     }
 
@@ -382,12 +429,30 @@ impl Store {
 
     /// Stores a scan: moves the received `upload` in and writes its record, all at once.
     pub fn put_scan(&self, record: &ScanRecord, upload: &Path) -> Result<()> {
+        self.put_scan_files(record, upload, true)
+    }
+
+    /// Moves the received `upload` into the scan's new directory, with `scan.json` when
+    /// `with_record` (the directory store's record; PostgreSQL keeps its own), all at once.
+    pub fn put_scan_files(
+        &self,
+        record: &ScanRecord,
+        upload: &Path,
+        with_record: bool,
+    ) -> Result<()> {
         let staging = self.tmp_path("scan");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let file = staging.join(&record.file_name);
         std::fs::rename(upload, &file).at(IoOp::Rename, upload)?;
-        write_json(&staging.join(SCAN_RECORD), record)?;
+        if with_record {
+            write_json(&staging.join(SCAN_RECORD), record)?;
+        }
         publish_dir(&staging, &self.scan_dir(record.scan_id))
+    }
+
+    /// Bytes held by a scan's directory (upload, stored ingest, targets).
+    pub fn scan_bytes(&self, id: ScanId) -> u64 {
+        dir_bytes(&self.scan_dir(id))
     }
 
     /// A scan's record, `None` when there is no such scan.
@@ -538,6 +603,17 @@ impl Store {
         request: &JobRequest,
         target: Option<&Path>,
     ) -> Result<()> {
+        self.put_job_files(record.job_id, target, Some((record, request)))
+    }
+
+    /// Makes a new job's directory with its copy of the target file `target`, and with
+    /// `records` (`job.json`, `request.json`) for the directory store, all at once.
+    pub fn put_job_files(
+        &self,
+        id: JobId,
+        target: Option<&Path>,
+        records: Option<(&JobRecord, &JobRequest)>,
+    ) -> Result<()> {
         let staging = self.tmp_path("job");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let staged = (|| {
@@ -556,14 +632,17 @@ impl Store {
                 }
                 sync_dir(&dir);
             }
-            write_json(&staging.join(JOB_REQUEST), request)?;
-            write_json(&staging.join(JOB_RECORD), record)
+            if let Some((record, request)) = records {
+                write_json(&staging.join(JOB_REQUEST), request)?;
+                write_json(&staging.join(JOB_RECORD), record)?;
+            }
+            Ok(())
         })();
         if let Err(e) = staged {
             let _ = std::fs::remove_dir_all(&staging);
             return Err(e);
         }
-        publish_dir(&staging, &self.job_dir(record.job_id))
+        publish_dir(&staging, &self.job_dir(id))
     }
 
     /// Replaces a job's record.

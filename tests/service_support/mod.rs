@@ -4,8 +4,14 @@
 //!
 //! Every server gets its own data directory; its stderr goes to `server.log` beside that
 //! directory so a failing test can print what the server said.
+//!
+//! With `LUNGMOTION_TEST_BACKEND=postgres`, each server gets a PostgreSQL server of its own
+//! and a `lungmotion worker` process beside it (see [`postgres`]), so that a journey test runs
+//! against that backend unchanged (`.ci/run` does it for the tests where it applies).
 
 #![allow(dead_code)]
+
+pub mod postgres;
 
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
@@ -68,6 +74,15 @@ pub struct ServerProcess {
     data_dir: PathBuf,
     log_path: PathBuf,
     client: Client,
+    /// With `LUNGMOTION_TEST_BACKEND=postgres`: the worker that runs the jobs, then the
+    /// database (dropped in this order, after the server).
+    worker: Option<postgres::WorkerProcess>,
+    database: Option<postgres::PgServer>,
+}
+
+/// Whether the tests' servers keep their jobs in PostgreSQL (`LUNGMOTION_TEST_BACKEND`).
+pub fn postgres_backend() -> bool {
+    std::env::var("LUNGMOTION_TEST_BACKEND").is_ok_and(|b| b == "postgres")
 }
 
 /// The HTTP client of the tests: generous timeouts, since the machine is shared.
@@ -119,6 +134,16 @@ impl ServerProcess {
             .unwrap();
         let mut args = vec!["--listen", "127.0.0.1:0"];
         args.extend_from_slice(extra_args);
+        let database = postgres_backend().then(|| {
+            let dir = data_dir.parent().unwrap().join("postgres");
+            postgres::PgServer::start(&dir)
+        });
+        let url = database.as_ref().map(|d| d.url());
+        let mut env: Vec<(&str, &str)> = env.to_vec();
+        if let Some(url) = &url {
+            env.push(("LUNGMOTION_POSTGRES_URL", url));
+        }
+        let env = &env[..];
         let mut child = serve_command(data_dir, &args, env)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -165,12 +190,25 @@ impl ServerProcess {
             base_url.starts_with("http://127.0.0.1:"),
             "listening line names {base_url}"
         );
+        let worker = database.as_ref().map(|_| {
+            // The server's settings, workers among them, and its data directory.
+            let worker_log = log_path.with_file_name("worker.log");
+            let shared: Vec<&str> = extra_args
+                .windows(2)
+                .filter(|w| w[0] == "--workers" || w[0] == "--config")
+                .flatten()
+                .copied()
+                .collect();
+            postgres::WorkerProcess::start(data_dir, &worker_log, &shared, env)
+        });
         ServerProcess {
             child,
             base_url,
             data_dir: data_dir.to_path_buf(),
             log_path,
             client: client(),
+            worker,
+            database,
         }
     }
 
@@ -194,9 +232,15 @@ impl ServerProcess {
         self.child.id()
     }
 
-    /// Everything the server (and earlier servers of this data dir's parent) wrote on stderr.
+    /// Everything the server (and earlier servers of this data dir's parent) wrote on stderr,
+    /// and with PostgreSQL its worker.
     pub fn log(&self) -> String {
-        std::fs::read_to_string(&self.log_path).unwrap_or_default()
+        let mut log = std::fs::read_to_string(&self.log_path).unwrap_or_default();
+        if let Some(worker) = &self.worker {
+            log.push_str("\n--- worker ---\n");
+            log.push_str(&worker.log());
+        }
+        log
     }
 
     /// The shared client.

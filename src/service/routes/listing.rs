@@ -170,7 +170,7 @@ pub async fn list_scans(
 ) -> ApiResult<Json<ScanPage>> {
     let page = PageRequest::of(&query)?;
     blocking(move || {
-        let (scans, problems) = state.store.list_scans().map_err(store_error)?;
+        let (scans, problems) = state.records.list_scans().map_err(store_error)?;
         for problem in problems {
             tracing::warn!(%problem, "scan listing skipped a directory");
         }
@@ -242,6 +242,7 @@ pub async fn list_jobs(
     let records = state
         .jobs
         .records()
+        .map_err(store_error)?
         .into_iter()
         .filter(|r| wanted_state.is_none_or(|s| r.state == s))
         .filter(|r| wanted_scan.is_none_or(|id| r.scan_id == id))

@@ -14,11 +14,12 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::Serialize;
 
+use super::backend::Jobs;
 use super::config::ServiceConfig;
 use super::ids::{JobId, ScanId};
-use super::jobs::JobManager;
 use super::metrics::ServiceMetrics;
 use super::problem::{ApiError, ApiResult};
+use super::records::Records;
 use super::store::{JobRecord, ScanRecord, Store};
 
 pub mod files;
@@ -44,10 +45,12 @@ pub use targets::*;
 pub struct AppState {
     /// The service's settings.
     pub config: ServiceConfig,
-    /// The data directory.
+    /// The data directory: uploads, targets and outputs.
     pub store: Store,
+    /// The job and scan records.
+    pub records: Arc<dyn Records>,
     /// Queue and workers.
-    pub jobs: JobManager,
+    pub jobs: Jobs,
     /// Prometheus series.
     pub metrics: ServiceMetrics,
     /// Ingests at once (CPU-bound, beside the simulation workers).
@@ -84,7 +87,7 @@ async fn blocking<T: Send + 'static>(
 /// The scan's record, or 404.
 fn load_scan(state: &AppState, id: ScanId) -> ApiResult<ScanRecord> {
     state
-        .store
+        .records
         .scan(id)
         .map_err(store_error)?
         .ok_or_else(|| ApiError::not_found(format!("no scan {id}")))
@@ -95,6 +98,7 @@ fn load_job(state: &AppState, id: JobId) -> ApiResult<JobRecord> {
     state
         .jobs
         .status(id)
+        .map_err(store_error)?
         .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
 }
 

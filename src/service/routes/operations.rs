@@ -46,15 +46,23 @@ pub async fn healthz() -> Json<Health> {
 pub async fn readyz(State(state): State<SharedState>) -> Response {
     let counts = state.jobs.counts();
     let worker_state = state.clone();
-    let writable = tokio::task::spawn_blocking(move || worker_state.store.is_writable())
-        .await
-        .unwrap_or(false);
+    let (writable, database) = tokio::task::spawn_blocking(move || {
+        (
+            worker_state.store.is_writable(),
+            worker_state.jobs.probe_database(),
+        )
+    })
+    .await
+    .unwrap_or((false, None));
     let status = if state.jobs.shutting_down() {
-        "shutting down"
+        "shutting down".to_string()
     } else if !writable {
-        "store not writable"
+        "store not writable".to_string()
+    } else if let Some(Err(why)) = &database {
+        // Names the server and what it said (unreachable, credentials refused …).
+        format!("database unavailable: {why}")
     } else {
-        "ready"
+        "ready".to_string()
     };
     let code = if status == "ready" {
         StatusCode::OK
@@ -62,7 +70,7 @@ pub async fn readyz(State(state): State<SharedState>) -> Response {
         StatusCode::SERVICE_UNAVAILABLE
     };
     let body = Health {
-        status: status.into(),
+        status,
         workers: Some(state.config.workers),
         queued: Some(counts.queued),
         running: Some(counts.running),

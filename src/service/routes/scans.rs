@@ -149,7 +149,7 @@ pub async fn upload_scan(
             series,
         };
         worker_state
-            .store
+            .records
             .put_scan(&record, &named)
             .map_err(store_error)?;
         adopt_stored_ingest(&worker_state.store, record.scan_id, &stored_ingest);
