@@ -491,22 +491,10 @@ impl JobManager {
     /// Stops taking jobs, waits up to `grace` for running ones, then stops them and puts them
     /// back in the queue on disk (they run after the next start), and joins the workers.
     pub fn shutdown(&self, workers: Workers, grace: Duration) {
-        let deadline = Instant::now() + grace;
         let mut board = self.board();
         board.shutting_down = true;
         self.shared.changed.notify_all();
-        while board.running > 0 {
-            let now = Instant::now();
-            if now >= deadline {
-                break;
-            }
-            board = self
-                .shared
-                .changed
-                .wait_timeout(board, deadline - now)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
-        }
+        let board = wait_for_running_jobs(&self.shared, board, grace);
         if board.running > 0 {
             tracing::info!(
                 running = board.running,
@@ -1066,12 +1054,13 @@ pub(super) fn leased_worker_loop(
     }
 }
 
-/// Stops a PostgreSQL worker process's threads: no new jobs, `grace` for the running ones,
-/// then they stop and go back to the queue without using an attempt.
-pub(super) fn stop_leased_workers(shared: &Shared, grace: Duration) {
+/// Waits up to `grace` for the running jobs on `board` to end; the board, locked again.
+fn wait_for_running_jobs<'a>(
+    shared: &'a Shared,
+    mut board: MutexGuard<'a, Board>,
+    grace: Duration,
+) -> MutexGuard<'a, Board> {
     let deadline = Instant::now() + grace;
-    let mut board = lock(&shared.board);
-    board.shutting_down = true;
     while board.running > 0 {
         let now = Instant::now();
         if now >= deadline {
@@ -1083,6 +1072,15 @@ pub(super) fn stop_leased_workers(shared: &Shared, grace: Duration) {
             .unwrap_or_else(|p| p.into_inner())
             .0;
     }
+    board
+}
+
+/// Stops a PostgreSQL worker process's threads: no new jobs, `grace` for the running ones,
+/// then they stop and go back to the queue without using an attempt.
+pub(super) fn stop_leased_workers(shared: &Shared, grace: Duration) {
+    let mut board = lock(&shared.board);
+    board.shutting_down = true;
+    let mut board = wait_for_running_jobs(shared, board, grace);
     if board.running > 0 {
         tracing::info!(
             running = board.running,

@@ -302,6 +302,26 @@ pub struct WorkerStatus {
     pub seen_s_ago: f64,
 }
 
+/// The error of a failed statement on `server`, naming the server and the database's words.
+fn database_error(server: &str) -> impl Fn(tokio_postgres::Error) -> Error + Copy + '_ {
+    move |e| Error::Database {
+        server: server.to_string(),
+        reason: describe(&e),
+    }
+}
+
+/// A job's row, locked for the rest of the transaction `tx` (`None`: no such job).
+async fn locked_job_row(
+    tx: &tokio_postgres::Transaction<'_>,
+    id: &str,
+) -> std::result::Result<Option<Row>, tokio_postgres::Error> {
+    tx.query_opt(
+        "SELECT job_id, state, record FROM lungmotion_jobs WHERE job_id = $1 FOR UPDATE",
+        &[&id],
+    )
+    .await
+}
+
 fn job_record(row: &Row) -> Result<JobRecord> {
     let value: serde_json::Value = row.get("record");
     let state: String = row.get("state");
@@ -606,10 +626,7 @@ impl Postgres {
         let request_json = to_json(request)?;
         let created = record.created_at.clone();
         let outcome = self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
             tx.execute(
                 "SELECT pg_advisory_xact_lock($1, hashtext($2))",
@@ -710,27 +727,17 @@ impl Postgres {
     ) -> Result<Option<T>> {
         let id = id.to_string();
         self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
-            let Some(row) = tx
-                .query_opt(
-                    "SELECT job_id, state, record FROM lungmotion_jobs WHERE job_id = $1 FOR UPDATE",
-                    &[&id],
-                )
-                .await
-                .map_err(fail)?
-            else {
+            let Some(row) = locked_job_row(&tx, &id).await.map_err(fail)? else {
                 return Ok(None);
             };
             let mut record = job_record(&row)?;
             let (write, answer) = change(&mut record);
             if write {
                 let json = to_json(&record)?;
-                let releases = record.state != JobState::Running
-                    && record.state != JobState::Cancelling;
+                let releases =
+                    record.state != JobState::Running && record.state != JobState::Cancelling;
                 tx.execute(
                     "UPDATE lungmotion_jobs SET state = $2, record = $3,
                          lease_owner = CASE WHEN $4 THEN NULL ELSE lease_owner END
@@ -753,19 +760,9 @@ impl Postgres {
     ) -> Result<bool> {
         let key = id.to_string();
         let removed = self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
-            let Some(row) = tx
-                .query_opt(
-                    "SELECT job_id, state, record FROM lungmotion_jobs WHERE job_id = $1 FOR UPDATE",
-                    &[&key],
-                )
-                .await
-                .map_err(fail)?
-            else {
+            let Some(row) = locked_job_row(&tx, &key).await.map_err(fail)? else {
                 return Ok(false);
             };
             if !removable(&job_record(&row)?) {
@@ -789,10 +786,7 @@ impl Postgres {
         let key = id.to_string();
         let store = self.inner.store.clone();
         self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
             tx.execute(
                 "SELECT pg_advisory_xact_lock($1, hashtext($2))",
@@ -836,10 +830,7 @@ impl Postgres {
     pub fn counts(&self) -> Result<JobCounts> {
         let stale = self.inner.lease.as_secs_f64() * 10.0;
         self.with_client(move |client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let rows = client
                 .query(
                     "SELECT state, count(*) FROM lungmotion_jobs GROUP BY state",
@@ -893,10 +884,7 @@ impl Postgres {
         let worker = worker.to_string();
         let lease = self.inner.lease.as_secs_f64();
         self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
             let Some(row) = tx
                 .query_opt(
@@ -962,10 +950,7 @@ impl Postgres {
         let state = record.state.name();
         let notify = record.state == JobState::Queued;
         self.with_client(move |client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let n = client
                 .execute(
                     "UPDATE lungmotion_jobs SET
@@ -995,10 +980,7 @@ impl Postgres {
     /// (see [`super::jobs::recover`]); how many.
     pub fn reap(&self, max_attempts: u32) -> Result<usize> {
         let taken = self.with_client(move |mut client, server| async move {
-            let fail = |e: tokio_postgres::Error| Error::Database {
-                server: server.clone(),
-                reason: describe(&e),
-            };
+            let fail = database_error(&server);
             let tx = client.transaction().await.map_err(fail)?;
             let rows = tx
                 .query(
