@@ -9,11 +9,11 @@ use std::time::Duration;
 use super::callbacks::CallbackDelivery;
 use super::ids::{JobId, ScanId};
 use super::jobs::{
-    frames_total, CancelOutcome, JobCounts, JobManager, ScanRemoval, SubmitRefusal, Workers,
+    queued_record, CancelOutcome, JobCounts, JobManager, ScanRemoval, SubmitRefusal, Workers,
 };
 use super::pacs_settings::PacsSettings;
 use super::postgres::Postgres;
-use super::store::{JobRecord, JobRequest, JobState, PacsActivity};
+use super::store::{JobRecord, JobRequest, JobState};
 use crate::Result;
 
 /// The service's jobs: in this process, or in PostgreSQL.
@@ -53,19 +53,8 @@ impl Jobs {
                 if p.shutting_down.load(Ordering::SeqCst) {
                     return Ok(Err(SubmitRefusal::ShuttingDown));
                 }
-                let mut record = JobRecord::queued(scan_id);
-                if let (true, Some(pacs)) = (request.pacs_ct.is_some() || request.push, &p.pacs) {
-                    record.pacs = Some(PacsActivity {
-                        server: pacs.root_url.clone(),
-                        ct: request.pacs_ct.clone(),
-                        push: request.push,
-                        ..PacsActivity::default()
-                    });
-                }
-                record.progress.frames_total = frames_total(request);
-                if request.callback_url.is_some() {
-                    record.callback = Some(CallbackDelivery::waiting());
-                }
+                let pacs_server = p.pacs.as_ref().map(|s| s.root_url.as_str());
+                let record = queued_record(scan_id, request, pacs_server);
                 Ok(
                     match p.pg.submit(&record, request, target, p.queue_capacity)? {
                         Ok(true) => Ok(record),

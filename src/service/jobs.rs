@@ -299,19 +299,12 @@ impl JobManager {
         if request.pacs_ct.is_none() && self.shared.records.scan(scan_id)?.is_none() {
             return Ok(Err(SubmitRefusal::ScanMissing));
         }
-        let mut record = JobRecord::queued(scan_id);
-        if let (true, Some(pacs)) = (request.pacs_ct.is_some() || request.push, &self.shared.pacs) {
-            record.pacs = Some(PacsActivity {
-                server: pacs.settings.root_url.clone(),
-                ct: request.pacs_ct.clone(),
-                push: request.push,
-                ..PacsActivity::default()
-            });
-        }
-        record.progress.frames_total = frames_total(request);
-        if request.callback_url.is_some() {
-            record.callback = Some(CallbackDelivery::waiting());
-        }
+        let pacs_server = self
+            .shared
+            .pacs
+            .as_ref()
+            .map(|p| p.settings.root_url.as_str());
+        let record = queued_record(scan_id, request, pacs_server);
         // On disk before it is acknowledged: an accepted job is never lost.
         self.shared.records.put_job(&record, request, target)?;
         board
@@ -745,6 +738,29 @@ fn client_message(e: Error, root: &std::path::Path) -> String {
         Err(_) => p.file_name().map(Into::into).unwrap_or_default(),
     });
     e.to_string().replace(&format!("{}/", root.display()), "")
+}
+
+/// The record of a job just submitted for `request` on `scan_id`: its PACS activity when it
+/// pulls or pushes through `pacs_server`, the frames it will write, a callback waiting.
+pub(super) fn queued_record(
+    scan_id: ScanId,
+    request: &JobRequest,
+    pacs_server: Option<&str>,
+) -> JobRecord {
+    let mut record = JobRecord::queued(scan_id);
+    if let (true, Some(server)) = (request.pacs_ct.is_some() || request.push, pacs_server) {
+        record.pacs = Some(PacsActivity {
+            server: server.to_string(),
+            ct: request.pacs_ct.clone(),
+            push: request.push,
+            ..PacsActivity::default()
+        });
+    }
+    record.progress.frames_total = frames_total(request);
+    if request.callback_url.is_some() {
+        record.callback = Some(CallbackDelivery::waiting());
+    }
+    record
 }
 
 /// Frames a job will write, from its trace and output instants (none when they are unusable:

@@ -46,6 +46,20 @@ impl Drop for TempDir {
 }
 
 impl PacsAccess {
+    /// The PACS access of a service configured with `config` (none without `[pacs]`): the
+    /// upload's size bound, isolation and limits apply to what is pulled.
+    pub fn of_service(config: &super::config::ServiceConfig) -> Option<Self> {
+        config.pacs.clone().map(|settings| PacsAccess {
+            settings,
+            max_series_bytes: config.max_upload_bytes,
+            isolation: config.ingest_isolation.clone(),
+            limits: IngestLimits {
+                timeout: std::time::Duration::from_secs_f64(config.ingest_timeout_s),
+                memory_mib: config.ingest_memory_mib,
+            },
+        })
+    }
+
     /// Pulls `series` (or the study's one CT series) into the store as scan `scan_id`,
     /// ingested with `run`'s settings; the series UID pulled. A refusal of the series names
     /// the server, the study and the series.

@@ -686,10 +686,7 @@ impl Postgres {
                     &[&id],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             row.as_ref().map(job_record).transpose()
         })
     }
@@ -703,10 +700,7 @@ impl Postgres {
                     &[],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             let mut records = Vec::with_capacity(rows.len());
             for row in &rows {
                 match job_record(row) {
@@ -928,10 +922,7 @@ impl Postgres {
                     &[&id, &worker, &lease],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             Ok(match row.map(|r| r.get::<_, String>(0)) {
                 None => Lease::Lost,
                 Some(s) if s == "cancelling" => Lease::Cancelling,
@@ -1055,10 +1046,7 @@ impl Postgres {
                     ],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             Ok(())
         })
     }
@@ -1113,10 +1101,7 @@ impl Records for Postgres {
                     &[&id, &created, &json],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             Ok(())
         });
         if stored.is_err() {
@@ -1134,10 +1119,7 @@ impl Records for Postgres {
                     &[&key],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             row.map(|r| {
                 serde_json::from_value(r.get(0)).map_err(|e| Error::Store {
                     record: format!("lungmotion_scans {key}"),
@@ -1154,10 +1136,7 @@ impl Records for Postgres {
             client
                 .execute("DELETE FROM lungmotion_scans WHERE scan_id = $1", &[&key])
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })
+                .map_err(database_error(&server))
         })?;
         let files = self.inner.store.delete_scan(id)?;
         Ok(n > 0 || files)
@@ -1171,10 +1150,7 @@ impl Records for Postgres {
                     &[],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             Ok(rows
                 .iter()
                 .map(|r| (r.get::<_, String>(0), r.get::<_, serde_json::Value>(1)))
@@ -1231,10 +1207,7 @@ impl Records for Postgres {
                     &[&key],
                 )
                 .await
-                .map_err(|e| Error::Database {
-                    server,
-                    reason: describe(&e),
-                })?;
+                .map_err(database_error(&server))?;
             let not = |reason: String| Error::Store {
                 record: format!("lungmotion_jobs {key} request"),
                 reason,

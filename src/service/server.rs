@@ -23,7 +23,6 @@ use super::callbacks::spawn_deliveries;
 use super::config::ServiceConfig;
 use super::connections::{serve_connections, ConnectionLimits};
 use super::ingest_cache::IngestCache;
-use super::isolation::IngestLimits;
 use super::jobs::{JobManager, Workers};
 use super::metrics::ServiceMetrics;
 use super::openapi::openapi_document;
@@ -329,15 +328,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
     let metrics = ServiceMetrics::default();
     metrics.register_ingest_cache(&ingests);
     let (finished_tx, finished) = tokio::sync::mpsc::unbounded_channel();
-    let pacs = config.pacs.clone().map(|settings| PacsAccess {
-        settings,
-        max_series_bytes: config.max_upload_bytes,
-        isolation: config.ingest_isolation.clone(),
-        limits: IngestLimits {
-            timeout: Duration::from_secs_f64(config.ingest_timeout_s),
-            memory_mib: config.ingest_memory_mib,
-        },
-    });
+    let pacs = PacsAccess::of_service(&config);
     let (jobs, workers, records) = match &config.postgres {
         None => {
             let (manager, workers) = JobManager::start(

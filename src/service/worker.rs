@@ -9,7 +9,6 @@ use std::time::Duration;
 
 use super::config::ServiceConfig;
 use super::ingest_cache::IngestCache;
-use super::isolation::IngestLimits;
 use super::jobs::{leased_shared, leased_worker_loop, stop_leased_workers, LeasedStats};
 use super::pacs_jobs::PacsAccess;
 use super::postgres::{LeasedRecords, Postgres, WorkerStatus};
@@ -62,15 +61,7 @@ pub fn work_blocking(config: ServiceConfig) -> Result<()> {
     let pg = Postgres::connect(&settings, store.clone())?;
     let id = worker_id();
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
-    let pacs = config.pacs.clone().map(|settings| PacsAccess {
-        settings,
-        max_series_bytes: config.max_upload_bytes,
-        isolation: config.ingest_isolation.clone(),
-        limits: IngestLimits {
-            timeout: Duration::from_secs_f64(config.ingest_timeout_s),
-            memory_mib: config.ingest_memory_mib,
-        },
-    });
+    let pacs = PacsAccess::of_service(&config);
     let records = Arc::new(LeasedRecords {
         pg: pg.clone(),
         worker: id.clone(),
