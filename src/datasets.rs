@@ -30,6 +30,13 @@ pub fn popi_chest_ct() -> Option<PathBuf> {
         .filter(|d| d.is_dir())
 }
 
+/// The MIMIC respiration waveform (a chest belt's signal, `time_s,value` at 125 Hz), if present.
+pub fn mimic_respiration_waveform() -> Option<PathBuf> {
+    shared_data_dir()
+        .map(|d| d.join("respiration-mimic").join("03700181_RESP.csv"))
+        .filter(|f| f.is_file())
+}
+
 /// The TotalSegmentator abdomen case (JPEG 2000 DICOM and a RAS NIfTI), if present.
 pub fn totalseg_abdomen_ct() -> Option<PathBuf> {
     shared_data_dir()

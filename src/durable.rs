@@ -61,6 +61,26 @@ fn write_via_temporary(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
     result
 }
 
+/// Bytes of the files under `dir`, symbolic links not followed; what cannot be read counts 0
+/// (a directory removed meanwhile is simply gone).
+pub fn directory_bytes(dir: &Path) -> u64 {
+    let mut total = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            match entry.metadata() {
+                Ok(m) if m.is_dir() => stack.push(entry.path()),
+                Ok(m) => total += m.len(),
+                Err(_) => {}
+            }
+        }
+    }
+    total
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

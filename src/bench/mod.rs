@@ -1,6 +1,6 @@
 //! Benchmarks behind `lungmotion bench`, one suite per module: [`core`] (the mechanics:
 //! force kernel, memory, quasi-static block, CalculiX side by side), [`ingest`] (lung
-//! segmentation), [`motion`] (the tidal cycle), [`scale`] (run time against error over element sizes) and [`service`] (the HTTP service).
+//! segmentation), [`motion`] (the tidal cycle), [`recording`] (the whole spirometer recording on the POPI CT), [`scale`] (run time against error over element sizes) and [`service`] (the HTTP service).
 //!
 //! This module holds what every suite shares: [`Outcome`] for a measurement that may be
 //! missing, [`TimeStats`] for repeated timings, and the description of the machine.
@@ -12,6 +12,7 @@
 pub mod core;
 pub mod ingest;
 pub mod motion;
+pub mod recording;
 pub mod scale;
 pub mod service;
 

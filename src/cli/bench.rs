@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 
 use lungmotion::bench::ingest::{run_ingest_bench, IngestBenchOptions};
 use lungmotion::bench::motion::{run_motion_bench, MotionBenchOptions};
+use lungmotion::bench::recording::{run_recording_bench, RecordingBenchOptions};
 use lungmotion::bench::scale::{run_scale_bench, ScaleBenchOptions};
 use lungmotion::bench::service::{run_service_bench, ServiceBenchOptions};
 use lungmotion::bench::{run_bench, BenchOptions};
@@ -18,6 +19,7 @@ pub enum BenchSuite {
     Core,
     Ingest,
     Motion,
+    Recording,
     Service,
     Scale,
     All,
@@ -52,7 +54,8 @@ pub struct BenchArgs {
     /// cycle time, fields served per second, interpolation error), `service` (HTTP: upload of a
     /// 300-slice DICOM zip, service against in-process run, requests per second), `scale`
     /// (run time against error for element sizes 16 to 2 mm on the CIP and POPI CTs, with a
-    /// PNG plot; hours in full, not part of `all`) or `all`.
+    /// PNG plot; hours in full, not part of `all`), `recording` (the whole 55 s spirometer
+    /// recording on the POPI CT at 8 mm, a field every 0.5 s, three whole runs) or `all`.
     #[arg(long, value_enum, default_value_t = BenchSuite::All)]
     suite: BenchSuite,
     /// Element sizes of the scale suite, mm, on every case (default 16,12,10,8,6,5,4,3,2).
@@ -89,6 +92,15 @@ impl BenchArgs {
             };
             let report = run_motion_bench(&options)?;
             write_bench_report(out, "bench-motion", &report, &report.to_markdown())?;
+        }
+        if self.suite.includes(BenchSuite::Recording) {
+            let options = if self.quick {
+                RecordingBenchOptions::quick()
+            } else {
+                RecordingBenchOptions::default()
+            };
+            let report = run_recording_bench(&options, out)?;
+            write_bench_report(out, "bench-recording", &report, &report.to_markdown())?;
         }
         if self.suite.includes(BenchSuite::Scale) {
             let mut options = if self.quick {

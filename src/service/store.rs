@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use super::callbacks::CallbackDelivery;
 use super::ids::{JobId, ScanId};
 use super::targets::{JobTarget, TargetRecord, JOB_TARGET_DIR};
-use crate::durable::{sync_dir, write_durable};
+use crate::durable::{directory_bytes, sync_dir, write_durable};
 use crate::run::{RunConfig, TrackedPoint};
 use crate::{Error, IoContext, IoOp, Result};
 
@@ -452,7 +452,7 @@ impl Store {
 
     /// Bytes held by a scan's directory (upload, stored ingest, targets).
     pub fn scan_bytes(&self, id: ScanId) -> u64 {
-        dir_bytes(&self.scan_dir(id))
+        directory_bytes(&self.scan_dir(id))
     }
 
     /// A scan's record, `None` when there is no such scan.
@@ -712,7 +712,7 @@ impl Store {
             };
             match self.scan(id) {
                 Ok(Some(record)) => {
-                    let bytes = dir_bytes(&entry.path());
+                    let bytes = directory_bytes(&entry.path());
                     scans.push((record, bytes));
                 }
                 Ok(None) => problems.push(format!("scans/{name}: no {SCAN_RECORD}, ignored")),
@@ -724,7 +724,7 @@ impl Store {
 
     /// Bytes held by a job's directory (record, request, outputs and partial outputs).
     pub fn job_bytes(&self, id: JobId) -> u64 {
-        dir_bytes(&self.job_dir(id))
+        directory_bytes(&self.job_dir(id))
     }
 
     /// Removes a stopped run's partial output directories (`.out.partial-<pid>`); how many.
@@ -780,26 +780,6 @@ impl Store {
                 reason: format!("corrupt record: {e}"),
             })
     }
-}
-
-/// Bytes of the files under `dir`, symbolic links not followed; what cannot be read counts 0
-/// (a directory removed meanwhile is simply gone).
-fn dir_bytes(dir: &Path) -> u64 {
-    let mut total = 0;
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else {
-            continue;
-        };
-        for entry in entries.flatten() {
-            match entry.metadata() {
-                Ok(m) if m.is_dir() => stack.push(entry.path()),
-                Ok(m) => total += m.len(),
-                Err(_) => {}
-            }
-        }
-    }
-    total
 }
 
 fn lock(m: &Mutex<()>) -> std::sync::MutexGuard<'_, ()> {

@@ -141,6 +141,18 @@ impl<'s> QuasiStaticSolver<'s> {
             Some(lattice) => {
                 let mut mg = Multigrid::new(&scene.mesh, &lattice, projector.clone());
                 mg.set_smoothing_degree(settings.smoothing_degree.max(1));
+                if tracing::enabled!(tracing::Level::DEBUG) {
+                    for (l, c) in mg.profile(9).iter().enumerate() {
+                        tracing::debug!(
+                            "multigrid level {l}: {} nodes, {} cells, {} distinct cell \
+                             matrices, {:.3} ms a product",
+                            c.nodes,
+                            c.cells,
+                            c.distinct_matrices,
+                            c.product_ms
+                        );
+                    }
+                }
                 Preconditioner::Multigrid(Box::new(mg))
             }
             None => {
@@ -191,6 +203,23 @@ impl<'s> QuasiStaticSolver<'s> {
     /// `allow_relaxation`: a caller that can retry with a smaller load step (the breathing
     /// driver) gets Newton's failure back at once instead of a long relaxation.
     pub fn solve_load_factor_from(
+        &mut self,
+        initial: Option<&[V3]>,
+        load_factor: f64,
+        allow_relaxation: bool,
+    ) -> Result<(Vec<V3>, SolveReport)> {
+        // A solve makes thousands of parallel calls of a fraction of a millisecond each (the
+        // V-cycle's products and sweeps). Called from outside the thread pool, every one of
+        // them is injected into the pool while this thread sleeps; from inside, the calling
+        // thread takes part and the others steal, without that hand-over.
+        if rayon::current_thread_index().is_none() && rayon::current_num_threads() > 1 {
+            return rayon::scope(|_| self.solve_in_pool(initial, load_factor, allow_relaxation));
+        }
+        self.solve_in_pool(initial, load_factor, allow_relaxation)
+    }
+
+    /// [`Self::solve_load_factor_from`], on whatever thread calls it.
+    fn solve_in_pool(
         &mut self,
         initial: Option<&[V3]>,
         load_factor: f64,
