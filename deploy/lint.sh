@@ -37,7 +37,7 @@ check() {
   if "$@"; then
     echo "lint: ok: $what"
   else
-    echo "lint: FAILED: $what" >&2
+    echo "lint: FAILED: $what"
     failed=1
   fi
 }
