@@ -720,10 +720,8 @@ impl ServiceConfig {
         }
         set(&mut postgres.lease_s, file.lease_s);
         set(&mut postgres.connect_timeout_s, file.connect_timeout_s);
-        if postgres.url.is_empty() {
-            // Only tuning without a database: the directory store, as before.
-            self.postgres = None;
-        }
+        // Kept even without a URL here: `LUNGMOTION_POSTGRES_URL` may give it (a Secret
+        // in a container), and the file's tuning must then apply, not be dropped.
         Ok(())
     }
 
@@ -736,6 +734,10 @@ impl ServiceConfig {
                 Some(p) => p.url = url,
                 None => self.postgres = Some(PostgresSettings::new(url)),
             }
+        }
+        if self.postgres.as_ref().is_some_and(|p| p.url.is_empty()) {
+            // Only tuning and no database anywhere: the directory store, as before.
+            self.postgres = None;
         }
         let Some(postgres) = self.postgres.as_mut() else {
             return Ok(());
@@ -812,6 +814,48 @@ mod tests {
         };
         let c = ServiceConfig::load(Some(&path), &env).unwrap();
         assert_eq!((c.workers, c.max_upload_bytes), (1, 7 << 20));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_files_store_tuning_applies_when_the_database_url_comes_from_the_environment() {
+        let dir = std::env::temp_dir().join(format!("lm-svc-config-store-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("service.toml");
+        let url = |k: &str| {
+            (k == "LUNGMOTION_POSTGRES_URL").then(|| "postgres://lm@db:5432/lm".to_string())
+        };
+        std::fs::write(
+            &path,
+            "[store]
+lease_s = 12
+connect_timeout_s = 5
+",
+        )
+        .unwrap();
+        let c = ServiceConfig::load(Some(&path), &url).unwrap();
+        let p = c.postgres.expect("the environment's database");
+        assert_eq!(
+            (p.url.as_str(), p.lease_s, p.connect_timeout_s),
+            ("postgres://lm@db:5432/lm", 12.0, 5.0)
+        );
+        // Without a URL anywhere the tuning is moot: the directory store.
+        assert!(ServiceConfig::load(Some(&path), &no_env)
+            .unwrap()
+            .postgres
+            .is_none());
+        // A bad value in the file is refused once a database is in use.
+        std::fs::write(
+            &path,
+            "[store]
+lease_s = 0.5
+",
+        )
+        .unwrap();
+        let e = ServiceConfig::load(Some(&path), &url)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lease_s"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -11,7 +11,7 @@
 //!
 //! The steps, in order:
 //! 1. the first [`DURATION_S`] of the waveform;
-//! 2. a centred moving average over [`SMOOTHING_SAMPLES`] samples (zero beyond the ends), so
+//! 2. a centred moving average over [`SMOOTHING_SAMPLES`] samples (fewer at the ends), so
 //!    the belt's noise makes no false extrema;
 //! 3. troughs and peaks: samples that are the smallest (largest) within
 //!    ±[`EXTREMUM_HALF_WINDOW`] samples;
@@ -193,8 +193,9 @@ impl StandInRecording {
     }
 }
 
-/// Centred moving average over `width` samples, the samples beyond either end counted as 0
-/// (numpy's `convolve(…, mode="same")` with a box kernel).
+/// Centred moving average over `width` samples, over the samples there are near either end
+/// (counting those beyond the ends as 0, as numpy's `convolve(…, mode="same")` does, would
+/// ramp the recording's first and last 0.1 s towards 0).
 fn moving_average(v: &[f64], width: usize) -> Vec<f64> {
     let half = width / 2;
     let mut prefix = Vec::with_capacity(v.len() + 1);
@@ -206,7 +207,7 @@ fn moving_average(v: &[f64], width: usize) -> Vec<f64> {
         .map(|i| {
             let lo = i.saturating_sub(half);
             let hi = (i + width - half).min(v.len());
-            (prefix[hi] - prefix[lo]) / width as f64
+            (prefix[hi] - prefix[lo]) / (hi - lo) as f64
         })
         .collect()
 }
