@@ -303,14 +303,19 @@ mod tests {
             .fold(f64::NEG_INFINITY, f64::max);
         let bottom = r.volume_ml.iter().copied().fold(f64::INFINITY, f64::min);
         assert_eq!((top, bottom), (MANOEUVRE_TOP_ML, MANOEUVRE_BOTTOM_ML));
-        // No step anywhere: at 100 Hz neighbours differ by less than 3 mL (the steepest part
-        // of the manoeuvre falls 1586 mL in 5 s).
+        // No step anywhere, the ends included: neighbours differ by no more than the
+        // steepest slope, the manoeuvre's fall of 1586 mL in 5 s along half a cosine
+        // (π/2 times its mean slope, 498 mL/s: 4.98 mL between samples at 100 Hz).
+        let [_, top_s, bottom_s, _] = MANOEUVRE_S;
+        let steepest = std::f64::consts::FRAC_PI_2 * (MANOEUVRE_TOP_ML - MANOEUVRE_BOTTOM_ML)
+            / (bottom_s - top_s)
+            / RATE_HZ;
         let step = r
             .volume_ml
             .windows(2)
             .map(|w| (w[1] - w[0]).abs())
             .fold(0.0, f64::max);
-        assert!(step < 3.0, "{step}");
+        assert!(step <= steepest * 1.001, "{step} > {steepest}");
     }
 
     #[test]
