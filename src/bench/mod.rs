@@ -74,13 +74,8 @@ impl TimeStats {
     /// Statistics of `samples` (at least one).
     pub fn new(samples: &[f64]) -> Self {
         let mut s = samples.to_vec();
-        s.sort_by(f64::total_cmp);
+        let median = crate::math::median_sorting(&mut s).expect("at least one sample");
         let n = s.len();
-        let median = if n % 2 == 1 {
-            s[n / 2]
-        } else {
-            0.5 * (s[n / 2 - 1] + s[n / 2])
-        };
         TimeStats {
             median_s: median,
             min_s: s[0],

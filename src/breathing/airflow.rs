@@ -183,16 +183,7 @@ fn theil_sen_slope(chosen: &[usize], time_s: &[f64], volume_ml: &[f64]) -> f64 {
             slopes.push((volume_ml[b] - volume_ml[a]) / (time_s[b] - time_s[a]));
         }
     }
-    if slopes.is_empty() {
-        return 0.0;
-    }
-    slopes.sort_by(f64::total_cmp);
-    let n = slopes.len();
-    if n % 2 == 1 {
-        slopes[n / 2]
-    } else {
-        0.5 * (slopes[n / 2 - 1] + slopes[n / 2])
-    }
+    crate::math::median_sorting(&mut slopes).unwrap_or(0.0)
 }
 
 #[cfg(test)]

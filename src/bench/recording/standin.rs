@@ -229,16 +229,9 @@ fn extrema(v: &[f64], half: usize) -> (Vec<usize>, Vec<usize>) {
     (troughs, peaks)
 }
 
-/// Median (mean of the middle two for an even count); `values` not empty.
+/// Median of `values` (not empty).
 fn median(values: &[f64]) -> f64 {
-    let mut s = values.to_vec();
-    s.sort_by(f64::total_cmp);
-    let n = s.len();
-    if n % 2 == 1 {
-        s[n / 2]
-    } else {
-        0.5 * (s[n / 2 - 1] + s[n / 2])
-    }
+    crate::math::median_sorting(&mut values.to_vec()).unwrap_or(f64::NAN)
 }
 
 /// Linear interpolation of (`x`, `y`) at `at`, held constant beyond the ends.
