@@ -11,6 +11,9 @@
 //! * Presigned GETs: a `307` to a URL that serves the very object.
 //! * Bad input: a bucket that does not exist and refused credentials, named at start; both
 //!   named by `/readyz` (`503`) when they go wrong while serving.
+//! * Two machines: an API process and a `lungmotion worker` with data directories of their own,
+//!   sharing only PostgreSQL and the bucket: the worker fetches the scan, the API serves the
+//!   worker's outputs from the store.
 #![cfg(feature = "cli")]
 
 mod service_support;
@@ -460,5 +463,56 @@ fn a_missing_bucket_and_refused_credentials_are_named_at_start_and_in_readyz() {
     assert!(
         stderr.contains("refused the credentials") && stderr.contains(&format!("s3://{BUCKET}/p")),
         "{stderr}"
+    );
+}
+
+#[test]
+fn an_api_process_and_a_worker_share_only_the_database_and_the_bucket() {
+    use service_support::postgres::{PgServer, WorkerProcess};
+    let scratch = Scratch::new("objstore-machines");
+    let s3 = S3Server::start(&scratch.join("moto"));
+    s3.create_bucket(BUCKET);
+    let db = PgServer::start(&scratch.join("postgres"));
+    let url = db.url();
+    let owned = s3.service_env(BUCKET, "cohort");
+    let mut env: Vec<(&str, &str)> = owned
+        .iter()
+        .map(|(k, v)| (k.as_str(), v.as_str()))
+        .collect();
+    env.push(("LUNGMOTION_POSTGRES_URL", url.as_str()));
+    // Two machines: each process has a data directory of its own.
+    std::fs::create_dir_all(scratch.join("api")).unwrap();
+    let api = ServerProcess::start_with_env(&scratch.join("api").join("data"), &[], &env);
+    let worker_data = scratch.join("worker-data");
+    let worker = WorkerProcess::start(
+        &worker_data,
+        &scratch.join("worker.log"),
+        &["--workers", "1"],
+        &env,
+    );
+    let scan = api.upload_scan(&sample("phantom-ct.nii.gz"));
+    let job = api.submit(&scan, &simulation_request(2, &tracked_points(), 12.0, 3));
+    api.wait_for_state(&job, &["done"], JOB_TIMEOUT);
+    assert!(
+        worker.log().contains("scan fetched from the object store"),
+        "{}",
+        worker.log()
+    );
+    for k in 0..3 {
+        let served = bytes(&api, &format!("/v1/jobs/{job}/frames/{k}/displacement"));
+        let (object, _) = s3.object(
+            BUCKET,
+            &format!("cohort/jobs/{job}/out/frames/{k}/displacement.nii.gz"),
+        );
+        assert!(served == object, "frame {k}");
+    }
+    assert!(!worker_data.join("jobs").join(&job).join("out").exists());
+    assert!(!api.data_dir().join("jobs").join(&job).join("out").exists());
+    assert_eq!(api.delete(&format!("/v1/jobs/{job}")).status(), 204);
+    assert_eq!(api.delete(&format!("/v1/scans/{scan}")).status(), 204);
+    assert_eq!(
+        s3.keys(BUCKET, "cohort/"),
+        Vec::<String>::new(),
+        "orphaned objects"
     );
 }

@@ -441,7 +441,8 @@ impl Store {
             return Ok(());
         };
         let file = self.scan_file(record);
-        if file.is_file() {
+        // A file, or the directory of a series pulled from the PACS (kept locally only).
+        if file.exists() {
             return Ok(());
         }
         let id = record.scan_id;
@@ -853,7 +854,14 @@ impl Store {
     pub fn clear_partial_outputs(&self, id: JobId) -> Result<usize> {
         let dir = self.job_dir(id);
         let mut removed = 0;
-        for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            // A worker on another machine than the API process has no directory of the job
+            // until its run makes one.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+            Err(e) => return Err(Error::io(IoOp::List, &dir, e)),
+        };
+        for entry in entries {
             let entry = entry.at(IoOp::List, &dir)?;
             if entry
                 .file_name()
