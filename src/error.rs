@@ -145,6 +145,17 @@ pub enum Error {
         reason: String,
     },
 
+    /// The service's object store (scans' uploads, jobs' outputs) cannot be reached or used.
+    #[error("object store {store}{}: {reason}", key_shown(key))]
+    ObjectStore {
+        /// The store as `s3://bucket/prefix at <endpoint>` (never a credential).
+        store: String,
+        /// The object's key inside the store's prefix, when one object was concerned.
+        key: Option<String>,
+        /// What went wrong, as the server or the client said it.
+        reason: String,
+    },
+
     /// The database's schema was written by a newer lungmotion than this one.
     #[error(
         "database {server}: its schema is version {found}, written by lungmotion {written_by}; \
@@ -496,6 +507,13 @@ fn key_prefix(key: &Option<String>) -> String {
 /// `point <n> ` when one point is to blame (the reason goes on: `point 3 is not finite`).
 fn point_prefix(point: &Option<usize>) -> String {
     point.map(|n| format!("point {n} ")).unwrap_or_default()
+}
+
+/// `, key <key>` for an object store error about one object, else nothing.
+fn key_shown(key: &Option<String>) -> String {
+    key.as_ref()
+        .map(|k| format!(", key {k}"))
+        .unwrap_or_default()
 }
 
 #[cfg(test)]

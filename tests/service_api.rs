@@ -232,17 +232,20 @@ fn nifti_journey_gives_the_clis_displacement_field() {
             && disposition.contains(&format!("-frame-{k}.nii.gz")),
         "{disposition}"
     );
-    let stored = server
-        .data_dir()
-        .join("jobs")
-        .join(&job_id)
-        .join("out/frames")
-        .join(k.to_string())
-        .join("displacement.nii.gz");
+    // The stored file: in the data directory, or (LUNGMOTION_TEST_OBJECT_STORE=s3) the object.
+    let relative = format!("out/frames/{k}/displacement.nii.gz");
+    let stored = match server.objects() {
+        Some(s3) => {
+            s3.object(TEST_BUCKET, &format!("lm/jobs/{job_id}/{relative}"))
+                .0
+        }
+        None => {
+            std::fs::read(server.data_dir().join("jobs").join(&job_id).join(&relative)).unwrap()
+        }
+    };
     assert!(
-        std::fs::read(&stored).unwrap() == field_gz,
-        "the served field differs from {}",
-        stored.display()
+        stored == field_gz,
+        "the served field differs from the stored {relative}"
     );
     let (served_geometry, served) =
         nifti::read_nifti_vector_field_bytes(&field_gz, "served field").unwrap();

@@ -68,7 +68,8 @@ pub fn is_refusal(error: &lungmotion::Error) -> bool {
         | Error::Cancelled(_)
         | Error::BudgetExceeded(_)
         | Error::Store { .. }
-        | Error::Database { .. } => false,
+        | Error::Database { .. }
+        | Error::ObjectStore { .. } => false,
     }
 }
 

@@ -35,6 +35,14 @@
 //! postgres_password_file = "/etc/lungmotion/db-password"
 //! lease_s = 30                # a running job's lease, renewed while it runs
 //! connect_timeout_s = 60      # how long to keep trying to reach the database at start
+//! object_store_url = "s3://lungmotion/site-a"  # uploads and outputs there (see blobs)
+//! object_store_endpoint = "http://s3.example:9000"
+//! object_store_region = "us-east-1"
+//! object_store_access_key_id = "lungmotion"
+//! object_store_secret_access_key_file = "/etc/lungmotion/s3-secret"
+//! presigned_get = false       # outputs answered with 307 to a presigned URL
+//! presigned_ttl_s = 300
+//! object_store_multipart_part_mib = 16
 //! ```
 
 use std::net::SocketAddr;
@@ -42,6 +50,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use super::blobs::BlobSettings;
 use super::pacs_settings::{self, PacsFile, PacsSettings, PACS_ENV_VARS};
 use super::postgres::PostgresSettings;
 use crate::error::{IoContext, IoOp};
@@ -118,6 +127,9 @@ pub struct ServiceConfig {
     /// Where the job and scan records and the queue are when not in `data_dir`: PostgreSQL,
     /// shared by `lungmotion serve` (API) and `lungmotion worker` processes.
     pub postgres: Option<PostgresSettings>,
+    /// Where scans' uploads and jobs' outputs are kept when not only in `data_dir`: an
+    /// object store (`[store] object_store_url`).
+    pub object_store: Option<BlobSettings>,
 }
 
 /// How long finished jobs and unused scans are kept (see [`super::retention`]).
@@ -223,6 +235,7 @@ impl Default for ServiceConfig {
             run: RunConfig::default(),
             pacs: None,
             postgres: None,
+            object_store: None,
         }
     }
 }
@@ -267,6 +280,14 @@ struct StoreFile {
     postgres_password_file: Option<PathBuf>,
     lease_s: Option<f64>,
     connect_timeout_s: Option<f64>,
+    object_store_url: Option<String>,
+    object_store_endpoint: Option<String>,
+    object_store_region: Option<String>,
+    object_store_access_key_id: Option<String>,
+    object_store_secret_access_key_file: Option<PathBuf>,
+    presigned_get: Option<bool>,
+    presigned_ttl_s: Option<f64>,
+    object_store_multipart_part_mib: Option<u64>,
 }
 
 /// What the command line (`lungmotion serve`) may override, each over the file and the
@@ -290,7 +311,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 26 + PACS_ENV_VARS.len()] = [
+pub const ENV_VARS: [&str; 33 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -317,6 +338,13 @@ pub const ENV_VARS: [&str; 26 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_POSTGRES_PASSWORD_FILE",
     "LUNGMOTION_LEASE_S",
     "LUNGMOTION_POSTGRES_CONNECT_TIMEOUT_S",
+    "LUNGMOTION_OBJECT_STORE_URL",
+    "LUNGMOTION_S3_ENDPOINT",
+    "LUNGMOTION_S3_REGION",
+    "AWS_ACCESS_KEY_ID",
+    "AWS_SECRET_ACCESS_KEY",
+    "AWS_SECRET_ACCESS_KEY_FILE",
+    "LUNGMOTION_PRESIGNED_GET",
     PACS_ENV_VARS[0],
     PACS_ENV_VARS[1],
     PACS_ENV_VARS[2],
@@ -626,6 +654,9 @@ impl ServiceConfig {
         if let Some(postgres) = &self.postgres {
             postgres.validate()?;
         }
+        if let Some(blobs) = &self.object_store {
+            blobs.validate()?;
+        }
         if let Some(pacs) = &self.pacs {
             pacs.validate()?;
         }
@@ -711,6 +742,24 @@ impl ServiceConfig {
     /// The `[store]` table over the defaults: lease and timeouts apply once a URL is set
     /// (here or in the environment).
     fn apply_store_file(&mut self, file: StoreFile) -> Result<()> {
+        let blobs = self
+            .object_store
+            .get_or_insert_with(|| BlobSettings::new(String::new()));
+        set(&mut blobs.url, file.object_store_url);
+        blobs.endpoint = file.object_store_endpoint.or(blobs.endpoint.take());
+        blobs.region = file.object_store_region.or(blobs.region.take());
+        blobs.access_key_id = file
+            .object_store_access_key_id
+            .or(blobs.access_key_id.take());
+        if let Some(path) = file.object_store_secret_access_key_file {
+            blobs.secret_access_key = Some(read_token_file(&path)?);
+        }
+        set(&mut blobs.presigned_get, file.presigned_get);
+        set(&mut blobs.presigned_ttl_s, file.presigned_ttl_s);
+        set(
+            &mut blobs.multipart_part_mib,
+            file.object_store_multipart_part_mib,
+        );
         let postgres = self
             .postgres
             .get_or_insert_with(|| PostgresSettings::new(String::new()));
@@ -728,6 +777,7 @@ impl ServiceConfig {
     /// `LUNGMOTION_POSTGRES_URL`, `_PASSWORD_FILE`, `LUNGMOTION_LEASE_S` and
     /// `LUNGMOTION_POSTGRES_CONNECT_TIMEOUT_S` over the file's `[store]`.
     fn apply_store_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<()> {
+        self.apply_object_store_env(env)?;
         if let Some(url) = env("LUNGMOTION_POSTGRES_URL") {
             let url = url.trim().to_string();
             match &mut self.postgres {
@@ -760,6 +810,55 @@ impl ServiceConfig {
                     )
                 })?;
             }
+        }
+        Ok(())
+    }
+}
+
+impl ServiceConfig {
+    /// `LUNGMOTION_OBJECT_STORE_URL`, `LUNGMOTION_S3_ENDPOINT`, `LUNGMOTION_S3_REGION`,
+    /// `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY` (or `_FILE`) and `LUNGMOTION_PRESIGNED_GET`
+    /// over the file's `[store]`; settings without a URL leave the data directory the store.
+    fn apply_object_store_env(&mut self, env: &dyn Fn(&str) -> Option<String>) -> Result<()> {
+        let blobs = self
+            .object_store
+            .get_or_insert_with(|| BlobSettings::new(String::new()));
+        if let Some(url) = env("LUNGMOTION_OBJECT_STORE_URL") {
+            blobs.url = url.trim().to_string();
+        }
+        if blobs.url.is_empty() {
+            // Only tuning, or nothing: the directory store, as before.
+            self.object_store = None;
+            return Ok(());
+        }
+        if let Some(v) = env("LUNGMOTION_S3_ENDPOINT") {
+            blobs.endpoint = Some(v.trim().to_string());
+        }
+        if let Some(v) = env("LUNGMOTION_S3_REGION") {
+            blobs.region = Some(v.trim().to_string());
+        }
+        if let Some(v) = env("AWS_ACCESS_KEY_ID") {
+            blobs.access_key_id = Some(v.trim().to_string());
+        }
+        if let Some(v) = env("AWS_SECRET_ACCESS_KEY") {
+            blobs.secret_access_key = Some(v.trim().to_string());
+        }
+        if let Some(path) = env("AWS_SECRET_ACCESS_KEY_FILE") {
+            blobs.secret_access_key = Some(read_token_file(Path::new(&path))?);
+        }
+        if let Some(v) = env("LUNGMOTION_PRESIGNED_GET") {
+            blobs.presigned_get = match v.trim() {
+                "1" | "true" | "yes" => true,
+                "0" | "false" | "no" => false,
+                other => {
+                    return Err(Error::settings(
+                        "service configuration",
+                        format!(
+                            "environment LUNGMOTION_PRESIGNED_GET={other:?} is not true or false"
+                        ),
+                    ))
+                }
+            };
         }
         Ok(())
     }

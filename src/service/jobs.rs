@@ -809,6 +809,8 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         series: scan.series_or(config.series),
         ..config
     };
+    // A worker on another machine than the upload's API process fetches it first.
+    shared.store.ensure_scan_local(&scan)?;
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),
         trace: BreathingTrace::new(time_s, volume_ml)?,
@@ -828,10 +830,18 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         &mut observer,
         Some((&ingested, read_timings)),
     )?;
-    if push {
-        push_outputs(shared, id, live)?;
+    // With an object store the outputs go there; the local copy stays for the push only.
+    if let Err(e) = shared.store.put_job_output_blobs(id) {
+        shared.store.drop_local_job_output(id);
+        return Err(e);
     }
-    Ok(())
+    let pushed = if push {
+        push_outputs(shared, id, live)
+    } else {
+        Ok(())
+    };
+    shared.store.drop_local_job_output(id);
+    pushed
 }
 
 /// The PACS of the service, or the error of a job that needs one on a server that has none

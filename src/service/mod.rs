@@ -6,7 +6,8 @@
 //!   [`pacs_jobs`]: a job's CT pulled and stored as a scan, its DICOM outputs pushed;
 //! * [`ids`]: unguessable scan and job ids; [`ingest_cache`]: scans ingested for jobs, by settings;
 //! * [`store`]: the on-disk store with atomic records; [`records`]: the job and scan records
-//!   behind one interface (that store, or PostgreSQL);
+//!   behind one interface (that store, or PostgreSQL); [`blobs`]: uploads and outputs in an
+//!   object store (S3 or a directory) when configured;
 //! * [`jobs`]: the bounded queue and worker pool, recovery after a restart, cancellation;
 //!   [`backend`]: the jobs as the HTTP side sees them, in this process or in PostgreSQL;
 //!   [`postgres`]: the records and the queue in PostgreSQL, leases; [`worker`]: the
@@ -26,6 +27,7 @@
 //! The contract (endpoints, statuses, store layout) is in the README's "HTTP service" section.
 
 pub mod backend;
+pub mod blobs;
 pub mod body_timeout;
 pub mod callbacks;
 pub mod config;

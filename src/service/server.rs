@@ -323,6 +323,7 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
         None => Store::open(&config.data_dir)?,
         Some(_) => Store::open_shared(&config.data_dir)?,
     };
+    let store = store.with_blobs(open_blobs(&config)?);
     let records: Arc<dyn Records> = Arc::new(store.clone());
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
     let metrics = ServiceMetrics::default();
@@ -366,6 +367,21 @@ fn prepare(config: ServiceConfig) -> Result<(SharedState, Background)> {
         config,
     });
     Ok((state, Background { workers, finished }))
+}
+
+/// The object store of uploads and outputs when `[store] object_store_url` names one, checked
+/// to answer (the bucket exists, the credentials are accepted); the error names it.
+pub(crate) fn open_blobs(config: &ServiceConfig) -> Result<Option<super::blobs::BlobStore>> {
+    let Some(settings) = &config.object_store else {
+        return Ok(None);
+    };
+    let blobs = super::blobs::BlobStore::open(settings)?;
+    tracing::info!(
+        store = blobs.shown(),
+        presigned_get = blobs.presigns(),
+        "uploads and outputs in the object store"
+    );
+    Ok(Some(blobs))
 }
 
 /// Serves on `listener` until `stop` resolves, then shuts down gracefully.

@@ -21,6 +21,7 @@ use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
+use super::blobs::BlobStore;
 use super::callbacks::CallbackDelivery;
 use super::ids::{JobId, ScanId};
 use super::targets::{JobTarget, TargetRecord, JOB_TARGET_DIR};
@@ -302,6 +303,9 @@ pub struct Store {
     targets: Arc<Mutex<()>>,
     /// Whether other processes use it at the same time (see [`Store::open_shared`]).
     shared: bool,
+    /// The object store holding the uploads and outputs, when one is configured: the data
+    /// directory then keeps a local copy of the scans and runs' scratch outputs only.
+    blobs: Option<BlobStore>,
 }
 
 /// What storing an uploaded target came to.
@@ -334,6 +338,7 @@ impl Store {
             root: root.to_path_buf(),
             targets: Arc::default(),
             shared: false,
+            blobs: None,
         };
         for dir in ["scans", "jobs"] {
             let dir = root.join(dir);
@@ -357,6 +362,7 @@ impl Store {
             root: root.to_path_buf(),
             targets: Arc::default(),
             shared: true,
+            blobs: None,
         };
         for dir in ["scans", "jobs", "tmp"] {
             let dir = root.join(dir);
@@ -385,6 +391,111 @@ impl Store {
         let probe = self.tmp_path("writable");
         write_durable(&probe, b"ok")?;
         std::fs::remove_file(&probe).at(IoOp::Remove, &probe)
+    }
+
+    /// This store with its uploads and outputs also in `blobs` (see [`super::blobs`]).
+    pub fn with_blobs(mut self, blobs: Option<BlobStore>) -> Self {
+        self.blobs = blobs;
+        self
+    }
+
+    /// The object store of the uploads and outputs, when one is configured.
+    pub fn blobs(&self) -> Option<&BlobStore> {
+        self.blobs.as_ref()
+    }
+
+    /// Puts a scan's received `upload` and its stored ingest `stored` (when that file exists)
+    /// in the object store under the scan's keys, before its record makes it visible; nothing
+    /// without one.
+    pub fn put_scan_blobs(
+        &self,
+        record: &ScanRecord,
+        upload: &Path,
+        stored: Option<&Path>,
+    ) -> Result<()> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(());
+        };
+        let id = record.scan_id;
+        let put = (|| {
+            blobs.put_file(&format!("scans/{id}/{}", record.file_name), upload)?;
+            match stored {
+                Some(stored) if stored.is_file() => {
+                    blobs.put_file(&format!("scans/{id}/{STORED_INGEST}"), stored)?;
+                }
+                _ => {}
+            }
+            Ok(())
+        })();
+        if put.is_err() {
+            let _ = blobs.delete_prefix(&format!("scans/{id}"));
+        }
+        put
+    }
+
+    /// Makes sure a scan's upload (and its stored ingest, when the object store has one) is
+    /// in the data directory, fetching them from the object store when this process has no
+    /// copy (a worker on another machine).
+    pub fn ensure_scan_local(&self, record: &ScanRecord) -> Result<()> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(());
+        };
+        let file = self.scan_file(record);
+        // A file, or the directory of a series pulled from the PACS (kept locally only).
+        if file.exists() {
+            return Ok(());
+        }
+        let id = record.scan_id;
+        let dir = self.scan_dir(id);
+        std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
+        let started = std::time::Instant::now();
+        let key = format!("scans/{id}/{}", record.file_name);
+        if !blobs.fetch_file(&key, &file)? {
+            return Err(Error::ObjectStore {
+                store: blobs.shown().to_string(),
+                key: Some(key),
+                reason: "the scan's upload is not in the object store".into(),
+            });
+        }
+        let stored = self.stored_ingest_file(id);
+        if !stored.is_file() {
+            blobs.fetch_file(&format!("scans/{id}/{STORED_INGEST}"), &stored)?;
+        }
+        tracing::info!(scan = %id, seconds = started.elapsed().as_secs_f64(), "scan fetched from the object store");
+        Ok(())
+    }
+
+    /// Puts a finished run's outputs (`jobs/<id>/out/`) in the object store, logging what it
+    /// took; nothing without one.
+    pub fn put_job_output_blobs(&self, id: JobId) -> Result<()> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(());
+        };
+        let (files, bytes, took) = blobs.put_outputs(&id.to_string(), &self.job_output_dir(id))?;
+        tracing::info!(job = %id, files, bytes, seconds = took.as_secs_f64(), store = blobs.shown(), "outputs put in the object store");
+        Ok(())
+    }
+
+    /// Removes the local copy of a job's outputs once they are in the object store (the data
+    /// directory then only held them while the run wrote them); nothing without one.
+    pub fn drop_local_job_output(&self, id: JobId) {
+        if self.blobs.is_none() {
+            return;
+        }
+        let out = self.job_output_dir(id);
+        if let Err(e) = std::fs::remove_dir_all(&out) {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                tracing::warn!(job = %id, "cannot remove the local copy of the outputs: {e}");
+            }
+        }
+    }
+
+    /// Removes `relative/` from the object store, if there is one; whether anything was there.
+    fn delete_blobs(&self, relative: &str) -> Result<bool> {
+        match &self.blobs {
+            Some(blobs) => Ok(blobs.delete_prefix(relative)? > 0),
+            None => Ok(false),
+        }
     }
 
     /// The data directory.
@@ -460,9 +571,11 @@ impl Store {
         self.read_record(&self.scan_dir(id).join(SCAN_RECORD))
     }
 
-    /// Removes a scan; `false` when there was none.
+    /// Removes a scan (and its objects); `false` when there was none.
     pub fn delete_scan(&self, id: ScanId) -> Result<bool> {
-        self.remove_dir(&self.scan_dir(id))
+        let local = self.remove_dir(&self.scan_dir(id))?;
+        let objects = self.delete_blobs(&format!("scans/{id}"))?;
+        Ok(local || objects)
     }
 
     /// A target's directory in its scan's.
@@ -666,13 +779,17 @@ impl Store {
 
     /// Removes a job and its outputs; `false` when there was none.
     pub fn delete_job(&self, id: JobId) -> Result<bool> {
-        self.remove_dir(&self.job_dir(id))
+        let local = self.remove_dir(&self.job_dir(id))?;
+        let objects = self.delete_blobs(&format!("jobs/{id}"))?;
+        Ok(local || objects)
     }
 
     /// Removes a job's published outputs (`out/`), as for a job cancelled after its run
     /// finished; `false` when there were none.
     pub fn remove_job_output(&self, id: JobId) -> Result<bool> {
-        self.remove_dir(&self.job_output_dir(id))
+        let local = self.remove_dir(&self.job_output_dir(id))?;
+        let objects = self.delete_blobs(&format!("jobs/{id}/{JOB_OUTPUT}"))?;
+        Ok(local || objects)
     }
 
     /// Every job record, for recovery at start; unreadable ones are reported, not fatal.
@@ -724,14 +841,27 @@ impl Store {
 
     /// Bytes held by a job's directory (record, request, outputs and partial outputs).
     pub fn job_bytes(&self, id: JobId) -> u64 {
-        directory_bytes(&self.job_dir(id))
+        let objects = self.blobs.as_ref().map_or(0, |blobs| {
+            blobs
+                .list(&format!("jobs/{id}"))
+                .map(|listed| listed.iter().map(|(_, bytes)| bytes).sum())
+                .unwrap_or(0)
+        });
+        directory_bytes(&self.job_dir(id)) + objects
     }
 
     /// Removes a stopped run's partial output directories (`.out.partial-<pid>`); how many.
     pub fn clear_partial_outputs(&self, id: JobId) -> Result<usize> {
         let dir = self.job_dir(id);
         let mut removed = 0;
-        for entry in std::fs::read_dir(&dir).at(IoOp::List, &dir)? {
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            // A worker on another machine than the API process has no directory of the job
+            // until its run makes one.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+            Err(e) => return Err(Error::io(IoOp::List, &dir, e)),
+        };
+        for entry in entries {
             let entry = entry.at(IoOp::List, &dir)?;
             if entry
                 .file_name()

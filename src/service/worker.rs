@@ -57,7 +57,8 @@ pub fn work_blocking(config: ServiceConfig) -> Result<()> {
              LUNGMOTION_POSTGRES_URL (without one, lungmotion serve runs the jobs itself)",
         )
     })?;
-    let store = Store::open_shared(&config.data_dir)?;
+    let store =
+        Store::open_shared(&config.data_dir)?.with_blobs(super::server::open_blobs(&config)?);
     let pg = Postgres::connect(&settings, store.clone())?;
     let id = worker_id();
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));

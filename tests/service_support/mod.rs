@@ -8,10 +8,14 @@
 //! With `LUNGMOTION_TEST_BACKEND=postgres`, each server gets a PostgreSQL server of its own
 //! and a `lungmotion worker` process beside it (see [`postgres`]), so that a journey test runs
 //! against that backend unchanged (`.ci/run` does it for the tests where it applies).
+//!
+//! With `LUNGMOTION_TEST_OBJECT_STORE=s3`, each server also gets an S3 server of its own
+//! (moto's, see [`s3`]) and keeps its uploads and outputs there (`[store] object_store_url`).
 
 #![allow(dead_code)]
 
 pub mod postgres;
+pub mod s3;
 
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
@@ -78,7 +82,18 @@ pub struct ServerProcess {
     /// database (dropped in this order, after the server).
     worker: Option<postgres::WorkerProcess>,
     database: Option<postgres::PgServer>,
+    /// With `LUNGMOTION_TEST_OBJECT_STORE=s3`: the S3 server of its blobs.
+    objects: Option<s3::S3Server>,
 }
+
+/// Whether the tests' servers keep their blobs in an S3 server of their own
+/// (`LUNGMOTION_TEST_OBJECT_STORE=s3`).
+pub fn object_store_backend() -> bool {
+    std::env::var("LUNGMOTION_TEST_OBJECT_STORE").is_ok_and(|b| b == "s3")
+}
+
+/// The bucket of the servers' blobs with `LUNGMOTION_TEST_OBJECT_STORE=s3`.
+pub const TEST_BUCKET: &str = "lungmotion-test";
 
 /// Whether the tests' servers keep their jobs in PostgreSQL (`LUNGMOTION_TEST_BACKEND`).
 pub fn postgres_backend() -> bool {
@@ -143,6 +158,20 @@ impl ServerProcess {
         if let Some(url) = &url {
             env.push(("LUNGMOTION_POSTGRES_URL", url));
         }
+        let objects = object_store_backend().then(|| {
+            let s3 = s3::S3Server::start(&data_dir.parent().unwrap().join("moto"));
+            s3.create_bucket(TEST_BUCKET);
+            s3
+        });
+        let objects_env = objects
+            .as_ref()
+            .map(|s3| s3.service_env(TEST_BUCKET, "lm"))
+            .unwrap_or_default();
+        // First, so that a test's own object store settings win.
+        env.splice(
+            0..0,
+            objects_env.iter().map(|(k, v)| (k.as_str(), v.as_str())),
+        );
         let env = &env[..];
         let mut child = serve_command(data_dir, &args, env)
             .stdin(Stdio::null())
@@ -209,6 +238,7 @@ impl ServerProcess {
             client: client(),
             worker,
             database,
+            objects,
         }
     }
 
@@ -241,6 +271,11 @@ impl ServerProcess {
             log.push_str(&worker.log());
         }
         log
+    }
+
+    /// The S3 server of its blobs (`LUNGMOTION_TEST_OBJECT_STORE=s3`).
+    pub fn objects(&self) -> Option<&s3::S3Server> {
+        self.objects.as_ref()
     }
 
     /// The shared client.

@@ -10,9 +10,10 @@ use axum::Json;
 use serde::Serialize;
 use utoipa::ToSchema;
 
-use super::results::file_response;
+use super::results::output_response;
 use super::{blocking, finished_job, job_id, SharedState};
 use crate::service::problem::{ApiError, ApiResult, Problem};
+use crate::service::store::JOB_OUTPUT;
 
 /// Deepest directory nesting listed (the run writes `frames/<k>/` and `ingest/`).
 const MAX_DEPTH: usize = 4;
@@ -89,6 +90,42 @@ fn output_files(out: &FsPath) -> std::io::Result<Vec<(String, u64)>> {
     Ok(found)
 }
 
+/// Whether `relative` is a plain path: `/`-separated names, none empty or hidden, no `..`, no
+/// absolute path, no backslash or NUL, at most 1 024 bytes.
+fn is_plain(relative: &str) -> bool {
+    !relative.is_empty()
+        && relative.len() <= 1024
+        && !relative.contains('\\')
+        && !relative.contains('\0')
+        && relative
+            .split('/')
+            .all(|part| !part.is_empty() && !part.starts_with('.'))
+        && FsPath::new(relative)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_)))
+}
+
+/// The output files of job `id` in the object store, as [`output_files`] lists a directory:
+/// hidden names and anything deeper than [`MAX_DEPTH`] left out.
+fn stored_output_files(
+    blobs: &crate::service::blobs::BlobStore,
+    id: crate::service::ids::JobId,
+    under: &str,
+) -> ApiResult<Vec<(String, u64)>> {
+    let dir = if under.is_empty() {
+        format!("jobs/{id}/{JOB_OUTPUT}")
+    } else {
+        format!("jobs/{id}/{JOB_OUTPUT}/{under}")
+    };
+    let listed = blobs
+        .list(&dir)
+        .map_err(|e| ApiError::internal(format!("job {id}: cannot list its outputs: {e}")))?;
+    Ok(listed
+        .into_iter()
+        .filter(|(name, _)| is_plain(name) && name.split('/').count() <= MAX_DEPTH + 1)
+        .collect())
+}
+
 /// The file `relative` names inside `out`, or 404: plain names only (no `..`, no absolute
 /// path, no hidden file), and it must be a regular file inside `out` once links are resolved.
 fn resolve_output(out: &FsPath, relative: &str) -> ApiResult<PathBuf> {
@@ -100,17 +137,7 @@ fn resolve_output(out: &FsPath, relative: &str) -> ApiResult<PathBuf> {
 fn resolve_output_entry(out: &FsPath, relative: &str, directory: bool) -> ApiResult<PathBuf> {
     let what = if directory { "directory" } else { "file" };
     let missing = || ApiError::not_found(format!("the job wrote no {what} {relative:?}"));
-    let plain = !relative.is_empty()
-        && relative.len() <= 1024
-        && !relative.contains('\\')
-        && !relative.contains('\0')
-        && relative
-            .split('/')
-            .all(|part| !part.is_empty() && !part.starts_with('.'))
-        && FsPath::new(relative)
-            .components()
-            .all(|c| matches!(c, Component::Normal(_)));
-    if !plain {
+    if !is_plain(relative) {
         return Err(missing());
     }
     let path = out.join(relative);
@@ -163,6 +190,54 @@ fn zip_directory(dir: &FsPath, shown: &str) -> ApiResult<Vec<u8>> {
     Ok(zip.finish().map_err(|e| failed(&e))?.into_inner())
 }
 
+/// As [`zip_directory`], of the directory `shown` of job `id`'s outputs in the object store.
+fn zip_stored_directory(
+    blobs: &crate::service::blobs::BlobStore,
+    id: crate::service::ids::JobId,
+    shown: &str,
+) -> ApiResult<Vec<u8>> {
+    if !is_plain(shown) {
+        return Err(ApiError::not_found(format!(
+            "the job wrote no directory {shown:?}"
+        )));
+    }
+    let files = stored_output_files(blobs, id, shown)?;
+    if files.is_empty() {
+        return Err(ApiError::not_found(format!(
+            "the job wrote no directory {shown:?}"
+        )));
+    }
+    let total: u64 = files.iter().map(|(_, bytes)| bytes).sum();
+    if total > MAX_ARCHIVE_BYTES {
+        return Err(ApiError::new(
+            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            "archive-too-large",
+            format!(
+                "{shown} holds {total} bytes, more than the {MAX_ARCHIVE_BYTES} one archive may; \
+                 fetch its files one by one"
+            ),
+        ));
+    }
+    let failed = |e: &dyn std::fmt::Display| ApiError::internal(format!("zip of {shown}: {e}"));
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::with_capacity(
+        total as usize + files.len() * 128,
+    )));
+    let options = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Stored)
+        .large_file(total > u64::from(u32::MAX));
+    for (name, _) in &files {
+        let key = format!("jobs/{id}/{JOB_OUTPUT}/{shown}/{name}");
+        let bytes = blobs
+            .read(&key)
+            .map_err(|e| failed(&e))?
+            .ok_or_else(|| failed(&format!("{key} vanished")))?;
+        zip.start_file(name.as_str(), options)
+            .map_err(|e| failed(&e))?;
+        std::io::Write::write_all(&mut zip, &bytes).map_err(|e| failed(&e))?;
+    }
+    Ok(zip.finish().map_err(|e| failed(&e))?.into_inner())
+}
+
 /// One directory of a finished job's outputs as a zip: a virtual 4D-CT phase's DICOM series
 /// (`frames/3/virtual-ct-dicom`), a frame's whole folder, `ingest` …
 #[utoipa::path(
@@ -188,6 +263,9 @@ pub async fn job_archive(
     let name = shown.clone();
     let bytes = blocking(move || {
         finished_job(&state, id)?;
+        if let Some(blobs) = state.store.blobs() {
+            return zip_stored_directory(blobs, id, &name);
+        }
         let dir = resolve_output_entry(&state.store.job_output_dir(id), &name, true)?;
         zip_directory(&dir, &name)
     })
@@ -228,9 +306,13 @@ pub async fn job_files(
     let id = job_id(&id)?;
     blocking(move || {
         finished_job(&state, id)?;
-        let out = state.store.job_output_dir(id);
-        let files = output_files(&out)
-            .map_err(|e| ApiError::internal(format!("job {id}: cannot list its outputs: {e}")))?
+        let listed = match state.store.blobs() {
+            Some(blobs) => stored_output_files(blobs, id, "")?,
+            None => output_files(&state.store.job_output_dir(id)).map_err(|e| {
+                ApiError::internal(format!("job {id}: cannot list its outputs: {e}"))
+            })?,
+        };
+        let files = listed
             .into_iter()
             .map(|(path, bytes)| OutputFile {
                 content_type: content_type_of(&path).to_string(),
@@ -256,6 +338,8 @@ pub async fn job_files(
             XML meshes, else application/octet-stream)",
          content(("application/gzip"), ("application/json"), ("text/csv"), ("image/png"),
                  ("application/xml"), ("application/octet-stream"))),
+        (status = 307, description = "With an S3 object store and `presigned_get`: the \
+            object's presigned URL in `Location`"),
         (status = 404, description = "No such job or file", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
     ),
@@ -268,13 +352,30 @@ pub async fn job_file(
     let id = job_id(&id)?;
     let worker_state = state.clone();
     let shown = relative.clone();
+    let filename = format!("{id}-{}", shown.replace('/', "-"));
+    if state.store.blobs().is_some() {
+        finished_job(&state, id)?;
+        if !is_plain(&relative) {
+            return Err(ApiError::not_found(format!(
+                "the job wrote no file {relative:?}"
+            )));
+        }
+        return output_response(&state, id, &relative, content_type_of(&shown), filename)
+            .await
+            .map_err(|e| {
+                if e.status == axum::http::StatusCode::NOT_FOUND {
+                    ApiError::not_found(format!("the job wrote no file {relative:?}"))
+                } else {
+                    e
+                }
+            });
+    }
     let path = blocking(move || {
         finished_job(&worker_state, id)?;
         resolve_output(&worker_state.store.job_output_dir(id), &relative)
     })
     .await?;
-    let filename = format!("{id}-{}", shown.replace('/', "-"));
-    file_response(path, content_type_of(&shown), filename).await
+    super::results::file_response(path, content_type_of(&shown), filename).await
 }
 
 #[cfg(test)]

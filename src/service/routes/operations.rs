@@ -39,21 +39,26 @@ pub async fn healthz() -> Json<Health> {
     })
 }
 
-/// Readiness: the store is writable and the server is not shutting down.
+/// Readiness: the store is writable (and the database and the object store answer, when
+/// configured) and the server is not shutting down.
 #[utoipa::path(get, path = "/readyz", tag = "operations",
     responses((status = 200, description = "Ready", body = Health),
               (status = 503, description = "Shutting down or store not writable", body = Health)))]
 pub async fn readyz(State(state): State<SharedState>) -> Response {
     let counts = state.jobs.counts();
     let worker_state = state.clone();
-    let (writable, database) = tokio::task::spawn_blocking(move || {
+    let (writable, database, objects) = tokio::task::spawn_blocking(move || {
         (
             worker_state.store.is_writable(),
             worker_state.jobs.probe_database(),
+            worker_state
+                .store
+                .blobs()
+                .map(|b| b.probe().map_err(|why| format!("{}: {why}", b.shown()))),
         )
     })
     .await
-    .unwrap_or((false, None));
+    .unwrap_or((false, None, None));
     let status = if state.jobs.shutting_down() {
         "shutting down".to_string()
     } else if !writable {
@@ -61,6 +66,9 @@ pub async fn readyz(State(state): State<SharedState>) -> Response {
     } else if let Some(Err(why)) = &database {
         // Names the server and what it said (unreachable, credentials refused …).
         format!("database unavailable: {why}")
+    } else if let Some(Err(why)) = &objects {
+        // Names the bucket and endpoint, and a missing bucket or refused credentials.
+        format!("object store unavailable: {why}")
     } else {
         "ready".to_string()
     };

@@ -77,12 +77,114 @@ pub(super) async fn file_response(
     Ok(response)
 }
 
+/// Serves the output file `relative` (a path in the run's output directory) of job `id`: from
+/// the data directory, or from the object store when there is one (streamed, or a `307` to a
+/// presigned URL with `presigned_get`). 404 naming `filename` when it is not there.
+pub(super) async fn output_response(
+    state: &AppState,
+    id: JobId,
+    relative: &str,
+    content_type: &'static str,
+    filename: String,
+) -> ApiResult<Response> {
+    let Some(blobs) = state.store.blobs() else {
+        let path = state.store.job_output_dir(id).join(relative);
+        return file_response(path, content_type, filename).await;
+    };
+    let key = format!("jobs/{id}/{}/{relative}", crate::service::store::JOB_OUTPUT);
+    let missing = || ApiError::not_found(format!("{filename} is missing from the job's outputs"));
+    if blobs.presigns() {
+        let url = blobs
+            .presigned_get(&key)
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .ok_or_else(missing)?;
+        let mut response = Response::new(Body::empty());
+        *response.status_mut() = axum::http::StatusCode::TEMPORARY_REDIRECT;
+        let location = HeaderValue::from_str(&url)
+            .map_err(|e| ApiError::internal(format!("presigned URL of {key}: {e}")))?;
+        response.headers_mut().insert(header::LOCATION, location);
+        return Ok(response);
+    }
+    let (len, stream) = blobs
+        .get_stream(&key)
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .ok_or_else(missing)?;
+    let mut response = Response::new(Body::from_stream(stream));
+    let headers = response.headers_mut();
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    headers.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{filename}\"")) {
+        headers.insert(header::CONTENT_DISPOSITION, v);
+    }
+    Ok(response)
+}
+
+/// Whether the job's output file `relative` exists (locally or in the object store).
+pub(super) fn output_exists(state: &AppState, id: JobId, relative: &str) -> ApiResult<bool> {
+    match state.store.blobs() {
+        None => Ok(state.store.job_output_dir(id).join(relative).is_file()),
+        Some(blobs) => blobs
+            .size(&format!(
+                "jobs/{id}/{}/{relative}",
+                crate::service::store::JOB_OUTPUT
+            ))
+            .map(|size| size.is_some())
+            .map_err(|e| ApiError::internal(e.to_string())),
+    }
+}
+
+/// Whether the job wrote frame `k` (its directory, or objects under it in the object store).
+fn frame_exists(state: &AppState, id: JobId, k: usize) -> ApiResult<bool> {
+    match state.store.blobs() {
+        None => Ok(state
+            .store
+            .job_output_dir(id)
+            .join("frames")
+            .join(k.to_string())
+            .is_dir()),
+        Some(blobs) => blobs
+            .list(&format!(
+                "jobs/{id}/{}/frames/{k}",
+                crate::service::store::JOB_OUTPUT
+            ))
+            .map(|listed| !listed.is_empty())
+            .map_err(|e| ApiError::internal(e.to_string())),
+    }
+}
+
+/// The bytes of the job's output file `relative` (small files: `summary.json`), `None` when
+/// it is not there.
+pub(super) fn read_output(
+    state: &AppState,
+    id: JobId,
+    relative: &str,
+) -> ApiResult<Option<Vec<u8>>> {
+    match state.store.blobs() {
+        None => match std::fs::read(state.store.job_output_dir(id).join(relative)) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(ApiError::internal(format!("job {id}: {relative}: {e}"))),
+        },
+        Some(blobs) => blobs
+            .read(&format!(
+                "jobs/{id}/{}/{relative}",
+                crate::service::store::JOB_OUTPUT
+            ))
+            .map(|b| b.map(|b| b.to_vec()))
+            .map_err(|e| ApiError::internal(e.to_string())),
+    }
+}
+
 /// The run's summary.json.
 #[utoipa::path(
     get, path = "/v1/jobs/{id}/summary", tag = "results",
     params(("id" = String, Path, description = "Job id")),
     responses(
         (status = 200, description = "summary.json of the run (as `lungmotion run` writes it)", body = Object),
+        (status = 307, description = "With an S3 object store and `presigned_get`: the \
+            object's presigned URL in `Location`"),
         (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
     ),
@@ -94,15 +196,20 @@ pub async fn job_summary(
 ) -> ApiResult<Response> {
     let id = job_id(&id)?;
     finished_job(&state, id)?;
-    let path = state.store.job_output_dir(id).join("summary.json");
-    file_response(path, "application/json", format!("{id}-summary.json")).await
+    output_response(
+        &state,
+        id,
+        "summary.json",
+        "application/json",
+        format!("{id}-summary.json"),
+    )
+    .await
 }
 
 /// The frames of a finished job, read from its `summary.json`, each with its field's link.
 fn read_frames(state: &AppState, id: JobId) -> ApiResult<Vec<FrameEntry>> {
-    let path = state.store.job_output_dir(id).join("summary.json");
     let corrupt = |e: String| ApiError::internal(format!("job {id}: summary: {e}"));
-    let bytes = std::fs::read(&path).map_err(|e| corrupt(e.to_string()))?;
+    let bytes = read_output(state, id, "summary.json")?.ok_or_else(|| corrupt("missing".into()))?;
     let summary: Value = serde_json::from_slice(&bytes).map_err(|e| corrupt(e.to_string()))?;
     let mut frames: Vec<FrameEntry> =
         serde_json::from_value(summary["frames"].clone()).map_err(|e| corrupt(e.to_string()))?;
@@ -148,6 +255,8 @@ pub async fn job_frames(
             outside the lungs) or, with \
             `format=mha`, the same as MetaImage",
          content(("application/gzip"), ("application/octet-stream"))),
+        (status = 307, description = "With an S3 object store and `presigned_get`: the \
+            object's presigned URL in `Location`"),
         (status = 404, description = "No such job or frame", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
     ),
@@ -163,12 +272,9 @@ pub async fn frame_displacement(
     let k: usize = k
         .parse()
         .map_err(|_| ApiError::not_found(format!("no frame {k:?} (a frame is a number)")))?;
-    let frame_dir = state
-        .store
-        .job_output_dir(id)
-        .join("frames")
-        .join(k.to_string());
-    if !frame_dir.is_dir() {
+    let field = format!("frames/{k}/displacement.nii.gz");
+    let probe_state = state.clone();
+    if !blocking(move || frame_exists(&probe_state, id, k)).await? {
         let worker_state = state.clone();
         let count = blocking(move || Ok(read_frames(&worker_state, id)?.len())).await?;
         return Err(ApiError::not_found(format!(
@@ -178,18 +284,33 @@ pub async fn frame_displacement(
     }
     match format.format.as_deref().unwrap_or("nifti") {
         "nifti" | "nii" | "nii.gz" => {
-            file_response(
-                frame_dir.join("displacement.nii.gz"),
+            output_response(
+                &state,
+                id,
+                &field,
                 "application/gzip",
                 format!("{id}-frame-{k}.nii.gz"),
             )
             .await
         }
         "mha" | "metaimage" => {
-            let written = frame_dir.join("displacement.mha");
-            let path = if written.is_file() {
-                written
-            } else {
+            let written = format!("frames/{k}/displacement.mha");
+            let probe_state = state.clone();
+            let was_written = {
+                let written = written.clone();
+                blocking(move || output_exists(&probe_state, id, &written)).await?
+            };
+            if was_written {
+                return output_response(
+                    &state,
+                    id,
+                    &written,
+                    "application/octet-stream",
+                    format!("{id}-frame-{k}.mha"),
+                )
+                .await;
+            }
+            let path = {
                 let worker_state = state.clone();
                 blocking(move || metaimage_copy(&worker_state, id, k)).await?
             };
@@ -214,17 +335,31 @@ fn metaimage_copy(state: &AppState, id: JobId, k: usize) -> ApiResult<PathBuf> {
     if path.is_file() {
         return Ok(path);
     }
-    let nifti = state
-        .store
-        .job_output_dir(id)
-        .join("frames")
-        .join(k.to_string())
-        .join("displacement.nii.gz");
-    let (geometry, field) = crate::formats::nifti::read_nifti_vector_field(&nifti)
-        .map_err(|e| ApiError::internal(format!("job {id} frame {k}: {e}")))?;
-    let flat: Vec<f32> = field.iter().flatten().copied().collect();
     std::fs::create_dir_all(&cache)
         .map_err(|e| ApiError::internal(format!("cannot create {}: {e}", cache.display())))?;
+    let relative = format!("frames/{k}/displacement.nii.gz");
+    // From the object store, the field is fetched into the cache for the conversion.
+    let (nifti, fetched) = match state.store.blobs() {
+        None => (state.store.job_output_dir(id).join(&relative), false),
+        Some(blobs) => {
+            let local = cache.join(format!("frame-{k}.nii.gz"));
+            let key = format!("jobs/{id}/{}/{relative}", crate::service::store::JOB_OUTPUT);
+            if !blobs
+                .fetch_file(&key, &local)
+                .map_err(|e| ApiError::internal(e.to_string()))?
+            {
+                return Err(ApiError::not_found(format!("job {id} has no frame {k}")));
+            }
+            (local, true)
+        }
+    };
+    let read = crate::formats::nifti::read_nifti_vector_field(&nifti);
+    if fetched {
+        let _ = std::fs::remove_file(&nifti);
+    }
+    let (geometry, field) =
+        read.map_err(|e| ApiError::internal(format!("job {id} frame {k}: {e}")))?;
+    let flat: Vec<f32> = field.iter().flatten().copied().collect();
     crate::formats::metaimage::write_mha(
         &path,
         &geometry,
@@ -243,6 +378,8 @@ fn metaimage_copy(state: &AppState, id: JobId, k: usize) -> ApiResult<PathBuf> {
     responses(
         (status = 200, description = "trajectories.csv: frame, time, point, rest and displaced \
             position and displacement in LPS mm", content_type = "text/csv", body = String),
+        (status = 307, description = "With an S3 object store and `presigned_get`: the \
+            object's presigned URL in `Location`"),
         (status = 404, description = "No such job, or it tracked no points", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not done", body = Problem, content_type = "application/problem+json"),
     ),
@@ -254,11 +391,18 @@ pub async fn job_trajectories(
 ) -> ApiResult<Response> {
     let id = job_id(&id)?;
     finished_job(&state, id)?;
-    let path = state.store.job_output_dir(id).join("trajectories.csv");
-    if !path.is_file() {
+    let probe_state = state.clone();
+    if !blocking(move || output_exists(&probe_state, id, "trajectories.csv")).await? {
         return Err(ApiError::not_found(format!(
             "job {id} tracked no points (give \"points\" in the simulation request)"
         )));
     }
-    file_response(path, "text/csv", format!("{id}-trajectories.csv")).await
+    output_response(
+        &state,
+        id,
+        "trajectories.csv",
+        "text/csv",
+        format!("{id}-trajectories.csv"),
+    )
+    .await
 }

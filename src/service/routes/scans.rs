@@ -148,10 +148,15 @@ pub async fn upload_scan(
             ingest,
             series,
         };
+        // In the object store (when there is one) before the record makes it visible.
         worker_state
-            .records
-            .put_scan(&record, &named)
+            .store
+            .put_scan_blobs(&record, &named, Some(&stored_ingest))
             .map_err(store_error)?;
+        if let Err(e) = worker_state.records.put_scan(&record, &named) {
+            let _ = worker_state.store.delete_scan(record.scan_id);
+            return Err(store_error(e));
+        }
         adopt_stored_ingest(&worker_state.store, record.scan_id, &stored_ingest);
         Ok(record)
     })
