@@ -163,6 +163,18 @@ const MAX_ARCHIVE_BYTES: u64 = 2 << 30;
 fn zip_directory(dir: &FsPath, shown: &str) -> ApiResult<Vec<u8>> {
     let files =
         output_files(dir).map_err(|e| ApiError::internal(format!("cannot list {shown}: {e}")))?;
+    zip_files(&files, shown, |name| {
+        std::fs::read(dir.join(name)).map_err(|e| e.to_string())
+    })
+}
+
+/// A stored zip of `files` (name relative to the directory `shown`, bytes), each read by
+/// `read`; refused when they hold more than [`MAX_ARCHIVE_BYTES`].
+fn zip_files<B: AsRef<[u8]>>(
+    files: &[(String, u64)],
+    shown: &str,
+    read: impl Fn(&str) -> Result<B, String>,
+) -> ApiResult<Vec<u8>> {
     let total: u64 = files.iter().map(|(_, bytes)| bytes).sum();
     if total > MAX_ARCHIVE_BYTES {
         return Err(ApiError::new(
@@ -181,11 +193,11 @@ fn zip_directory(dir: &FsPath, shown: &str) -> ApiResult<Vec<u8>> {
     let options = zip::write::SimpleFileOptions::default()
         .compression_method(zip::CompressionMethod::Stored)
         .large_file(total > u64::from(u32::MAX));
-    for (name, _) in &files {
+    for (name, _) in files {
+        let bytes = read(name).map_err(|e| failed(&e))?;
         zip.start_file(name.as_str(), options)
             .map_err(|e| failed(&e))?;
-        let bytes = std::fs::read(dir.join(name)).map_err(|e| failed(&e))?;
-        std::io::Write::write_all(&mut zip, &bytes).map_err(|e| failed(&e))?;
+        std::io::Write::write_all(&mut zip, bytes.as_ref()).map_err(|e| failed(&e))?;
     }
     Ok(zip.finish().map_err(|e| failed(&e))?.into_inner())
 }
@@ -207,35 +219,13 @@ fn zip_stored_directory(
             "the job wrote no directory {shown:?}"
         )));
     }
-    let total: u64 = files.iter().map(|(_, bytes)| bytes).sum();
-    if total > MAX_ARCHIVE_BYTES {
-        return Err(ApiError::new(
-            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
-            "archive-too-large",
-            format!(
-                "{shown} holds {total} bytes, more than the {MAX_ARCHIVE_BYTES} one archive may; \
-                 fetch its files one by one"
-            ),
-        ));
-    }
-    let failed = |e: &dyn std::fmt::Display| ApiError::internal(format!("zip of {shown}: {e}"));
-    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::with_capacity(
-        total as usize + files.len() * 128,
-    )));
-    let options = zip::write::SimpleFileOptions::default()
-        .compression_method(zip::CompressionMethod::Stored)
-        .large_file(total > u64::from(u32::MAX));
-    for (name, _) in &files {
+    zip_files(&files, shown, |name| {
         let key = format!("jobs/{id}/{JOB_OUTPUT}/{shown}/{name}");
-        let bytes = blobs
+        blobs
             .read(&key)
-            .map_err(|e| failed(&e))?
-            .ok_or_else(|| failed(&format!("{key} vanished")))?;
-        zip.start_file(name.as_str(), options)
-            .map_err(|e| failed(&e))?;
-        std::io::Write::write_all(&mut zip, &bytes).map_err(|e| failed(&e))?;
-    }
-    Ok(zip.finish().map_err(|e| failed(&e))?.into_inner())
+            .map_err(|e| e.to_string())?
+            .ok_or_else(|| format!("{key} vanished"))
+    })
 }
 
 /// One directory of a finished job's outputs as a zip: a virtual 4D-CT phase's DICOM series
