@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use super::client_runtime::ClientRuntime;
 use bytes::Bytes;
 use futures_util::stream::{BoxStream, StreamExt, TryStreamExt};
 use object_store::aws::{AmazonS3, AmazonS3Builder};
@@ -220,17 +221,7 @@ struct Inner {
     /// `s3://bucket/prefix at <endpoint>`, for errors and logs.
     shown: String,
     bucket: Option<String>,
-    /// Always `Some` until dropped (see the `Drop`).
-    runtime: Option<tokio::runtime::Runtime>,
-}
-
-impl Drop for Inner {
-    fn drop(&mut self) {
-        // The last handle may go on an async thread (the HTTP state at shutdown).
-        if let Some(runtime) = self.runtime.take() {
-            runtime.shutdown_background();
-        }
-    }
+    runtime: ClientRuntime,
 }
 
 /// One object as listed: its key relative to the listed directory, and its size.
@@ -245,16 +236,11 @@ impl BlobStore {
         let location = settings
             .location()
             .map_err(|m| Error::settings("service configuration", m))?;
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .thread_name("lungmotion-blobs")
-            .build()
-            .map_err(|e| Error::ObjectStore {
-                store: settings.url.clone(),
-                key: None,
-                reason: format!("cannot start the client's threads: {e}"),
-            })?;
+        let runtime = ClientRuntime::start("lungmotion-blobs").map_err(|e| Error::ObjectStore {
+            store: settings.url.clone(),
+            key: None,
+            reason: format!("cannot start the client's threads: {e}"),
+        })?;
         let (store, signer, prefix, shown, bucket, attributes): (
             Arc<dyn ObjectStore>,
             _,
@@ -337,7 +323,7 @@ impl BlobStore {
                 attributes,
                 shown,
                 bucket,
-                runtime: Some(runtime),
+                runtime,
             }),
         };
         blobs.probe().map_err(|reason| Error::ObjectStore {
@@ -359,22 +345,12 @@ impl BlobStore {
     }
 
     fn handle(&self) -> &tokio::runtime::Handle {
-        self.inner
-            .runtime
-            .as_ref()
-            .expect("the client's runtime lives as long as the store")
-            .handle()
+        self.inner.runtime.handle()
     }
 
-    /// Runs `future` on the client's runtime and waits for it, from any thread (a simulation
-    /// worker's or an HTTP handler's blocking one): a channel, not `block_on`.
+    /// Runs `future` on the client's runtime and waits for it, from any thread.
     fn run<T: Send + 'static>(&self, future: impl Future<Output = T> + Send + 'static) -> T {
-        let (tx, rx) = std::sync::mpsc::sync_channel(1);
-        self.handle().spawn(async move {
-            let _ = tx.send(future.await);
-        });
-        rx.recv()
-            .expect("the object store client's runtime dropped a task")
+        self.inner.runtime.run(future)
     }
 
     /// Runs `future` on the client's runtime from async code.

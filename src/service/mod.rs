@@ -30,6 +30,7 @@ pub mod backend;
 pub mod blobs;
 pub mod body_timeout;
 pub mod callbacks;
+mod client_runtime;
 pub mod config;
 pub mod connections;
 pub mod ids;

@@ -35,6 +35,7 @@ use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod};
 use tokio_postgres::error::SqlState;
 use tokio_postgres::{NoTls, Row};
 
+use super::client_runtime::ClientRuntime;
 use super::ids::{JobId, ScanId};
 use super::jobs::{JobCounts, ScanRemoval};
 use super::records::Records;
@@ -242,8 +243,7 @@ pub struct Postgres {
 
 struct Inner {
     pool: Pool,
-    /// Always `Some` until dropped (see the `Drop`).
-    runtime: Option<tokio::runtime::Runtime>,
+    runtime: ClientRuntime,
     server: String,
     store: Store,
     lease: Duration,
@@ -255,20 +255,7 @@ struct Inner {
 
 impl Inner {
     fn handle(&self) -> &tokio::runtime::Handle {
-        self.runtime
-            .as_ref()
-            .expect("the client's runtime lives as long as the store")
-            .handle()
-    }
-}
-
-impl Drop for Inner {
-    fn drop(&mut self) {
-        // The last handle may go on an async thread (the HTTP state at shutdown), where a
-        // runtime must not be dropped blocking.
-        if let Some(runtime) = self.runtime.take() {
-            runtime.shutdown_background();
-        }
+        self.runtime.handle()
     }
 }
 
@@ -355,15 +342,10 @@ impl Postgres {
             .config()
             .map_err(|m| Error::settings("service configuration", m))?;
         let server = describe_server(&config);
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .thread_name("lungmotion-postgres")
-            .build()
-            .map_err(|e| Error::Database {
-                server: server.clone(),
-                reason: format!("cannot start the client's threads: {e}"),
-            })?;
+        let runtime = ClientRuntime::start("lungmotion-postgres").map_err(|e| Error::Database {
+            server: server.clone(),
+            reason: format!("cannot start the client's threads: {e}"),
+        })?;
         let manager = Manager::from_config(
             config.clone(),
             NoTls,
@@ -384,7 +366,7 @@ impl Postgres {
         let pg = Postgres {
             inner: Arc::new(Inner {
                 pool,
-                runtime: Some(runtime),
+                runtime,
                 server,
                 store,
                 lease: Duration::from_secs_f64(settings.lease_s),
@@ -417,12 +399,7 @@ impl Postgres {
     /// handler's or a simulation worker's): a channel, not `block_on`, so no runtime context
     /// is entered twice.
     fn run<T: Send + 'static>(&self, future: impl Future<Output = T> + Send + 'static) -> T {
-        let (tx, rx) = std::sync::mpsc::sync_channel(1);
-        self.inner.handle().spawn(async move {
-            let _ = tx.send(future.await);
-        });
-        rx.recv()
-            .expect("the PostgreSQL client's runtime dropped a task")
+        self.inner.runtime.run(future)
     }
 
     fn error(&self, e: impl std::fmt::Display) -> Error {
