@@ -243,18 +243,24 @@ pub fn read_stored_ingest(
 
 /// The wall's samples as the `f32` values that, scaled by its spacing, give them bit for bit;
 /// `None` when one does not.
-fn wall_as_f32(wall: &SignedDistanceField) -> Option<Vec<f32>> {
+fn wall_as_f32(wall: &SignedDistanceField) -> Option<std::borrow::Cow<'_, [f32]>> {
     let scale = wall.spacing_m[0];
     if wall.spacing_m.iter().any(|&s| s != scale) {
         return None;
     }
-    wall.values_m
-        .iter()
-        .map(|&v| {
+    if let Some((values, unit_m)) = wall.scaled_samples() {
+        if unit_m == scale {
+            return Some(std::borrow::Cow::Borrowed(values));
+        }
+    }
+    (0..wall.len())
+        .map(|i| {
+            let v = wall.value_m(i);
             let x = (v / scale) as f32;
             ((x as f64 * scale).to_bits() == v.to_bits()).then_some(x)
         })
-        .collect()
+        .collect::<Option<Vec<f32>>>()
+        .map(std::borrow::Cow::Owned)
 }
 
 /// `(value, run length as LEB128)` pairs.
@@ -445,11 +451,11 @@ fn take_wall(r: &mut Reader) -> std::result::Result<PrebuiltWall, String> {
         .ok_or("a wall field too large to address")?;
     // The samples' bytes are taken (checked against what is left) before any allocation.
     let raw = r.take(n)?;
-    let values_m = raw
+    let values = raw
         .chunks_exact(4)
-        .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")) as f64 * spacing_m)
+        .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
         .collect();
-    let field = SignedDistanceField::new(origin_m, [spacing_m; 3], samples, values_m)
+    let field = SignedDistanceField::scaled(origin_m, [spacing_m; 3], samples, values, spacing_m)
         .map_err(|e| format!("wall field: {e}"))?;
     Ok(PrebuiltWall {
         field,
@@ -534,7 +540,7 @@ mod tests {
         assert_eq!(m1.mesh.mesh.node_mass_kg, m2.mesh.mesh.node_mass_kg);
         assert_eq!(m1.node_group, m2.node_group);
         assert_eq!(m1.element_lung, m2.element_lung);
-        assert_eq!(m1.wall.values_m, m2.wall.values_m);
+        assert!(m1.wall.same_samples(&m2.wall));
         assert_eq!(m1.wall.origin_m, m2.wall.origin_m);
         assert_eq!(m1.groups_volume, m2.groups_volume);
         assert_eq!(m1.constraints.entries, m2.constraints.entries);
@@ -602,8 +608,16 @@ mod tests {
         let f = wall_as_f32(&wall).unwrap();
         let back: Vec<f64> = f.iter().map(|&x| x as f64 * s).collect();
         assert_eq!(back, values);
-        let mut odd = wall.clone();
-        odd.values_m[3] = 0.1;
+        let mut odd_values = values.clone();
+        odd_values[3] = 0.1;
+        let odd =
+            SignedDistanceField::new(Vector3::zeros(), [s; 3], [10, 10, 10], odd_values).unwrap();
         assert!(wall_as_f32(&odd).is_none());
+        // A wall held as scaled samples is stored as they are.
+        let scaled =
+            SignedDistanceField::scaled(Vector3::zeros(), [s; 3], [10, 10, 10], f.to_vec(), s)
+                .unwrap();
+        assert_eq!(*wall_as_f32(&scaled).unwrap(), *f);
+        assert!(scaled.same_samples(&wall));
     }
 }

@@ -15,8 +15,17 @@ pub struct SignedDistanceField {
     pub spacing_m: [f64; 3],
     /// Number of samples along x, y, z (at least 2 each).
     pub samples: [usize; 3],
-    /// Signed distances in metres, x fastest.
-    pub values_m: Vec<f64>,
+    /// Signed distances, x fastest.
+    values: SampleValues,
+}
+
+/// How the samples are held: metres as given, or `f32` samples in a unit of `unit_m` metres
+/// (a CT wall's distances are computed in samples as `f32`; holding them so, rather than
+/// as `f64` metres, halves the largest array of a clinical ingest and reads the same values).
+#[derive(Debug, Clone, PartialEq)]
+enum SampleValues {
+    Metres(Vec<f64>),
+    Scaled { values: Vec<f32>, unit_m: f64 },
 }
 
 impl SignedDistanceField {
@@ -37,13 +46,59 @@ impl SignedDistanceField {
                 "distance field spacing must be positive, got {spacing_m:?}"
             )));
         }
-        if values_m.len() != samples.iter().product::<usize>() {
+        Self::checked(origin_m, spacing_m, samples, SampleValues::Metres(values_m))
+    }
+
+    /// A field of `f32` samples, each `unit_m` metres per unit: sample i is
+    /// `values[i] as f64 * unit_m` metres, exactly. Checked as [`Self::new`].
+    pub fn scaled(
+        origin_m: Vector3<f64>,
+        spacing_m: [f64; 3],
+        samples: [usize; 3],
+        values: Vec<f32>,
+        unit_m: f64,
+    ) -> Result<Self> {
+        if !unit_m.is_finite() || unit_m <= 0.0 {
             return Err(Error::InvalidModel(format!(
-                "distance field of {samples:?} samples has {} values",
-                values_m.len()
+                "distance field unit must be positive, got {unit_m} m"
             )));
         }
-        if let Some(i) = values_m.iter().position(|v| !v.is_finite()) {
+        Self::checked(
+            origin_m,
+            spacing_m,
+            samples,
+            SampleValues::Scaled { values, unit_m },
+        )
+    }
+
+    fn checked(
+        origin_m: Vector3<f64>,
+        spacing_m: [f64; 3],
+        samples: [usize; 3],
+        values: SampleValues,
+    ) -> Result<Self> {
+        if samples.iter().any(|&n| n < 2) {
+            return Err(Error::InvalidModel(format!(
+                "a distance field needs at least 2 samples per axis, got {samples:?}"
+            )));
+        }
+        if spacing_m.iter().any(|s| !s.is_finite() || *s <= 0.0) {
+            return Err(Error::InvalidModel(format!(
+                "distance field spacing must be positive, got {spacing_m:?}"
+            )));
+        }
+        let (len, non_finite) = match &values {
+            SampleValues::Metres(v) => (v.len(), v.iter().position(|v| !v.is_finite())),
+            SampleValues::Scaled { values, .. } => {
+                (values.len(), values.iter().position(|v| !v.is_finite()))
+            }
+        };
+        if len != samples.iter().product::<usize>() {
+            return Err(Error::InvalidModel(format!(
+                "distance field of {samples:?} samples has {len} values"
+            )));
+        }
+        if let Some(i) = non_finite {
             return Err(Error::InvalidModel(format!(
                 "distance field sample {i} is not finite"
             )));
@@ -52,8 +107,54 @@ impl SignedDistanceField {
             origin_m,
             spacing_m,
             samples,
-            values_m,
+            values,
         })
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        match &self.values {
+            SampleValues::Metres(v) => v.len(),
+            SampleValues::Scaled { values, .. } => values.len(),
+        }
+    }
+
+    /// Whether the field has no sample (never, once built: at least 2 per axis).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes the samples occupy.
+    pub fn sample_bytes(&self) -> usize {
+        match &self.values {
+            SampleValues::Metres(v) => 8 * v.len(),
+            SampleValues::Scaled { values, .. } => 4 * values.len(),
+        }
+    }
+
+    /// Sample `index` (x fastest), metres.
+    #[inline]
+    pub fn value_m(&self, index: usize) -> f64 {
+        match &self.values {
+            SampleValues::Metres(v) => v[index],
+            SampleValues::Scaled { values, unit_m } => values[index] as f64 * unit_m,
+        }
+    }
+
+    /// The `f32` samples and their unit in metres, when the field is held so.
+    pub fn scaled_samples(&self) -> Option<(&[f32], f64)> {
+        match &self.values {
+            SampleValues::Metres(_) => None,
+            SampleValues::Scaled { values, unit_m } => Some((values, *unit_m)),
+        }
+    }
+
+    /// Whether two fields have the same grid and the same sample values, bit for bit.
+    pub fn same_samples(&self, other: &SignedDistanceField) -> bool {
+        self.origin_m == other.origin_m
+            && self.spacing_m == other.spacing_m
+            && self.samples == other.samples
+            && (0..self.len()).all(|i| self.value_m(i).to_bits() == other.value_m(i).to_bits())
     }
 
     /// Samples an analytic signed distance function on a grid covering `min_m`..`max_m`.
@@ -91,7 +192,7 @@ impl SignedDistanceField {
         }
         let at = |di: usize, dj: usize, dk: usize| {
             let (i, j, k) = (cell[0] + di, cell[1] + dj, cell[2] + dk);
-            self.values_m[i + self.samples[0] * (j + self.samples[1] * k)]
+            self.value_m(i + self.samples[0] * (j + self.samples[1] * k))
         };
         let mut value = 0.0;
         let mut grad = Vector3::zeros();
@@ -190,5 +291,30 @@ mod tests {
         let mut v = vec![0.0; 8];
         v[3] = f64::NAN;
         assert!(SignedDistanceField::new(Vector3::zeros(), [1.0; 3], [2; 3], v).is_err());
+        let mut w = vec![0.0f32; 8];
+        assert!(
+            SignedDistanceField::scaled(Vector3::zeros(), [1.0; 3], [2; 3], w.clone(), 0.0)
+                .is_err()
+        );
+        w[5] = f32::INFINITY;
+        assert!(SignedDistanceField::scaled(Vector3::zeros(), [1.0; 3], [2; 3], w, 1.0).is_err());
+    }
+
+    #[test]
+    fn scaled_samples_read_as_the_metres_they_stand_for() {
+        let values: Vec<f32> = (0..27).map(|i| i as f32 * 0.37 - 4.1).collect();
+        let unit_m = 1.2e-3;
+        let metres: Vec<f64> = values.iter().map(|&v| v as f64 * unit_m).collect();
+        let origin = Vector3::new(0.01, -0.02, 0.003);
+        let a = SignedDistanceField::new(origin, [unit_m; 3], [3; 3], metres).unwrap();
+        let b = SignedDistanceField::scaled(origin, [unit_m; 3], [3; 3], values, unit_m).unwrap();
+        assert!(a.same_samples(&b));
+        assert_eq!((a.sample_bytes(), b.sample_bytes()), (216, 108));
+        for p in [
+            Vector3::new(0.011, -0.019, 0.004),
+            Vector3::new(0.0125, -0.0181, 0.0049),
+        ] {
+            assert_eq!(a.evaluate(p), b.evaluate(p));
+        }
     }
 }

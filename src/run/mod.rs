@@ -220,7 +220,7 @@ impl IngestedScan {
             .iter()
             .map(|v| voxels(v.geometry.dims))
             .sum::<u64>();
-        let wall = model.wall.values_m.len() as u64 * 8;
+        let wall = model.wall.sample_bytes() as u64;
         let mesh = model.mesh.mesh.rest_positions_m.len() as u64 * 64
             + model.mesh.mesh.elements.len() as u64 * 64;
         ct_bytes + masks + wall + mesh
@@ -587,19 +587,32 @@ fn scene_of_scan<'a>(
     log_memory("ingested");
     crate::process::return_freed_memory();
     log_memory("ingested, freed memory returned");
-    let t = Instant::now();
-    let lung = build_lung_scene(
-        outcome,
-        &inputs.points,
-        config.outputs.field_grid,
-        config.motion.rib_cage_share,
-    )?;
-    timings.insert("lung_scene".to_string(), t.elapsed().as_secs_f64());
-    let t = Instant::now();
-    if config.outputs.ingest_files {
-        write_ingest_files(staging.dir(), &scan.get().ct, outcome)?;
-    }
-    timings.insert("ingest_files".to_string(), t.elapsed().as_secs_f64());
+    // The ingest files (gzip and disk) and the scene (the mesh's and the field's indices)
+    // share no data: built side by side, on the pool's two halves when both are free.
+    let seconds = |t: Instant| t.elapsed().as_secs_f64();
+    let (scene, files) = rayon::join(
+        || {
+            let t = Instant::now();
+            build_lung_scene(
+                outcome,
+                &inputs.points,
+                config.outputs.field_grid,
+                config.motion.rib_cage_share,
+            )
+            .map(|scene| (scene, seconds(t)))
+        },
+        || {
+            let t = Instant::now();
+            if config.outputs.ingest_files {
+                write_ingest_files(staging.dir(), &scan.get().ct, outcome)?;
+            }
+            Ok::<_, Error>(seconds(t))
+        },
+    );
+    let (lung, scene_s) = scene?;
+    let files_s = files?;
+    timings.insert("lung_scene".to_string(), scene_s);
+    timings.insert("ingest_files".to_string(), files_s);
     let ct_dims = scan.get().ct.geometry.dims;
     let (kept, ct_for_look) = if config.outputs.virtual_ct.enabled() {
         let kept = KeptCt {

@@ -109,11 +109,17 @@ pub(super) fn build_wall(
     let weights = gaussian_weights(ct_sigma);
     blur_rows_and_columns(&mut signed, grid.dims, &weights);
     steps.mark("wall: smoothing")?;
-    // The blur across slices writes the field in metres directly: one pass and one
-    // volume-sized buffer fewer than blurring in place and converting after.
-    let anatomy_m = blur_slices_to_metres(&signed, grid.dims, &weights, s_m);
+    // The blur across slices writes the field's samples (in units of one sample spacing,
+    // s_m metres each): one pass and one volume-sized buffer fewer than blurring in place.
+    let anatomy_samples = blur_slices(&signed, grid.dims, &weights);
     drop(signed);
-    let anatomy = SignedDistanceField::new(grid.origin_mm * 1e-3, [s_m; 3], grid.dims, anatomy_m)?;
+    let anatomy = SignedDistanceField::scaled(
+        grid.origin_mm * 1e-3,
+        [s_m; 3],
+        grid.dims,
+        anatomy_samples,
+        s_m,
+    )?;
     steps.mark("wall: field in metres")?;
 
     Ok(WallBuild {
@@ -131,6 +137,18 @@ fn sample_inside(
     contact: &[usize],
     grid: &WallGrid,
     cancel: Cancel<'_>,
+) -> Vec<u8> {
+    sample_inside_with(lungs, contact, grid, cancel, true)
+}
+
+/// [`sample_inside`], with `per_axis` = false forcing the per-sample mapping of an oblique CT
+/// (to test that both give the same samples).
+fn sample_inside_with(
+    lungs: &Volume<u8>,
+    contact: &[usize],
+    grid: &WallGrid,
+    cancel: Cancel<'_>,
+    per_axis: bool,
 ) -> Vec<u8> {
     let g = &lungs.geometry;
     let [nx, ny, _] = grid.dims;
@@ -150,6 +168,30 @@ fn sample_inside(
         lung_ct[c] = 0;
     }
     let mut inside = vec![0u8; n_samples];
+    let offsets = per_axis.then(|| axis_aligned_offsets(&a, &b, grid, g.dims));
+    if let Some(offsets) = offsets.flatten() {
+        // The usual CT grid is LPS-aligned (up to flips and axis order): each CT index then
+        // follows from one sample index, the same product and rounding as below, per axis.
+        let [oi, oj, ok] = &offsets;
+        inside
+            .par_chunks_mut(nx * ny)
+            .zip(ok.par_iter())
+            .for_each(|(slab, &ck)| {
+                let Some(ck) = ck else { return };
+                if cancel.raised() {
+                    return;
+                }
+                for (row, &cj) in slab.chunks_mut(nx).zip(oj) {
+                    let Some(cj) = cj else { continue };
+                    for (s, &ci) in row.iter_mut().zip(oi) {
+                        if let Some(ci) = ci {
+                            *s = lung_ct[ci + cj + ck];
+                        }
+                    }
+                }
+            });
+        return inside;
+    }
     inside
         .par_chunks_mut(nx * ny)
         .enumerate()
@@ -174,6 +216,36 @@ fn sample_inside(
             }
         });
     inside
+}
+
+/// For a CT whose voxel axes are the grid's (each row of the LPS → voxel map `a` has one
+/// non-zero entry), the linear CT offset that each sample index along grid axis x, y, z
+/// contributes (`None`: outside the CT); `None` for an oblique CT.
+#[allow(clippy::type_complexity)]
+fn axis_aligned_offsets(
+    a: &Matrix3<f64>,
+    b: &Vector3<f64>,
+    grid: &WallGrid,
+    ct_dims: [usize; 3],
+) -> Option<[Vec<Option<usize>>; 3]> {
+    let strides = [1, ct_dims[0], ct_dims[0] * ct_dims[1]];
+    let mut offsets: [Vec<Option<usize>>; 3] = Default::default();
+    let mut seen = [false; 3];
+    for r in 0..3 {
+        let nonzero: Vec<usize> = (0..3).filter(|&c| a[(r, c)] != 0.0).collect();
+        let [c] = nonzero[..] else { return None };
+        if std::mem::replace(&mut seen[c], true) {
+            return None;
+        }
+        // Exactly `(a * p + b)[r]`: the other two terms of the row are exact zeros.
+        offsets[c] = (0..grid.dims[c])
+            .map(|q| {
+                let p = grid.origin_mm[c] + q as f64 * grid.spacing_mm;
+                nearest_index(a[(r, c)] * p + b[r], ct_dims[r]).map(|v| v * strides[r])
+            })
+            .collect();
+    }
+    Some(offsets)
 }
 
 /// Linear indices, ascending, of the lung voxels of the CT mask with a 26-neighbour in the
@@ -331,27 +403,23 @@ fn blur_rows_and_columns(values: &mut [f32], dims: [usize; 3], weights: &[f32]) 
     );
 }
 
-/// The last pass of the blur (along k), edges clamped, from `values` into a new field scaled
-/// by `scale` to f64: slab by slab, each slab summed from whole neighbouring slabs.
-fn blur_slices_to_metres(
-    values: &[f32],
-    dims: [usize; 3],
-    weights: &[f32],
-    scale: f64,
-) -> Vec<f64> {
+/// The last pass of the blur (along k), edges clamped, from `values` into a new field: slab
+/// by slab, each slab summed from whole neighbouring slabs.
+fn blur_slices(values: &[f32], dims: [usize; 3], weights: &[f32]) -> Vec<f32> {
     let [nx, ny, nz] = dims;
     let plane = nx * ny;
-    let mut out = vec![0f64; values.len()];
-    out.par_chunks_mut(plane).enumerate().for_each_init(
-        || vec![0f32; plane],
-        |acc, (k, out_slab)| {
-            blur_one_plane(acc, |q| &values[q * plane..(q + 1) * plane], k, nz, weights);
-            out_slab
-                .iter_mut()
-                .zip(acc.iter())
-                .for_each(|(o, &v)| *o = v as f64 * scale);
-        },
-    );
+    let mut out = vec![0f32; values.len()];
+    out.par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(k, out_slab)| {
+            blur_one_plane(
+                out_slab,
+                |q| &values[q * plane..(q + 1) * plane],
+                k,
+                nz,
+                weights,
+            );
+        });
     out
 }
 
@@ -500,11 +568,47 @@ mod tests {
                     true
                 });
             }
-            let reference: Vec<f64> = reference.iter().map(|&v| v as f64 * 1e-3).collect();
             let mut values = data;
             blur_rows_and_columns(&mut values, dims, &weights);
-            let slabs = blur_slices_to_metres(&values, dims, &weights, 1e-3);
+            let slabs = blur_slices(&values, dims, &weights);
             assert_eq!(slabs, reference, "{dims:?}");
+        }
+    }
+
+    #[test]
+    fn per_axis_sampling_equals_the_per_sample_mapping_on_aligned_flipped_and_permuted_cts() {
+        let dims = [23, 19, 17];
+        let n: usize = dims.iter().product();
+        // Two speckled lungs, apart except where the speckles bridge them.
+        let labels: Vec<u8> = (0..n)
+            .map(|x| {
+                let (i, j, k) = (x % 23, x / 23 % 19, x / (23 * 19));
+                let r2 = (j as i64 - 9).pow(2) + (k as i64 - 8).pow(2);
+                let hash = x.wrapping_mul(2_654_435_761) % 13;
+                match i {
+                    _ if hash == 5 => 2,
+                    2..=9 if r2 < 40 && hash != 0 => 1,
+                    13..=20 if r2 < 30 && hash != 0 => 2,
+                    _ => 0,
+                }
+            })
+            .collect();
+        let directions = [
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]],
+            [[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]],
+        ];
+        for direction_lps in directions {
+            let mut g = VolumeGeometry::axis_aligned(dims, [0.7, 1.3, 2.1], [-5.3, 2.9, 11.7]);
+            g.direction_lps = direction_lps;
+            let lungs = Volume::from_data(g, labels.clone()).unwrap();
+            let lattice = CellLattice::covering(&lungs, 3.0).unwrap();
+            let grid = WallGrid::refining(&lattice, 0.7);
+            let contact = contact_voxels(&lungs);
+            let fast = sample_inside_with(&lungs, &contact, &grid, Cancel::NEVER, true);
+            let slow = sample_inside_with(&lungs, &contact, &grid, Cancel::NEVER, false);
+            assert!(fast.contains(&1) && fast.contains(&0));
+            assert_eq!(fast, slow, "{direction_lps:?}");
         }
     }
 
