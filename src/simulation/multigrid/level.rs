@@ -56,6 +56,8 @@ pub(super) struct Level {
     pub(super) lambda_max: f64,
     /// Interpolation from the next coarser level: up to 8 (coarse node, weight) per node.
     pub(super) prolong: Vec<[(u32, f64); 8]>,
+    /// Scratch of the two-phase dense product: each cell's 24 outputs (see `product.rs`).
+    pub(super) cell_products: std::sync::Mutex<Vec<[f64; 24]>>,
 }
 
 /// `slot` of an unconstrained node.
@@ -107,6 +109,7 @@ impl Level {
             shift: 0.0,
             lambda_max: 0.0,
             prolong: Vec::new(),
+            cell_products: Default::default(),
         };
         fine.finish();
         fine
@@ -143,6 +146,7 @@ impl Level {
             diag_inv: Vec::new(),
             lambda_max: 0.0,
             prolong: Vec::new(),
+            cell_products: Default::default(),
         }
     }
 

@@ -12,6 +12,40 @@ use crate::simulation::forces::PARALLEL_MIN_ELEMENTS;
 use crate::simulation::lanes::{ElementSource, LaneV3, Lanes, LANES};
 use crate::simulation::linalg::{nodes, nodes_mut};
 
+/// Work of one dense cell product in units of one spring cell's.
+const DENSE_CELL_COST: usize = 6;
+
+/// Smallest dense level whose products are worth computing on several cores.
+const TWO_PHASE_MIN_CELLS: usize = 512;
+
+/// Cells per task of the two-phase dense product.
+const TWO_PHASE_TASK: usize = 128;
+
+/// Whether the CPU has the instructions of the per-cell dense kernel.
+fn has_avx2_fma() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// One cell's 24 outputs, handed out corner after corner in the order the kernel asks.
+struct CellOutputs<'a> {
+    out: &'a mut [f64; 24],
+    next: usize,
+}
+
+impl Sink for CellOutputs<'_> {
+    #[inline(always)]
+    fn node(&mut self, _node: u32) -> &mut [f64; 3] {
+        let b = 3 * self.next;
+        self.next += 1;
+        (&mut self.out[b..b + 3]).try_into().expect("3 values")
+    }
+}
+
 impl Level {
     /// y = A·x on this level.
     pub(super) fn apply(&self, x: &[f64], y: &mut [f64]) {
@@ -22,8 +56,16 @@ impl Level {
     fn apply_with(&self, x: &[f64], y: &mut [f64], simd: bool) {
         assert_eq!(x.len(), 3 * self.n_nodes);
         assert_eq!(y.len(), 3 * self.n_nodes);
+        // A dense 24 × 24 cell costs about six spring cells (1152 flops against ≈ 200), so a
+        // coarse level is worth splitting at a sixth of the fine level's element count. The
+        // chunks and colours are the same either way, and so are the sums.
+        let cost = if self.lane_springs.is_empty() {
+            DENSE_CELL_COST
+        } else {
+            1
+        };
         let parallel =
-            rayon::current_num_threads() > 1 && self.elements.len() >= PARALLEL_MIN_ELEMENTS;
+            rayon::current_num_threads() > 1 && self.elements.len() * cost >= PARALLEL_MIN_ELEMENTS;
         // Start from the shift term σ·M·(Π x), so the element sums need no zeroed output.
         let init = |(y, (x, m)): (&mut [f64], (&[f64], &[f64]))| {
             if self.shift > 0.0 {
@@ -54,6 +96,31 @@ impl Level {
                 yn[n] = (p * xn[n]) * (self.shift * self.mass[n]);
             }
         }
+        // Below the parallel threshold the plan is one chunk in element order, the order the
+        // two-phase product keeps (without a plan the order is colour by colour).
+        let two_phase = simd
+            && self.schedule.is_some()
+            && rayon::current_num_threads() > 1
+            && self.lane_springs.is_empty()
+            && (TWO_PHASE_MIN_CELLS..PARALLEL_MIN_ELEMENTS).contains(&self.elements.len())
+            && has_avx2_fma();
+        if two_phase {
+            self.dense_two_phase(x, y);
+        } else {
+            self.scatter_all(x, y, parallel, simd);
+        }
+        if !self.constrained.is_empty() {
+            let (yn, xn) = (nodes_mut(y), nodes(x));
+            for (n, p) in &self.constrained {
+                let n = *n as usize;
+                yn[n] = p * yn[n] + (xn[n] - p * xn[n]);
+            }
+        }
+    }
+
+    /// Adds every cell's product into `y`: chunk by chunk (in parallel when `parallel`), or
+    /// colour by colour without a chunk plan.
+    fn scatter_all(&self, x: &[f64], y: &mut [f64], parallel: bool, simd: bool) {
         match &self.schedule {
             Some(schedule) => schedule.for_each_chunk(y, 3, parallel, |elements, lo, window| {
                 let mut sink = Window {
@@ -76,13 +143,49 @@ impl Level {
                 }
             }
         }
-        if !self.constrained.is_empty() {
-            let (yn, xn) = (nodes_mut(y), nodes(x));
-            for (n, p) in &self.constrained {
-                let n = *n as usize;
-                yn[n] = p * yn[n] + (xn[n] - p * xn[n]);
+    }
+
+    /// The dense cells of a level too small for a chunk plan: their products computed on
+    /// every core into `cell_products`, then added into `y` on one, cell by cell and corner by
+    /// corner, the order of the one-chunk pass, so the sums are the same bits. (Splitting such
+    /// a level into chunks changed the order of the sums and cost 8 % more Krylov iterations
+    /// on the POPI lungs; on one core its products were a quarter of a 6 mm solve.)
+    fn dense_two_phase(&self, x: &[f64], y: &mut [f64]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma")]
+            unsafe fn cells(level: &Level, x: &[f64], first: usize, out: &mut [[f64; 24]]) {
+                for (i, out) in out.iter_mut().enumerate() {
+                    *out = [0.0; 24];
+                    let mut sink = CellOutputs { out, next: 0 };
+                    // SAFETY: compiled for, and called on, a CPU with AVX2 and FMA.
+                    unsafe { level.dense_cell(x, first + i, &mut sink) };
+                }
+            }
+            let mut products = self
+                .cell_products
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            products.resize(self.elements.len(), [0.0; 24]);
+            products
+                .par_chunks_mut(TWO_PHASE_TASK)
+                .enumerate()
+                .for_each(|(t, out)| {
+                    // SAFETY: `two_phase` checked that the CPU has AVX2 and FMA.
+                    unsafe { cells(self, x, t * TWO_PHASE_TASK, out) }
+                });
+            let yn = nodes_mut(y);
+            for (corners, product) in self.elements.iter().zip(products.iter()) {
+                for (&n, v) in corners.iter().zip(product.chunks_exact(3)) {
+                    let o = &mut yn[n as usize];
+                    o.x += v[0];
+                    o.y += v[1];
+                    o.z += v[2];
+                }
             }
         }
+        #[cfg(not(target_arch = "x86_64"))]
+        self.scatter_all(x, y, false, true);
     }
 
     /// Adds the element products of `elements` (applied to Π x) into `sink`, with the widest
@@ -411,6 +514,11 @@ mod tests {
             assert!(!mg.levels[0].constrained.is_empty());
             assert!(mg.levels[0].schedule.is_some());
             assert!(mg.levels[0].row_quad.iter().any(|&r| r));
+            // A coarse level takes the two-phase dense product on two threads: the bitwise
+            // comparison across thread counts below covers it.
+            assert!(mg.levels[1..].iter().any(|l| {
+                (TWO_PHASE_MIN_CELLS..PARALLEL_MIN_ELEMENTS).contains(&l.elements.len())
+            }));
             for variant in ["chunks", "colours", "dense fine level"] {
                 match variant {
                     // The element-colour path, used when the numbering lacks locality.

@@ -96,5 +96,6 @@ impl Level {
     }
 }
 
-/// Levels with at least this many nodes sweep their vectors in parallel.
-const SWEEP_PARALLEL_NODES: usize = 4 * NODE_TASK;
+/// Levels with at least this many nodes sweep their vectors in parallel (two tasks or more:
+/// on the POPI lungs at 6 mm the fine level's 30 269 nodes were swept on one core).
+const SWEEP_PARALLEL_NODES: usize = NODE_TASK + 1;
