@@ -519,6 +519,16 @@ impl<'s> QuasiStaticSolver<'s> {
         }
     }
 
+    /// Sets the relative force residual later solves stop at.
+    pub fn set_tolerance(&mut self, tolerance: f64) {
+        self.settings.tolerance = tolerance;
+    }
+
+    /// The relative force residual solves stop at.
+    pub fn tolerance(&self) -> f64 {
+        self.settings.tolerance
+    }
+
     /// Applies the scene's imposed displacements (a moving chest wall, prescribed motions) at
     /// `scale` times the load factor in later solves: 0 holds every moving constraint at
     /// rest, 1 (the default) moves it in step with the loads.
