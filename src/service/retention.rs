@@ -63,6 +63,10 @@ pub fn sweep(
     settings: &RetentionSettings,
     now: SystemTime,
 ) -> Result<SweepReport> {
+    // What killed processes sharing the store left in tmp/ (an upload cut off, say).
+    if let Err(e) = store.sweep_shared_tmp() {
+        tracing::warn!("cannot sweep tmp/: {e}");
+    }
     let records = jobs.records()?;
     let (scans, problems) = scan_records.list_scans()?;
     for p in problems {
@@ -89,6 +93,13 @@ pub fn sweep(
                 bytes,
             });
         }
+    }
+    // Objects of no scan or job (an API process killed between putting an upload and writing
+    // its record).
+    let scan_ids: HashSet<String> = scans.iter().map(|(s, _)| s.scan_id.to_string()).collect();
+    let job_ids: HashSet<String> = records.iter().map(|r| r.job_id.to_string()).collect();
+    if let Err(e) = store.sweep_orphan_blobs(&scan_ids, &job_ids, now) {
+        tracing::warn!("cannot sweep the object store for objects of no record: {e}");
     }
     for (scan, bytes) in scans {
         stored_bytes += bytes;
