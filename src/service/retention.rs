@@ -8,6 +8,10 @@
 //! kept until that ends. Each removal is one rename of the whole directory (record and files
 //! together) into `tmp/` under the job board's lock, so no listing sees half of one and no job
 //! can be submitted on a scan being removed.
+//!
+//! Each sweep also removes what killed processes left: the entries of a shared store's `tmp/`
+//! whose process is gone ([`Store::sweep_shared_tmp`]) and, with an object store, the objects
+//! of no scan or job record once an hour old ([`Store::sweep_orphan_blobs`]).
 
 use std::collections::{HashMap, HashSet};
 use std::path::Path;
