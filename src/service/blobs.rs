@@ -670,6 +670,36 @@ impl BlobStore {
         })
     }
 
+    /// The owners of the objects under `relative/` (the first part of each key below it: a
+    /// scan's or a job's id) with when the newest of each was written, sorted.
+    pub fn owners(&self, relative: &str) -> Result<Vec<(String, std::time::SystemTime)>> {
+        let this = self.clone();
+        let relative = relative.trim_end_matches('/').to_string();
+        self.run(async move {
+            let dir = this.key(&relative);
+            let metas: Vec<_> = this
+                .inner
+                .store
+                .list(Some(&dir))
+                .try_collect()
+                .await
+                .map_err(|e| this.error(&relative, this.explain(&e)))?;
+            let mut owners = std::collections::BTreeMap::new();
+            for m in metas {
+                let Some(name) = m.location.as_ref().strip_prefix(dir.as_ref()) else {
+                    continue;
+                };
+                let Some(owner) = name.trim_start_matches('/').split('/').next() else {
+                    continue;
+                };
+                let written = std::time::SystemTime::from(m.last_modified);
+                let newest = owners.entry(owner.to_string()).or_insert(written);
+                *newest = (*newest).max(written);
+            }
+            Ok(owners.into_iter().collect())
+        })
+    }
+
     /// Removes every object under `relative/`; how many.
     pub fn delete_prefix(&self, relative: &str) -> Result<usize> {
         let this = self.clone();

@@ -8,6 +8,10 @@
 //! kept until that ends. Each removal is one rename of the whole directory (record and files
 //! together) into `tmp/` under the job board's lock, so no listing sees half of one and no job
 //! can be submitted on a scan being removed.
+//!
+//! Each sweep also removes what killed processes left: the entries of a shared store's `tmp/`
+//! whose process is gone ([`Store::sweep_shared_tmp`]) and, with an object store, the objects
+//! of no scan or job record once an hour old ([`Store::sweep_orphan_blobs`]).
 
 use std::collections::{HashMap, HashSet};
 use std::path::Path;
@@ -63,6 +67,10 @@ pub fn sweep(
     settings: &RetentionSettings,
     now: SystemTime,
 ) -> Result<SweepReport> {
+    // What killed processes sharing the store left in tmp/ (an upload cut off, say).
+    if let Err(e) = store.sweep_shared_tmp() {
+        tracing::warn!("cannot sweep tmp/: {e}");
+    }
     let records = jobs.records()?;
     let (scans, problems) = scan_records.list_scans()?;
     for p in problems {
@@ -89,6 +97,13 @@ pub fn sweep(
                 bytes,
             });
         }
+    }
+    // Objects of no scan or job (an API process killed between putting an upload and writing
+    // its record).
+    let scan_ids: HashSet<String> = scans.iter().map(|(s, _)| s.scan_id.to_string()).collect();
+    let job_ids: HashSet<String> = records.iter().map(|r| r.job_id.to_string()).collect();
+    if let Err(e) = store.sweep_orphan_blobs(&scan_ids, &job_ids, now) {
+        tracing::warn!("cannot sweep the object store for objects of no record: {e}");
     }
     for (scan, bytes) in scans {
         stored_bytes += bytes;

@@ -10,7 +10,9 @@
 //! * `jobs/<job_id>/job.json` ([`JobRecord`]), `request.json` ([`JobRequest`]), `target/`
 //!   (its copy of an uploaded target, when it follows one) and `out/`, the run's output
 //!   directory in the CLI's layout, published whole when the run succeeds;
-//! * `tmp/`: uploads in progress and directories being deleted; emptied at start.
+//! * `tmp/`: uploads in progress and directories being deleted, each entry named after the
+//!   process writing it; emptied at start (shared by API and worker processes: only what dead
+//!   processes left, see [`Store::sweep_shared_tmp`]).
 //!
 //! A scan, job or target directory appears by renaming a complete directory from `tmp/`, and
 //! disappears by renaming it back into `tmp/` before removal, so a listing never sees half of one.
@@ -328,8 +330,110 @@ const SCAN_TARGETS: &str = "targets";
 /// Age after which an entry of a shared store's `tmp/` is a killed process's leftover: longer
 /// than any upload or ingest is allowed to take.
 pub const SHARED_TMP_MAX_AGE: std::time::Duration = std::time::Duration::from_secs(86_400);
+/// Age under which the objects of a scan or job with no record are left alone: a scan's
+/// upload and stored ingest are put before its record is written (an upload being received
+/// now has objects and no record yet).
+pub const ORPHAN_BLOB_MIN_AGE: std::time::Duration = std::time::Duration::from_secs(3_600);
 /// The run's output directory inside a job's directory.
 pub const JOB_OUTPUT: &str = "out";
+
+/// The process that made an entry of `tmp/`, as its name starts: `<host>.<pid namespace>.<pid>_`.
+/// The host (letters, digits and `-`) and the pid namespace (the inode of `/proc/self/ns/pid`;
+/// 0 where there is none) say whether this process can tell if the owner is alive: two
+/// containers of one host with one hostname have pid namespaces of their own.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TmpOwner {
+    host: String,
+    namespace: u64,
+    pid: u32,
+}
+
+impl TmpOwner {
+    /// This process.
+    pub fn this_process() -> &'static TmpOwner {
+        static OWNER: std::sync::OnceLock<TmpOwner> = std::sync::OnceLock::new();
+        OWNER.get_or_init(|| TmpOwner {
+            host: host_name(),
+            namespace: pid_namespace(),
+            pid: std::process::id(),
+        })
+    }
+
+    /// `<host>.<namespace>.<pid>`.
+    fn tag(&self) -> String {
+        format!("{}.{}.{}", self.host, self.namespace, self.pid)
+    }
+
+    /// The owner an entry's name starts with, if it has one.
+    pub fn of_entry(name: &str) -> Option<TmpOwner> {
+        let (tag, _) = name.split_once('_')?;
+        let mut parts = tag.rsplitn(3, '.');
+        let pid = parts.next()?.parse().ok()?;
+        let namespace = parts.next()?.parse().ok()?;
+        let host = parts.next()?.to_string();
+        Some(TmpOwner {
+            host,
+            namespace,
+            pid,
+        })
+    }
+
+    /// Whether the owner is a process of this host and pid namespace that no longer exists
+    /// (never this process; a process of elsewhere is never judged dead).
+    pub fn is_dead_here(&self) -> bool {
+        let here = TmpOwner::this_process();
+        if self.host != here.host || self.namespace != here.namespace || self.pid == here.pid {
+            return false;
+        }
+        let Ok(pid) = libc::pid_t::try_from(self.pid) else {
+            return false;
+        };
+        if pid <= 0 {
+            return false;
+        }
+        // Signal 0 only checks: ESRCH is "no such process"; EPERM means it exists.
+        if unsafe { libc::kill(pid, 0) } == 0 {
+            return false;
+        }
+        std::io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH)
+    }
+}
+
+/// This machine's host name, kept to letters, digits and `-` (so it never holds the tag's
+/// separators).
+fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    let ok = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len()) } == 0;
+    let end = buf.iter().position(|b| *b == 0).unwrap_or(buf.len());
+    let name: String = if ok { &buf[..end] } else { &b"host"[..] }
+        .iter()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || *b == b'-' {
+                *b as char
+            } else {
+                '-'
+            }
+        })
+        .collect();
+    if name.is_empty() {
+        "host".into()
+    } else {
+        name
+    }
+}
+
+/// The inode of this process's pid namespace (`/proc/self/ns/pid` → `pid:[4026531836]`); 0
+/// where it cannot be read.
+fn pid_namespace() -> u64 {
+    std::fs::read_link("/proc/self/ns/pid")
+        .ok()
+        .and_then(|target| {
+            let text = target.to_string_lossy().into_owned();
+            let inside = text.split_once('[')?.1.split_once(']')?.0.to_string();
+            inside.parse().ok()
+        })
+        .unwrap_or(0)
+}
 
 impl Store {
     /// Opens (creating) the store at `root` and empties `tmp/` of an earlier process's leftovers.
@@ -355,8 +459,8 @@ impl Store {
     }
 
     /// Opens (creating) a store that other processes use at the same time (API and worker
-    /// processes on PostgreSQL): `tmp/` keeps what they are writing, and only entries older
-    /// than [`SHARED_TMP_MAX_AGE`] (left by a killed process) are removed.
+    /// processes on PostgreSQL): `tmp/` keeps what they are writing, and only what dead
+    /// processes left is removed (see [`Store::sweep_shared_tmp`]).
     pub fn open_shared(root: &Path) -> Result<Self> {
         let store = Store {
             root: root.to_path_buf(),
@@ -368,21 +472,49 @@ impl Store {
             let dir = root.join(dir);
             std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
         }
-        let tmp = store.tmp_dir();
+        store.sweep_shared_tmp()?;
+        store.probe_writable()?;
+        Ok(store)
+    }
+
+    /// Removes the entries of a shared store's `tmp/` that no live process is writing: those
+    /// whose owner (named in the entry, see [`Store::tmp_path`]) is a process of this host and
+    /// pid namespace that no longer exists (an API process killed in the middle of an upload),
+    /// and any older than [`SHARED_TMP_MAX_AGE`] (a process of another machine, or an entry
+    /// without an owner). Runs when a shared store is opened and at every retention sweep;
+    /// nothing for a store of one process, whose `tmp/` is emptied when it opens. The number
+    /// of entries removed.
+    pub fn sweep_shared_tmp(&self) -> Result<usize> {
+        if !self.shared {
+            return Ok(0);
+        }
+        let tmp = self.tmp_dir();
+        let mut removed = 0;
         for entry in std::fs::read_dir(&tmp).at(IoOp::List, &tmp)?.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let abandoned = TmpOwner::of_entry(&name).is_some_and(|o| o.is_dead_here());
             let old = entry
                 .metadata()
                 .and_then(|m| m.modified())
                 .ok()
                 .and_then(|t| t.elapsed().ok())
                 .is_some_and(|age| age > SHARED_TMP_MAX_AGE);
-            if old {
+            if abandoned || old {
                 let path = entry.path();
-                let _ = std::fs::remove_dir_all(&path).or_else(|_| std::fs::remove_file(&path));
+                if std::fs::remove_dir_all(&path)
+                    .or_else(|_| std::fs::remove_file(&path))
+                    .is_ok()
+                {
+                    removed += 1;
+                    tracing::info!(
+                        entry = %name,
+                        reason = if abandoned { "its process is gone" } else { "age" },
+                        "removed a leftover of tmp/"
+                    );
+                }
             }
         }
-        store.probe_writable()?;
-        Ok(store)
+        Ok(removed)
     }
 
     /// Writes and removes a probe file of this call's own in `tmp/`: processes sharing the
@@ -476,6 +608,41 @@ impl Store {
         Ok(())
     }
 
+    /// Removes from the object store the objects of scans and jobs that have no record
+    /// (`scans` and `jobs` are the ids that have one) once the newest of them is older than
+    /// [`ORPHAN_BLOB_MIN_AGE`] at `now`: what an API process killed between putting a scan's
+    /// upload and writing its record left, or the outputs of a job deleted while a worker was
+    /// putting them. Nothing without an object store. How many scans' and jobs' objects went.
+    pub fn sweep_orphan_blobs(
+        &self,
+        scans: &std::collections::HashSet<String>,
+        jobs: &std::collections::HashSet<String>,
+        now: SystemTime,
+    ) -> Result<usize> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(0);
+        };
+        let mut removed = 0;
+        for (kind, known) in [("scans", scans), ("jobs", jobs)] {
+            for (owner, newest) in blobs.owners(kind)? {
+                let old = now.duration_since(newest).unwrap_or_default() > ORPHAN_BLOB_MIN_AGE;
+                if known.contains(&owner) || !old {
+                    continue;
+                }
+                let objects = blobs.delete_prefix(&format!("{kind}/{owner}"))?;
+                removed += 1;
+                tracing::warn!(
+                    kind,
+                    owner = %owner,
+                    objects,
+                    store = blobs.shown(),
+                    "removed objects of no record from the object store"
+                );
+            }
+        }
+        Ok(removed)
+    }
+
     /// Removes the local copy of a job's outputs once they are in the object store (the data
     /// directory then only held them while the run wrote them); nothing without one.
     pub fn drop_local_job_output(&self, id: JobId) {
@@ -508,10 +675,15 @@ impl Store {
         self.root.join("tmp")
     }
 
-    /// A fresh, unused path in `tmp/`.
+    /// A fresh, unused path in `tmp/`: `<owner>_<what>-<uuid>`, the owner naming this process
+    /// (see [`TmpOwner`]) so that what it leaves when killed can be told from what a live
+    /// process sharing the store is writing.
     pub fn tmp_path(&self, what: &str) -> PathBuf {
-        self.tmp_dir()
-            .join(format!("{what}-{}", uuid::Uuid::new_v4().simple()))
+        self.tmp_dir().join(format!(
+            "{}_{what}-{}",
+            TmpOwner::this_process().tag(),
+            uuid::Uuid::new_v4().simple()
+        ))
     }
 
     /// Whether the store can be written (for readiness).
@@ -943,6 +1115,133 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let store = Store::open(&dir).unwrap();
         (dir, store)
+    }
+
+    #[test]
+    fn a_shared_tmp_loses_what_dead_processes_left_and_keeps_the_rest() {
+        let dir = std::env::temp_dir().join(format!("lm-store-shared-tmp-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = Store::open_shared(&dir).unwrap();
+        let here = TmpOwner::this_process();
+        // A process that has ended (reaped), and one alive.
+        let mut ended = std::process::Command::new("true").spawn().unwrap();
+        ended.wait().unwrap();
+        let mut alive = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        let as_owner = |pid: u32| {
+            TmpOwner {
+                pid,
+                ..here.clone()
+            }
+            .tag()
+        };
+        let dead_upload = format!("{}_upload-1-scan.nii.gz", as_owner(ended.id()));
+        let dead_dir = format!("{}_scan-2", as_owner(ended.id()));
+        let live_upload = format!("{}_upload-3", as_owner(alive.id()));
+        let elsewhere = format!("other-host.{}.{}_upload-4", here.namespace, ended.id());
+        let other_namespace = format!(
+            "{}.{}.{}_upload-5",
+            here.host,
+            here.namespace.wrapping_add(1),
+            ended.id()
+        );
+        let unowned = "upload-6".to_string();
+        let own = store.tmp_path("upload");
+        for name in [
+            &dead_upload,
+            &live_upload,
+            &elsewhere,
+            &other_namespace,
+            &unowned,
+        ] {
+            std::fs::write(store.tmp_dir().join(name), b"partial").unwrap();
+        }
+        std::fs::create_dir_all(store.tmp_dir().join(&dead_dir).join("inner")).unwrap();
+        std::fs::write(&own, b"mine").unwrap();
+        assert_eq!(
+            TmpOwner::of_entry(own.file_name().unwrap().to_str().unwrap()).as_ref(),
+            Some(here)
+        );
+
+        assert_eq!(store.sweep_shared_tmp().unwrap(), 2);
+        let mut left: Vec<String> = std::fs::read_dir(store.tmp_dir())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        let mut kept = vec![
+            live_upload.clone(),
+            elsewhere,
+            other_namespace,
+            unowned,
+            own.file_name().unwrap().to_string_lossy().into_owned(),
+        ];
+        kept.sort();
+        assert_eq!(left, kept);
+        // Reopening (another process starting) sweeps alike.
+        alive.kill().unwrap();
+        alive.wait().unwrap();
+        let reopened = Store::open_shared(&dir).unwrap();
+        assert_eq!(reopened.sweep_shared_tmp().unwrap(), 0);
+        assert!(
+            !store.tmp_dir().join(&live_upload).exists(),
+            "the live process's upload went once it died"
+        );
+        assert_eq!(std::fs::read_dir(store.tmp_dir()).unwrap().count(), 4);
+        // A store of one process has nothing to sweep (its tmp/ is emptied when it opens).
+        let _ = std::fs::remove_dir_all(&dir);
+        let single = Store::open(&dir).unwrap();
+        assert_eq!(single.sweep_shared_tmp().unwrap(), 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn objects_of_no_record_go_once_old_and_the_rest_stay() {
+        let dir = std::env::temp_dir().join(format!("lm-store-orphans-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let settings = super::super::blobs::BlobSettings::new(format!(
+            "file://{}",
+            dir.join("blobs").display()
+        ));
+        let blobs = BlobStore::open(&settings).unwrap();
+        let store = Store::open_shared(&dir.join("data"))
+            .unwrap()
+            .with_blobs(Some(blobs.clone()));
+        let file = dir.join("file");
+        std::fs::write(&file, b"bytes").unwrap();
+        for key in [
+            "scans/kept-scan/scan.nii.gz",
+            "scans/lost-scan/scan.nii.gz",
+            "scans/lost-scan/ingest.bin",
+            "jobs/kept-job/out/summary.json",
+            "jobs/lost-job/out/frames/0/displacement.nii.gz",
+        ] {
+            blobs.put_file(key, &file).unwrap();
+        }
+        let scans = ["kept-scan".to_string()].into_iter().collect();
+        let jobs = ["kept-job".to_string()].into_iter().collect();
+        // Young: perhaps an upload whose record is being written.
+        let now = SystemTime::now();
+        assert_eq!(store.sweep_orphan_blobs(&scans, &jobs, now).unwrap(), 0);
+        assert_eq!(blobs.list("scans").unwrap().len(), 3);
+        let later = now + ORPHAN_BLOB_MIN_AGE + std::time::Duration::from_secs(60);
+        assert_eq!(store.sweep_orphan_blobs(&scans, &jobs, later).unwrap(), 2);
+        let left = |kind: &str| -> Vec<String> {
+            blobs
+                .owners(kind)
+                .unwrap()
+                .into_iter()
+                .map(|(owner, _)| owner)
+                .collect()
+        };
+        assert_eq!(left("scans"), vec!["kept-scan"]);
+        assert_eq!(left("jobs"), vec!["kept-job"]);
+        // Without an object store, nothing to do.
+        let plain = Store::open_shared(&dir.join("data")).unwrap();
+        assert_eq!(plain.sweep_orphan_blobs(&scans, &jobs, later).unwrap(), 0);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

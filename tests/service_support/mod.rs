@@ -138,6 +138,26 @@ impl ServerProcess {
         extra_args: &[&str],
         env: &[(&str, &str)],
     ) -> ServerProcess {
+        Self::start_inner(data_dir, extra_args, env, true)
+    }
+
+    /// As [`ServerProcess::start_with_env`] with no database, worker or S3 server of its own
+    /// whatever `LUNGMOTION_TEST_BACKEND` and `LUNGMOTION_TEST_OBJECT_STORE` say: for a test
+    /// whose processes share the ones it started (named in `env`).
+    pub fn start_sharing(
+        data_dir: &Path,
+        extra_args: &[&str],
+        env: &[(&str, &str)],
+    ) -> ServerProcess {
+        Self::start_inner(data_dir, extra_args, env, false)
+    }
+
+    fn start_inner(
+        data_dir: &Path,
+        extra_args: &[&str],
+        env: &[(&str, &str)],
+        own_backends: bool,
+    ) -> ServerProcess {
         let log_path = data_dir
             .parent()
             .expect("the data dir has a parent")
@@ -149,7 +169,7 @@ impl ServerProcess {
             .unwrap();
         let mut args = vec!["--listen", "127.0.0.1:0"];
         args.extend_from_slice(extra_args);
-        let database = postgres_backend().then(|| {
+        let database = (own_backends && postgres_backend()).then(|| {
             let dir = data_dir.parent().unwrap().join("postgres");
             postgres::PgServer::start(&dir)
         });
@@ -158,7 +178,7 @@ impl ServerProcess {
         if let Some(url) = &url {
             env.push(("LUNGMOTION_POSTGRES_URL", url));
         }
-        let objects = object_store_backend().then(|| {
+        let objects = (own_backends && object_store_backend()).then(|| {
             let s3 = s3::S3Server::start(&data_dir.parent().unwrap().join("moto"));
             s3.create_bucket(TEST_BUCKET);
             s3
