@@ -645,8 +645,8 @@ impl BlobStore {
         .await
     }
 
-    /// Every object under `relative/`, as paths relative to it with their sizes, sorted.
-    pub fn list(&self, relative: &str) -> Result<Vec<Listed>> {
+    /// Every object under `relative/`: its path relative to it, size and time written.
+    fn objects_under(&self, relative: &str) -> Result<Vec<(String, u64, std::time::SystemTime)>> {
         let this = self.clone();
         let relative = relative.trim_end_matches('/').to_string();
         self.run(async move {
@@ -658,46 +658,40 @@ impl BlobStore {
                 .try_collect()
                 .await
                 .map_err(|e| this.error(&relative, this.explain(&e)))?;
-            let mut found: Vec<Listed> = metas
+            Ok(metas
                 .into_iter()
                 .filter_map(|m| {
                     let name = m.location.as_ref().strip_prefix(dir.as_ref())?;
-                    Some((name.trim_start_matches('/').to_string(), m.size))
+                    let written = std::time::SystemTime::from(m.last_modified);
+                    Some((name.trim_start_matches('/').to_string(), m.size, written))
                 })
-                .collect();
-            found.sort();
-            Ok(found)
+                .collect())
         })
+    }
+
+    /// Every object under `relative/`, as paths relative to it with their sizes, sorted.
+    pub fn list(&self, relative: &str) -> Result<Vec<Listed>> {
+        let mut found: Vec<Listed> = self
+            .objects_under(relative)?
+            .into_iter()
+            .map(|(name, size, _)| (name, size))
+            .collect();
+        found.sort();
+        Ok(found)
     }
 
     /// The owners of the objects under `relative/` (the first part of each key below it: a
     /// scan's or a job's id) with when the newest of each was written, sorted.
     pub fn owners(&self, relative: &str) -> Result<Vec<(String, std::time::SystemTime)>> {
-        let this = self.clone();
-        let relative = relative.trim_end_matches('/').to_string();
-        self.run(async move {
-            let dir = this.key(&relative);
-            let metas: Vec<_> = this
-                .inner
-                .store
-                .list(Some(&dir))
-                .try_collect()
-                .await
-                .map_err(|e| this.error(&relative, this.explain(&e)))?;
-            let mut owners = std::collections::BTreeMap::new();
-            for m in metas {
-                let Some(name) = m.location.as_ref().strip_prefix(dir.as_ref()) else {
-                    continue;
-                };
-                let Some(owner) = name.trim_start_matches('/').split('/').next() else {
-                    continue;
-                };
-                let written = std::time::SystemTime::from(m.last_modified);
-                let newest = owners.entry(owner.to_string()).or_insert(written);
-                *newest = (*newest).max(written);
-            }
-            Ok(owners.into_iter().collect())
-        })
+        let mut owners = std::collections::BTreeMap::new();
+        for (name, _, written) in self.objects_under(relative)? {
+            let Some(owner) = name.split('/').next() else {
+                continue;
+            };
+            let newest = owners.entry(owner.to_string()).or_insert(written);
+            *newest = (*newest).max(written);
+        }
+        Ok(owners.into_iter().collect())
     }
 
     /// Removes every object under `relative/`; how many.
