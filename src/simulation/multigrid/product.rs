@@ -12,9 +12,6 @@ use crate::simulation::forces::PARALLEL_MIN_ELEMENTS;
 use crate::simulation::lanes::{ElementSource, LaneV3, Lanes, LANES};
 use crate::simulation::linalg::{nodes, nodes_mut};
 
-/// Work of one dense cell product in units of one spring cell's.
-const DENSE_CELL_COST: usize = 6;
-
 /// Smallest dense level whose products are worth computing on several cores.
 const TWO_PHASE_MIN_CELLS: usize = 512;
 
@@ -56,16 +53,8 @@ impl Level {
     fn apply_with(&self, x: &[f64], y: &mut [f64], simd: bool) {
         assert_eq!(x.len(), 3 * self.n_nodes);
         assert_eq!(y.len(), 3 * self.n_nodes);
-        // A dense 24 × 24 cell costs about six spring cells (1152 flops against ≈ 200), so a
-        // coarse level is worth splitting at a sixth of the fine level's element count. The
-        // chunks and colours are the same either way, and so are the sums.
-        let cost = if self.lane_springs.is_empty() {
-            DENSE_CELL_COST
-        } else {
-            1
-        };
         let parallel =
-            rayon::current_num_threads() > 1 && self.elements.len() * cost >= PARALLEL_MIN_ELEMENTS;
+            rayon::current_num_threads() > 1 && self.elements.len() >= PARALLEL_MIN_ELEMENTS;
         // Start from the shift term σ·M·(Π x), so the element sums need no zeroed output.
         let init = |(y, (x, m)): (&mut [f64], (&[f64], &[f64]))| {
             if self.shift > 0.0 {
