@@ -183,8 +183,7 @@ fn sliding_nodes_stay_on_their_surface() {
     let s = cs.add_surface(sphere);
     for (i, l) in gm.node_lattice.iter().enumerate() {
         if l[2] == 0 {
-            cs.set(i as u32, NodeConstraint::Surface { field: s })
-                .unwrap();
+            cs.set(i as u32, NodeConstraint::surface(s, 0.0)).unwrap();
         }
         if l[2] == 0 && l[1] == 1 && l[0] >= 1 {
             // Two bottom nodes are pinned: with one, turning about the vertical through it

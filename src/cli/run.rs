@@ -93,6 +93,11 @@ pub struct RunArgs {
     /// config's `[motion] rib_cage_share`).
     #[arg(long, value_name = "FRACTION", value_parser = parse_rib_cage_share, allow_negative_numbers = true)]
     rib_cage_share: Option<f64>,
+    /// How the costal, mediastinal and apex nodes follow the wall: `tangent-plane` (each on
+    /// the plane tangent to the wall at rest; the default, or the config's `sliding`) or
+    /// `wall-surface` (on the curved wall itself, at their rest distance from it).
+    #[arg(long, value_name = "tangent-plane|wall-surface", value_parser = parse_sliding)]
+    sliding: Option<lungmotion::ingest::lung_model::SlidingMode>,
     /// Each spring's law T = λ₂·d + λ₁·d³: `linear` (Baudet), `cubic` (λ₁/λ₂ fitted to
     /// compressible neo-Hookean at the material's ν) or `cubic:<λ₁/λ₂>` (default linear, or the
     /// config's `[material] spring_law`).
@@ -122,6 +127,18 @@ fn parse_time_budget(text: &str) -> Result<f64, String> {
     match lungmotion::run::BudgetConfig::time_problem(s) {
         Some(reason) => Err(reason),
         None => Ok(s),
+    }
+}
+
+/// `--sliding`: the configuration's names, with `-` or `_`.
+fn parse_sliding(text: &str) -> Result<lungmotion::ingest::lung_model::SlidingMode, String> {
+    use lungmotion::ingest::lung_model::SlidingMode;
+    match text.trim().replace('-', "_").as_str() {
+        "tangent_plane" => Ok(SlidingMode::TangentPlane),
+        "wall_surface" => Ok(SlidingMode::WallSurface),
+        _ => Err(format!(
+            "`{text}` is not a sliding mode: tangent-plane or wall-surface"
+        )),
     }
 }
 
@@ -246,6 +263,9 @@ impl RunArgs {
         }
         if let Some(s) = self.rib_cage_share {
             config.motion.rib_cage_share = s;
+        }
+        if let Some(mode) = self.sliding {
+            config.sliding = mode;
         }
         if let Some(n) = self.max_equilibria {
             config.budget.max_equilibria = n;

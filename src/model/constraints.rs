@@ -2,6 +2,8 @@
 //! or an implicit surface. Each constraint removes the constrained directions of a node's
 //! motion and of its force; the removed force is the reaction (thesis eq. 4.1).
 
+use std::sync::Arc;
+
 use nalgebra::Vector3;
 
 use super::sdf::SignedDistanceField;
@@ -29,11 +31,30 @@ pub enum NodeConstraint {
         /// Unit direction of the line.
         direction: Vector3<f64>,
     },
-    /// Slides on the zero level set of a signed distance field (index into the set's fields).
+    /// Slides on a level set of a signed distance field's cubic B-spline
+    /// ([`SignedDistanceField::spline`]): the wall itself, or the wall offset by
+    /// the node's rest distance to it, so that a node resting off the wall is not pulled onto
+    /// it with no load; `level_m` other than `rest_level_m` is a wall moved along its normal.
     Surface {
         /// Index of the field in [`ConstraintSet::fields`].
         field: u32,
+        /// Distance value the node is held at, metres (at load factor 1).
+        level_m: f64,
+        /// Distance value at load factor 0, metres: the level the node rests on.
+        rest_level_m: f64,
     },
+}
+
+impl NodeConstraint {
+    /// Sliding on level `level_m` of surface `field`, which the node rests on (no imposed
+    /// motion; 0 is the surface itself).
+    pub fn surface(field: u32, level_m: f64) -> Self {
+        NodeConstraint::Surface {
+            field,
+            level_m,
+            rest_level_m: level_m,
+        }
+    }
 }
 
 /// All constraints of a model: at most one per node, stored sparsely.
@@ -41,8 +62,9 @@ pub enum NodeConstraint {
 pub struct ConstraintSet {
     /// Constrained node and its constraint, in insertion order.
     pub entries: Vec<(u32, NodeConstraint)>,
-    /// Implicit surfaces referenced by [`NodeConstraint::Surface`].
-    pub fields: Vec<SignedDistanceField>,
+    /// Implicit surfaces referenced by [`NodeConstraint::Surface`], shared: a CT wall field
+    /// is the largest array of a clinical model, and every scene and load step holds the set.
+    pub fields: Vec<Arc<SignedDistanceField>>,
     slot: Vec<u32>,
 }
 
@@ -86,11 +108,21 @@ impl ConstraintSet {
                     direction: unit(direction, node, "line direction")?,
                 }
             }
-            NodeConstraint::Surface { field } => {
+            NodeConstraint::Surface {
+                field,
+                level_m,
+                rest_level_m,
+            } => {
                 if field as usize >= self.fields.len() {
                     return Err(Error::InvalidModel(format!(
                         "node {node} slides on surface {field}, but only {} surfaces exist",
                         self.fields.len()
+                    )));
+                }
+                if !level_m.is_finite() || !rest_level_m.is_finite() {
+                    return Err(Error::InvalidModel(format!(
+                        "node {node} slides on surface {field} at level {level_m} m (rest \
+                         {rest_level_m} m): the levels must be finite"
                     )));
                 }
                 constraint
@@ -112,8 +144,8 @@ impl ConstraintSet {
     }
 
     /// Adds an implicit surface and returns its index for [`NodeConstraint::Surface`].
-    pub fn add_surface(&mut self, field: SignedDistanceField) -> u32 {
-        self.fields.push(field);
+    pub fn add_surface(&mut self, field: impl Into<Arc<SignedDistanceField>>) -> u32 {
+        self.fields.push(field.into());
         (self.fields.len() - 1) as u32
     }
 
@@ -138,7 +170,9 @@ impl ConstraintSet {
             NodeConstraint::Line { point_m, direction } => {
                 point_m + direction * (x - point_m).dot(&direction)
             }
-            NodeConstraint::Surface { field } => self.fields[field as usize].project_m(x),
+            NodeConstraint::Surface { field, level_m, .. } => {
+                self.fields[field as usize].project_to_spline_level_m(x, level_m)
+            }
         }
     }
 
@@ -154,11 +188,36 @@ impl ConstraintSet {
             NodeConstraint::Fixed { .. } => Vector3::zeros(),
             NodeConstraint::Plane { normal, .. } => v - normal * v.dot(&normal),
             NodeConstraint::Line { direction, .. } => direction * v.dot(&direction),
-            NodeConstraint::Surface { field } => {
-                let n = self.fields[field as usize].normal(x);
+            NodeConstraint::Surface { field, .. } => {
+                let n = self.fields[field as usize].spline_normal(x);
                 v - n * v.dot(&n)
             }
         }
+    }
+
+    /// The projector onto the directions the constraint leaves free at position `x`
+    /// (for a surface, its tangent plane there).
+    pub fn free_projector(&self, c: &NodeConstraint, x: Vector3<f64>) -> nalgebra::Matrix3<f64> {
+        use nalgebra::Matrix3;
+        match *c {
+            NodeConstraint::Fixed { .. } => Matrix3::zeros(),
+            NodeConstraint::Plane { normal, .. } => {
+                Matrix3::identity() - normal * normal.transpose()
+            }
+            NodeConstraint::Line { direction, .. } => direction * direction.transpose(),
+            NodeConstraint::Surface { field, .. } => {
+                let n = self.fields[field as usize].spline_normal(x);
+                Matrix3::identity() - n * n.transpose()
+            }
+        }
+    }
+
+    /// Whether a constraint's free directions change with the node's position (a curved
+    /// surface), so a solver must take its projector where the node is, not at rest.
+    pub fn has_curved_constraints(&self) -> bool {
+        self.entries
+            .iter()
+            .any(|(_, c)| matches!(c, NodeConstraint::Surface { .. }))
     }
 
     /// Puts every constrained node of `positions` onto its manifold.
@@ -199,9 +258,9 @@ impl ConstraintSet {
     /// imposed displacement, applied in proportion to the load factor
     /// ([`ConstraintSet::at_load_factor`]).
     pub fn imposes_motion(&self, rest_positions_m: &[Vector3<f64>]) -> bool {
-        self.entries
-            .iter()
-            .any(|(node, c)| imposed_offset(c, rest_positions_m[*node as usize]).is_some())
+        self.entries.iter().any(|(node, c)| {
+            imposed_offset(c, rest_positions_m[*node as usize], &self.fields).is_some()
+        })
     }
 
     /// The set with every imposed displacement scaled by `factor` (0: every moving constraint
@@ -240,6 +299,15 @@ impl ConstraintSet {
                     point_m: r + normal * ((point_m - r).dot(&normal) * factor),
                     normal,
                 },
+                NodeConstraint::Surface {
+                    field,
+                    level_m,
+                    rest_level_m,
+                } => NodeConstraint::Surface {
+                    field,
+                    level_m: rest_level_m + (level_m - rest_level_m) * factor,
+                    rest_level_m,
+                },
                 other => other,
             };
         }
@@ -255,7 +323,7 @@ impl ConstraintSet {
             )));
         }
         for (node, c) in &self.entries {
-            if let NodeConstraint::Surface { field } = c {
+            if let NodeConstraint::Surface { field, .. } = c {
                 let f = &self.fields[*field as usize];
                 let p = rest_positions_m[*node as usize];
                 let outside = (0..3).any(|a| {
@@ -277,11 +345,27 @@ impl ConstraintSet {
 }
 
 /// The displacement `c` imposes on a node resting at `rest` (at load factor 1), if any.
-fn imposed_offset(c: &NodeConstraint, rest: Vector3<f64>) -> Option<Vector3<f64>> {
+/// A surface's level moved by δ moves the node by about δ along the wall's normal at rest
+/// (`fields` resolves that normal).
+fn imposed_offset(
+    c: &NodeConstraint,
+    rest: Vector3<f64>,
+    fields: &[Arc<SignedDistanceField>],
+) -> Option<Vector3<f64>> {
     let offset = match *c {
         NodeConstraint::Fixed { target_m } => target_m - rest,
         NodeConstraint::Plane { point_m, normal } => normal * (point_m - rest).dot(&normal),
-        NodeConstraint::Line { .. } | NodeConstraint::Surface { .. } => return None,
+        NodeConstraint::Surface {
+            field,
+            level_m,
+            rest_level_m,
+        } => {
+            if level_m == rest_level_m {
+                return None;
+            }
+            fields[field as usize].spline_normal(rest) * (level_m - rest_level_m)
+        }
+        NodeConstraint::Line { .. } => return None,
     };
     (offset != Vector3::zeros()).then_some(offset)
 }
@@ -296,7 +380,8 @@ pub fn imposed_displacements(
         .entries
         .iter()
         .filter_map(|(node, c)| {
-            imposed_offset(c, rest_positions_m[*node as usize]).map(|o| (*node, o))
+            imposed_offset(c, rest_positions_m[*node as usize], &constraints.fields)
+                .map(|o| (*node, o))
         })
         .collect()
 }
@@ -391,6 +476,53 @@ mod tests {
     }
 
     #[test]
+    fn a_surface_level_holds_its_node_at_rest_and_moves_with_the_load_factor() {
+        // A flat wall z = 0.5 (distance increasing upwards), a node resting 0.1 above it.
+        let field =
+            SignedDistanceField::from_fn(Vector3::zeros(), Vector3::repeat(1.0), 0.05, |p| {
+                p.z - 0.5
+            })
+            .unwrap();
+        let rest = vec![Vector3::new(0.4, 0.5, 0.6)];
+        let mut cs = ConstraintSet::new(1);
+        let s = cs.add_surface(field);
+        cs.set(0, NodeConstraint::surface(s, 0.1)).unwrap();
+        assert!(!cs.imposes_motion(&rest));
+        let mut x = rest.clone();
+        cs.project_positions(&mut x);
+        assert!((x[0] - rest[0]).norm() < 1e-12, "{:?}", x[0]);
+        // The wall moved out by 0.2: half of it at load factor 0.5, along the normal only.
+        cs.set(
+            0,
+            NodeConstraint::Surface {
+                field: s,
+                level_m: 0.3,
+                rest_level_m: 0.1,
+            },
+        )
+        .unwrap();
+        let moved = imposed_displacements(&cs, &rest);
+        assert_eq!(moved.len(), 1);
+        assert!((moved[0].1 - Vector3::new(0.0, 0.0, 0.2)).norm() < 1e-9);
+        let half = cs.at_load_factor(&rest, 0.5);
+        let mut x = vec![Vector3::new(0.3, 0.2, 0.9)];
+        half.project_positions(&mut x);
+        assert!(
+            (x[0] - Vector3::new(0.3, 0.2, 0.7)).norm() < 1e-9,
+            "{:?}",
+            x[0]
+        );
+        // Tangent directions pass, the normal one is removed.
+        let p = half.free_projector(half.get(0).unwrap(), x[0]);
+        assert!((p * Vector3::new(1.0, 2.0, 3.0) - Vector3::new(1.0, 2.0, 0.0)).norm() < 1e-9);
+        assert!(cs
+            .set(0, NodeConstraint::surface(s, f64::NAN))
+            .unwrap_err()
+            .to_string()
+            .contains("finite"));
+    }
+
+    #[test]
     fn refuses_a_sliding_node_outside_its_field() {
         let field =
             SignedDistanceField::from_fn(Vector3::zeros(), Vector3::repeat(1.0), 0.5, |p| {
@@ -399,8 +531,8 @@ mod tests {
             .unwrap();
         let mut cs = ConstraintSet::new(2);
         let s = cs.add_surface(field);
-        cs.set(0, NodeConstraint::Surface { field: s }).unwrap();
-        cs.set(1, NodeConstraint::Surface { field: s }).unwrap();
+        cs.set(0, NodeConstraint::surface(s, 0.0)).unwrap();
+        cs.set(1, NodeConstraint::surface(s, 0.0)).unwrap();
         let inside = Vector3::new(0.5, 0.5, 0.5);
         assert!(cs.validate(&[inside, inside]).is_ok());
         let err = cs
@@ -423,6 +555,6 @@ mod tests {
                 }
             )
             .is_err());
-        assert!(cs.set(0, NodeConstraint::Surface { field: 0 }).is_err());
+        assert!(cs.set(0, NodeConstraint::surface(0, 0.0)).is_err());
     }
 }

@@ -232,6 +232,86 @@ impl SignedDistanceField {
         })
     }
 
+    /// Distance and exact gradient of the field's cubic B-spline at `p_m` (samples indexed
+    /// past the border are clamped). Unlike the trilinear interpolant it is twice
+    /// continuously differentiable, so a node held on one of its level sets has a normal
+    /// that is the level set's own and turns smoothly: Newton's tangent steps stay on the
+    /// surface to second order and the sliding equilibrium has a well-defined Jacobian. A
+    /// B-spline reproduces linear functions, so a flat wall's distance is exact.
+    pub fn spline(&self, p_m: Vector3<f64>) -> (f64, Vector3<f64>) {
+        let mut base = [0i64; 3];
+        let mut w = [[0.0; 4]; 3];
+        let mut dw = [[0.0; 4]; 3];
+        for a in 0..3 {
+            let u = (p_m[a] - self.origin_m[a]) / self.spacing_m[a];
+            let i = u.floor();
+            let t = u - i;
+            base[a] = i as i64 - 1;
+            let s = 1.0 - t;
+            w[a] = [
+                s * s * s / 6.0,
+                (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0,
+                (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) / 6.0,
+                t * t * t / 6.0,
+            ];
+            let h = self.spacing_m[a];
+            dw[a] = [
+                -s * s / (2.0 * h),
+                (3.0 * t * t - 4.0 * t) / (2.0 * h),
+                (-3.0 * t * t + 2.0 * t + 1.0) / (2.0 * h),
+                t * t / (2.0 * h),
+            ];
+        }
+        let index =
+            |a: usize, o: usize| (base[a] + o as i64).clamp(0, self.samples[a] as i64 - 1) as usize;
+        let (mut value, mut grad) = (0.0, Vector3::zeros());
+        for c in 0..4 {
+            let k = index(2, c);
+            for b in 0..4 {
+                let j = index(1, b);
+                let row = self.samples[0] * (j + self.samples[1] * k);
+                // Sums along x first: 4 samples, their weights and the x derivative.
+                let (mut vx, mut gx) = (0.0, 0.0);
+                for a in 0..4 {
+                    let v = self.value_m(index(0, a) + row);
+                    vx += w[0][a] * v;
+                    gx += dw[0][a] * v;
+                }
+                value += w[1][b] * w[2][c] * vx;
+                grad.x += w[1][b] * w[2][c] * gx;
+                grad.y += dw[1][b] * w[2][c] * vx;
+                grad.z += w[1][b] * dw[2][c] * vx;
+            }
+        }
+        (value, grad)
+    }
+
+    /// Unit normal of the B-spline's level set at `p_m` ([`Self::spline`]).
+    pub fn spline_normal(&self, p_m: Vector3<f64>) -> Vector3<f64> {
+        let g = self.spline(p_m).1;
+        let n = g.norm();
+        if n > 0.0 {
+            g / n
+        } else {
+            Vector3::z()
+        }
+    }
+
+    /// Closest point on the B-spline's level set {distance = `level_m`}, by Newton steps
+    /// along its gradient ([`Self::spline`]).
+    pub fn project_to_spline_level_m(&self, mut p_m: Vector3<f64>, level_m: f64) -> Vector3<f64> {
+        for _ in 0..8 {
+            let (v, g) = self.spline(p_m);
+            let d = v - level_m;
+            let g2 = g.norm_squared();
+            if g2 < 1e-24 || d.abs() < 1e-13 {
+                break;
+            }
+            p_m -= g * (d / g2);
+        }
+        p_m
+    }
+
     /// Closest point on the zero level set reached by Newton steps along the gradient.
     pub fn project_m(&self, mut p_m: Vector3<f64>) -> Vector3<f64> {
         for _ in 0..8 {
@@ -277,6 +357,65 @@ mod tests {
         assert!((p.norm() - r).abs() < 2e-4, "{}", p.norm());
         let n = sdf.normal(Vector3::new(0.1, 0.0, 0.0));
         assert!((n - Vector3::x()).norm() < 1e-2);
+    }
+
+    #[test]
+    fn the_spline_reproduces_a_plane_and_its_gradient_is_its_own_derivative() {
+        // A tilted plane, sampled with anisotropic spacing: a cubic B-spline reproduces
+        // linear functions, so distance and gradient are exact away from the border.
+        let n = Vector3::new(0.3, -0.5, 0.8).normalize();
+        let plane = SignedDistanceField::new(
+            Vector3::new(-0.05, -0.04, -0.06),
+            [0.004, 0.005, 0.007],
+            [26, 17, 18],
+            (0..18)
+                .flat_map(|k| (0..17).flat_map(move |j| (0..26).map(move |i| (i, j, k))))
+                .map(|(i, j, k)| {
+                    let p = Vector3::new(
+                        -0.05 + 0.004 * i as f64,
+                        -0.04 + 0.005 * j as f64,
+                        -0.06 + 0.007 * k as f64,
+                    );
+                    n.dot(&p) - 0.01
+                })
+                .collect(),
+        )
+        .unwrap();
+        for p in [
+            Vector3::new(0.01, 0.0, 0.02),
+            Vector3::new(-0.013, 0.021, -0.005),
+        ] {
+            let (v, g) = plane.spline(p);
+            assert!((v - (n.dot(&p) - 0.01)).abs() < 1e-12, "{v}");
+            assert!((g - n).norm() < 1e-10, "{g}");
+        }
+        // On a curved field the gradient is the derivative of the value (what Newton needs).
+        let sphere =
+            SignedDistanceField::from_fn(Vector3::repeat(-0.2), Vector3::repeat(0.2), 0.01, |p| {
+                p.norm() - 0.1
+            })
+            .unwrap();
+        let p = Vector3::new(0.071, -0.043, 0.052);
+        let g = sphere.spline(p).1;
+        for a in 0..3 {
+            let mut e = Vector3::zeros();
+            e[a] = 1e-6;
+            let fd = (sphere.spline(p + e).0 - sphere.spline(p - e).0) / 2e-6;
+            assert!((fd - g[a]).abs() < 1e-7, "axis {a}: {fd} against {}", g[a]);
+        }
+        // Projection lands on the asked level, along the normal.
+        let q = sphere.project_to_spline_level_m(Vector3::new(0.09, 0.03, -0.02), 0.004);
+        assert!((sphere.spline(q).0 - 0.004).abs() < 1e-12);
+        // The cubic B-spline smooths with variance h²/3 per axis, which moves the level sets
+        // of |p| − R inward by (h²/6)·Δ|p| = h²/(3r): 0.32 mm here, at 10 mm samples (a CT
+        // wall is sampled at 1–3 mm, where it is 0.003–0.03 mm).
+        let expected = 0.104 - 0.01f64.powi(2) / (3.0 * 0.104);
+        assert!(
+            (q.norm() - expected).abs() < 2e-5,
+            "{} against {expected}",
+            q.norm()
+        );
+        assert!((sphere.spline_normal(q) - q.normalize()).norm() < 1e-2);
     }
 
     #[test]

@@ -82,15 +82,20 @@ pub fn check_rib_cage_share(share: f64) -> Result<()> {
 
 /// Makes the costal tangent planes of `scene` (built by [`super::lung_scene`] from `model`)
 /// move outward with the load, by the unit offsets of the module's rule; the run scales them
-/// to its rib-cage share. A scene whose costal nodes do not slide on tangent planes (the
-/// literal wall-surface mode) is left rigid and says so by moving no node.
+/// to its rib-cage share. Costal nodes on the wall surface itself have their level raised
+/// instead: the wall moves out along its normal and they keep sliding on it.
 pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotion {
     let rest = &scene.mesh.rest_positions_m;
     let lung = model.node_lung();
     let costal: Vec<u32> = model
         .group_nodes(ConstraintGroup::Costal)
         .into_iter()
-        .filter(|&n| matches!(scene.constraints.get(n), Some(NodeConstraint::Plane { .. })))
+        .filter(|&n| {
+            matches!(
+                scene.constraints.get(n),
+                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
+            )
+        })
         .collect();
     // The costal face's height per lung (index 1 right, 2 left).
     let mut extent = [(f64::INFINITY, f64::NEG_INFINITY); 3];
@@ -107,15 +112,18 @@ pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotio
     let mut moving_nodes = 0;
     // In place: `ConstraintSet::set` would normalise the normal again, and a last-bit change
     // would keep a share of 0 from being the rigid wall exactly.
+    let fields = scene.constraints.fields.clone();
     for (n, c) in scene.constraints.entries.iter_mut() {
         let n = *n as usize;
-        let NodeConstraint::Plane { point_m, normal } = c else {
-            continue;
-        };
         if !is_costal[n] {
             continue;
         }
         let r = rest[n];
+        let normal = match c {
+            NodeConstraint::Plane { normal, .. } => *normal,
+            NodeConstraint::Surface { field, .. } => fields[*field as usize].spline_normal(r),
+            _ => continue,
+        };
         let l = lung[n] as usize;
         let lateral = match l {
             1 => -normal.x,
@@ -131,7 +139,16 @@ pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotio
         let taper = f64::from(hops[n].min(taper_edges)) / f64::from(taper_edges);
         let g = taper * t * ((-normal.y).max(0.0) + lateral.max(0.0)) * UNIT_OFFSET_M;
         if g > 0.0 {
-            *point_m = r + *normal * g;
+            match c {
+                NodeConstraint::Plane { point_m, .. } => *point_m = r + normal * g,
+                // The wall moved by g along its normal: the node's level rises by g.
+                NodeConstraint::Surface {
+                    level_m,
+                    rest_level_m,
+                    ..
+                } => *level_m = *rest_level_m + g,
+                _ => continue,
+            }
             moving_nodes += 1;
         }
     }

@@ -7,6 +7,7 @@
 //! series = "number:3"                 # a folder with several DICOM series: which to read
 //!                                      # (uid:<UID>, number:<N>, description:<text>)
 //! diaphragm = "cranio_caudal"          # or "free"
+//! sliding = "tangent_plane"            # or "wall_surface": sliding nodes stay on the curved wall
 //! [material]
 //! youngs_modulus_pa = 390.0
 //! poisson_ratio = 0.3
@@ -49,7 +50,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::breathing::{OutputInstants, TraceOptions};
 use crate::formats::dicom::{DicomReadOptions, SeriesChoice};
-use crate::ingest::lung_model::{DiaphragmMotion, DEFAULT_ELEMENT_SIZE_MM};
+use crate::ingest::lung_model::{DiaphragmMotion, SlidingMode, DEFAULT_ELEMENT_SIZE_MM};
 use crate::model::Material;
 use crate::motion::DriverKind;
 use crate::outputs::displacement_field::FieldGrid;
@@ -73,6 +74,8 @@ pub struct RunConfig {
     pub series: Option<SeriesChoice>,
     /// How the diaphragmatic face moves.
     pub diaphragm: DiaphragmMotion,
+    /// How the sliding faces (costal, mediastinal, apex) follow the wall.
+    pub sliding: SlidingMode,
     /// Lung tissue.
     pub material: Material,
     /// How the trace file is read.
@@ -246,6 +249,7 @@ impl Default for RunConfig {
             element_size_mm: DEFAULT_ELEMENT_SIZE_MM,
             series: None,
             diaphragm: DiaphragmMotion::default(),
+            sliding: SlidingMode::default(),
             material: Material::LUNG,
             trace: TraceOptions::default(),
             motion: MotionConfig::default(),
@@ -357,13 +361,14 @@ impl RunConfig {
         )
     }
 
-    /// The ingest settings these options imply (element size, material, diaphragm).
+    /// The ingest settings these options imply (element size, material, diaphragm, sliding).
     pub fn ingest_settings(&self) -> crate::ingest::pipeline::IngestSettings {
         crate::ingest::pipeline::IngestSettings {
             model: crate::ingest::lung_model::LungModelSettings {
                 element_size_mm: self.element_size_mm,
                 material: self.material,
                 diaphragm: self.diaphragm,
+                sliding: self.sliding,
                 ..Default::default()
             },
             ..Default::default()

@@ -271,6 +271,13 @@ pub struct BreathExtremeSummary {
     /// Costal nodes: median, 95th percentile and largest change of distance to the chest
     /// wall, mm (tangent-plane sliding departs from a curved wall as nodes slide).
     pub costal_wall_gap_change_mm: [f64; 3],
+    /// 99th percentile of that change, mm.
+    pub costal_wall_gap_change_p99_mm: f64,
+    /// Largest change among the costal nodes held on the curved wall itself (sliding mode
+    /// `wall_surface`; the others stay on tangent planes where the wall's field has a ridge),
+    /// mm; absent with tangent planes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub costal_wall_gap_max_on_surface_mm: Option<f64>,
     /// Costal nodes whose distance to the wall changed by more than
     /// `costal_wall_gap_warning_mm`.
     pub costal_nodes_off_wall: usize,
@@ -394,6 +401,8 @@ pub(super) fn extreme_summary(
         mean_apex_dz_mm: mean_dz(ConstraintGroup::Apex),
         hilum_max_displacement_mm: hilum_max,
         costal_wall_gap_change_mm: wall.quantiles_mm,
+        costal_wall_gap_change_p99_mm: wall.p99_mm,
+        costal_wall_gap_max_on_surface_mm: wall.max_on_surface_mm,
         costal_nodes_off_wall: wall.beyond_bound,
         costal_wall_gap_warning_mm: bound_mm,
         costal_wall_gap_max_at_lps_mm: wall.max_at_lps_mm,
@@ -410,6 +419,10 @@ pub(super) fn extreme_summary(
 struct CostalWallGaps {
     /// Median, 95th percentile and largest change of distance to the wall, mm.
     quantiles_mm: [f64; 3],
+    /// 99th percentile, mm.
+    p99_mm: f64,
+    /// Largest change among nodes held on the wall surface, mm (none without such nodes).
+    max_on_surface_mm: Option<f64>,
     /// Nodes beyond the warning bound.
     beyond_bound: usize,
     /// Rest position of the node with the largest change, LPS mm.
@@ -426,21 +439,31 @@ fn costal_wall_gaps(
     bound_mm: f64,
 ) -> CostalWallGaps {
     let rest = &scene.mesh.rest_positions_m;
+    let mut max_on_surface_mm: Option<f64> = None;
     let mut gaps: Vec<(f64, usize)> = model
         .group_nodes(ConstraintGroup::Costal)
         .iter()
         .filter_map(|&n| {
-            let wall_offset_m = match scene.constraints.get(n)? {
+            let c = scene.constraints.get(n)?;
+            let wall_offset_m = match c {
                 NodeConstraint::Plane { point_m, normal } => {
                     (point_m - rest[n as usize]).dot(normal) * wall_factor
                 }
-                NodeConstraint::Surface { .. } => 0.0,
+                NodeConstraint::Surface {
+                    level_m,
+                    rest_level_m,
+                    ..
+                } => (level_m - rest_level_m) * wall_factor,
                 _ => return None,
             };
             let n = n as usize;
             let change_m =
                 model.wall.evaluate(x[n]).0 - model.wall.evaluate(rest[n]).0 - wall_offset_m;
-            Some((change_m.abs() * 1e3, n))
+            let change_mm = change_m.abs() * 1e3;
+            if matches!(c, NodeConstraint::Surface { .. }) {
+                max_on_surface_mm = Some(max_on_surface_mm.map_or(change_mm, |m| m.max(change_mm)));
+            }
+            Some((change_mm, n))
         })
         .collect();
     gaps.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -451,6 +474,8 @@ fn costal_wall_gaps(
             at(gaps.len() * 95 / 100),
             gaps.last().map_or(0.0, |g| g.0),
         ],
+        p99_mm: at(gaps.len() * 99 / 100),
+        max_on_surface_mm,
         beyond_bound: gaps.iter().filter(|g| g.0 > bound_mm).count(),
         max_at_lps_mm: gaps
             .last()

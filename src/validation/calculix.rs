@@ -374,7 +374,7 @@ impl DeckConstraints {
                         }
                     }
                 }
-                NodeConstraint::Surface { field } => {
+                NodeConstraint::Surface { field, .. } => {
                     return Err(Error::InvalidModel(format!(
                         "node {node} slides on implicit surface {field}; CalculiX has no \
                          equivalent constraint, so this scene cannot be exported"
@@ -931,7 +931,7 @@ mod tests {
         )
         .unwrap();
         let field = cs.add_surface(sdf);
-        cs.set(3, NodeConstraint::Surface { field }).unwrap();
+        cs.set(3, NodeConstraint::surface(field, 0.0)).unwrap();
         let scene = Scene::new(scene.mesh, cs, Loads::default()).unwrap();
         let err = write_deck(&scene, &CalculixOptions::default())
             .unwrap_err()

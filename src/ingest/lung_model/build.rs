@@ -33,7 +33,7 @@ pub struct LungModel {
     /// [`ConstraintGroup`] code of each node (0 = interior or no group).
     pub node_group: Vec<u8>,
     /// The thoracic-cavity wall the sliding nodes stay on (metres, negative inside).
-    pub wall: SignedDistanceField,
+    pub wall: std::sync::Arc<SignedDistanceField>,
     /// Hilum fixed, mediastinal/costal/apex sliding ([`SlidingMode`]; with
     /// [`SlidingMode::WallSurface`] `wall` is field 0, with tangent planes there is no field),
     /// base free.
@@ -106,7 +106,7 @@ pub fn build_lung_model_with(
     let groups = assign_groups(lungs, airways, settings, &meshes, &wall.wall);
     steps.mark("groups and hilum")?;
     let nodes = constrain_nodes(&meshes, &groups.node_group, &wall.wall, settings)?;
-    let fit = wall_rest_fit(&meshes.grid_mesh.mesh, &nodes.sliding, &wall.wall);
+    let fit = wall_rest_fit(&meshes.grid_mesh.mesh, &nodes, &wall.wall);
     steps.mark("constraints")?;
     let groups_volume = paint_groups(lungs, &lattice, &meshes, &groups.node_group)?;
     steps.mark("groups painted on the CT grid")?;

@@ -82,6 +82,7 @@ mod settings;
 mod wall;
 
 pub use build::{build_lung_model, build_lung_model_with, LungModel};
+pub use constraints::MIN_SURFACE_GRADIENT;
 pub use groups::{BoundaryCondition, ConstraintGroup, DIAPHRAGM_MAX_NORMAL_Z};
 pub use report::LungModelReport;
 pub use settings::{

@@ -69,6 +69,9 @@ pub struct LungModelReport {
     pub wall_spacing_mm: f64,
     /// How sliding nodes are held ([`SlidingMode`]).
     pub sliding_mode: SlidingMode,
+    /// With [`SlidingMode::WallSurface`], sliding nodes kept on their tangent plane because
+    /// the wall's distance field has a ridge there (see `MIN_SURFACE_GRADIENT`).
+    pub wall_surface_plane_nodes: usize,
     /// How the diaphragmatic face moves.
     pub diaphragm_motion: DiaphragmMotion,
     /// Largest |wall distance| at a sliding node's rest position in mm: the element staircase
@@ -193,6 +196,7 @@ pub(super) fn summarise(
         wall_samples: wall.wall.samples,
         wall_spacing_mm: wall.wall.spacing_m[0] * 1e3,
         sliding_mode: settings.sliding,
+        wall_surface_plane_nodes: fit.plane_nodes,
         diaphragm_motion: settings.diaphragm,
         wall_rest_offset_max_mm: fit.offset_max_mm,
         wall_rest_offset_mean_mm: fit.offset_mean_mm,

@@ -62,16 +62,18 @@ pub struct LungModelSettings {
 }
 
 /// How a sliding node (mediastinal, costal, apex) is held on the thoracic wall.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum SlidingMode {
     /// On the plane through its rest position normal to the wall there
-    /// ([`NodeConstraint::Plane`]): exact at rest, so no load-free deformation, and a smooth
-    /// normal; it departs from the curved wall by d²/2R after sliding d (0.5 mm for 10 mm on a
-    /// 10 cm radius). The default.
+    /// ([`NodeConstraint::Plane`]): exact at rest and linear, so cheap; it departs from the
+    /// curved wall by d²/2R after sliding d (0.5 mm for 10 mm on a 10 cm radius). The default.
+    #[default]
     TangentPlane,
-    /// On the wall field itself ([`NodeConstraint::Surface`], field 0). The element staircase
-    /// puts nodes up to `wall_rest_offset_max_mm` off the smooth wall, and the solver projects
-    /// them onto it before solving: that deforms the surface elements with no load.
+    /// On the curved wall itself: the level set of the wall's distance field through the
+    /// node's rest position ([`NodeConstraint::Surface`], field 0), so a staircase node half
+    /// an element off the smooth wall keeps that distance as it slides, with no load-free
+    /// deformation at rest.
     WallSurface,
 }
 

@@ -2,6 +2,8 @@
 //! surface on an LPS-aligned grid finer than the lattice, smoothed by a Gaussian of one CT
 //! voxel (see the module doc, "Wall").
 
+use std::sync::Arc;
+
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -21,8 +23,8 @@ const WALL_MARGIN_CELLS: i64 = 2;
 
 /// The wall field and what building it measured.
 pub(super) struct WallBuild {
-    /// Smoothed distance to the CT lung surface.
-    pub(super) wall: SignedDistanceField,
+    /// Smoothed distance to the CT lung surface (shared with the constraints that slide on it).
+    pub(super) wall: Arc<SignedDistanceField>,
     /// Lung voxels of the CT mask touching the other lung.
     pub(super) contact_voxels: usize,
 }
@@ -93,7 +95,7 @@ pub(super) fn build_wall(
         }
         steps.mark("wall: stored field")?;
         return Ok(WallBuild {
-            wall: prebuilt.field,
+            wall: Arc::new(prebuilt.field),
             contact_voxels: prebuilt.contact_voxels,
         });
     }
@@ -123,7 +125,7 @@ pub(super) fn build_wall(
     steps.mark("wall: field in metres")?;
 
     Ok(WallBuild {
-        wall: anatomy,
+        wall: Arc::new(anatomy),
         contact_voxels: contact.len(),
     })
 }

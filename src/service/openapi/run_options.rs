@@ -137,6 +137,10 @@ fn without_defaults() -> Value {
                 "description": "Edge of the cubic elements, mm"},
             "diaphragm": {"type": "string", "enum": ["cranio_caudal", "free"],
                 "description": "How the diaphragmatic face moves: along LPS z only, or free"},
+            "sliding": {"type": "string", "enum": ["tangent_plane", "wall_surface"],
+                "description": "How the costal, mediastinal and apex nodes follow the wall: \
+                    each on the plane tangent to the wall at rest, or on the curved wall \
+                    itself at its rest distance"},
             "material": {
                 "type": "object",
                 "description": "Lung tissue",
