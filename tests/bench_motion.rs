@@ -35,6 +35,14 @@ fn quick_motion_bench_reports_a_coherent_cycle() {
     assert!(cycle.time.median_s > 0.0 && cycle.time.median_s.is_finite());
     assert!(cycle.keys >= 3, "{json}");
     assert!((cycle.tidal_volume_ml - 500.0).abs() < 25.0, "{json}");
+    let curved = size.wall_surface.measured().expect("curved-wall cycle ran");
+    assert_eq!(curved.cycle.frames, 10);
+    assert!(curved.ratio_to_tangent_planes > 0.0 && curved.ratio_to_tangent_planes.is_finite());
+    assert!(curved.nodes_on_planes < build.nodes, "{json}");
+    assert!(
+        (curved.cycle.tidal_volume_ml - 500.0).abs() < 25.0,
+        "{json}"
+    );
     let serving = size.serving.measured().expect("fields served");
     assert_eq!(serving.fields, 10);
     assert!(serving.fields_per_s > 0.0 && serving.fields_per_s.is_finite());

@@ -39,7 +39,7 @@ use serde::Serialize;
 use super::{Outcome, TimeStats};
 use crate::breathing::{BreathingTrace, LujanBreathing};
 use crate::datasets::cip_chest_ct64;
-use crate::ingest::lung_model::LungModelSettings;
+use crate::ingest::lung_model::{LungModelSettings, SlidingMode};
 use crate::ingest::pipeline::{ingest_scan, IngestSettings};
 use crate::ingest::scan::load_ct;
 use crate::math::V3;
@@ -140,6 +140,8 @@ pub struct ModelBuild {
     pub total_s: f64,
     /// Peak resident memory of the build (reset before it when possible), bytes.
     pub peak_rss_bytes: Option<u64>,
+    /// Sliding nodes on tangent planes although the wall surface was asked (0 otherwise).
+    pub wall_surface_plane_nodes: usize,
 }
 
 /// Timing of the breathing cycle as `run_motion` runs it.
@@ -258,6 +260,22 @@ pub struct InterpolationAccuracy {
     pub direct_cycle_s: f64,
 }
 
+/// Largest cost of sliding on the curved wall against tangent planes (issue 14): the cycle's
+/// median time at most this many times the tangent planes'.
+pub const WALL_SURFACE_COST_TARGET: f64 = 1.3;
+
+/// The same cycle with the sliding nodes on the curved wall (`sliding = "wall_surface"`),
+/// timed right after the tangent planes' in the same run.
+#[derive(Debug, Clone, Serialize)]
+pub struct WallSurfaceCycle {
+    /// The cycle.
+    pub cycle: CycleTiming,
+    /// Its median time over the tangent planes' median.
+    pub ratio_to_tangent_planes: f64,
+    /// Sliding nodes left on tangent planes at ridges of the wall field.
+    pub nodes_on_planes: usize,
+}
+
 /// Everything measured at one element size.
 #[derive(Debug, Clone, Serialize)]
 pub struct ElementSizeBench {
@@ -269,6 +287,8 @@ pub struct ElementSizeBench {
     pub build: Outcome<ModelBuild>,
     /// Breathing cycle.
     pub cycle: Outcome<CycleTiming>,
+    /// The cycle again, sliding on the curved wall.
+    pub wall_surface: Outcome<WallSurfaceCycle>,
     /// Fields served from keys.
     pub serving: Outcome<FieldServing>,
     /// Interpolation against direct solves.
@@ -313,6 +333,7 @@ pub fn run_motion_bench(opts: &MotionBenchOptions) -> Result<MotionBenchReport> 
                 cycle_target_s: cycle_target_s(h),
                 build: Outcome::Skipped(why.clone()),
                 cycle: Outcome::Skipped(why.clone()),
+                wall_surface: Outcome::Skipped(why.clone()),
                 serving: Outcome::Skipped(why.clone()),
                 accuracy: Outcome::Skipped(why.clone()),
             })
@@ -337,10 +358,11 @@ pub fn run_motion_bench(opts: &MotionBenchOptions) -> Result<MotionBenchReport> 
             cycle_target_s: cycle_target_s(h),
             build: skipped("not run"),
             cycle: skipped("the model could not be built"),
+            wall_surface: skipped("the model could not be built"),
             serving: skipped("not asked at this element size"),
             accuracy: skipped("not asked at this element size"),
         };
-        let case = match build_case(&ct_path, h) {
+        let case = match build_case(&ct_path, h, SlidingMode::TangentPlane) {
             Ok((case, build)) => {
                 entry.build = Outcome::Measured(build);
                 case
@@ -358,6 +380,17 @@ pub fn run_motion_bench(opts: &MotionBenchOptions) -> Result<MotionBenchReport> 
         }
         .max(1);
         entry.cycle = Outcome::from_result(bench_cycle(&case, &trace, &settings, repeats));
+        entry.wall_surface = match entry.cycle.measured() {
+            Some(planes) => Outcome::from_result(bench_wall_surface(
+                &ct_path,
+                h,
+                &trace,
+                &settings,
+                repeats,
+                planes.time.median_s,
+            )),
+            None => skipped("the tangent planes' cycle did not run to the end"),
+        };
         if opts.serve_element_sizes_mm.contains(&h) {
             if entry.cycle.measured().is_some() {
                 match bench_serving(&case, &trace, &settings, opts.serve_repeats.max(1)) {
@@ -403,13 +436,36 @@ pub fn cycle_target_s(h_mm: f64) -> Option<f64> {
     }
 }
 
-fn build_case(ct_path: &std::path::Path, element_size_mm: f64) -> Result<(Case, ModelBuild)> {
+/// The cycle of [`bench_cycle`] on the model rebuilt with the sliding nodes on the curved wall.
+fn bench_wall_surface(
+    ct_path: &std::path::Path,
+    element_size_mm: f64,
+    trace: &BreathingTrace,
+    settings: &MotionSettings,
+    repeats: usize,
+    tangent_planes_median_s: f64,
+) -> Result<WallSurfaceCycle> {
+    let (case, build) = build_case(ct_path, element_size_mm, SlidingMode::WallSurface)?;
+    let cycle = bench_cycle(&case, trace, settings, repeats)?;
+    Ok(WallSurfaceCycle {
+        ratio_to_tangent_planes: cycle.time.median_s / tangent_planes_median_s,
+        cycle,
+        nodes_on_planes: build.wall_surface_plane_nodes,
+    })
+}
+
+fn build_case(
+    ct_path: &std::path::Path,
+    element_size_mm: f64,
+    sliding: SlidingMode,
+) -> Result<(Case, ModelBuild)> {
     let peak_reset = reset_peak_rss();
     let start = Instant::now();
     let scan = load_ct(ct_path)?;
     let load_ct_s = start.elapsed().as_secs_f64();
     let model_settings = LungModelSettings {
         element_size_mm,
+        sliding,
         ..LungModelSettings::default()
     };
     let material = model_settings.material;
@@ -453,6 +509,7 @@ fn build_case(ct_path: &std::path::Path, element_size_mm: f64) -> Result<(Case, 
         field_sampler_s,
         total_s: start.elapsed().as_secs_f64(),
         peak_rss_bytes: peak_reset.then(peak_rss_bytes).flatten(),
+        wall_surface_plane_nodes: outcome.model.report.wall_surface_plane_nodes,
     };
     let case = Case {
         scene,
@@ -735,6 +792,7 @@ mod tests {
             cycle_target_s: cycle_target_s(4.0),
             build: Outcome::Skipped("not run".into()),
             cycle: Outcome::Failed("solving the key volumes: did not converge".into()),
+            wall_surface: Outcome::Failed("element 5430 is inverted".into()),
             serving: Outcome::Skipped("the cycle did not run to the end".into()),
             accuracy: Outcome::Skipped("the cycle did not run to the end".into()),
         };
@@ -742,6 +800,10 @@ mod tests {
         entry.write_markdown(&mut md);
         assert!(
             md.contains("**Cycle FAILED**: solving the key volumes: did not converge"),
+            "{md}"
+        );
+        assert!(
+            md.contains("**Curved-wall cycle FAILED**: element 5430 is inverted"),
             "{md}"
         );
         let json = serde_json::to_string(&entry).unwrap();

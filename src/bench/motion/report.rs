@@ -53,6 +53,7 @@ impl ElementSizeBench {
         let _ = writeln!(s, "## {h} mm elements\n");
         self.write_build(s);
         self.write_cycle(s);
+        self.write_wall_surface(s);
         self.write_serving(s);
         self.write_accuracy(s);
     }
@@ -152,6 +153,37 @@ impl ElementSizeBench {
             }
             Outcome::Skipped(e) => {
                 let _ = writeln!(s, "Cycle not run: {e}\n");
+            }
+        }
+    }
+
+    /// The cycle sliding on the curved wall, against tangent planes.
+    fn write_wall_surface(&self, s: &mut String) {
+        match &self.wall_surface {
+            Outcome::Measured(w) => {
+                let c = &w.cycle;
+                let _ = writeln!(
+                    s,
+                    "Sliding on the curved wall (`sliding = \"wall_surface\"`, {} ridge nodes on \
+                     tangent planes): cycle {:.3} s [{:.3} – {:.3}] ×{}, {} keys, key solves \
+                     {:.3} s; **{:.2}× the tangent planes' cycle** (target ≤ {}×: {}).\n",
+                    w.nodes_on_planes,
+                    c.time.median_s,
+                    c.time.min_s,
+                    c.time.max_s,
+                    c.time.runs,
+                    c.keys,
+                    c.key_solve_time_s,
+                    w.ratio_to_tangent_planes,
+                    super::WALL_SURFACE_COST_TARGET,
+                    verdict(w.ratio_to_tangent_planes <= super::WALL_SURFACE_COST_TARGET)
+                );
+            }
+            Outcome::Failed(e) => {
+                let _ = writeln!(s, "**Curved-wall cycle FAILED**: {e}\n");
+            }
+            Outcome::Skipped(e) => {
+                let _ = writeln!(s, "Curved-wall cycle not run: {e}\n");
             }
         }
     }
