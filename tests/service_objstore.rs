@@ -666,6 +666,8 @@ fn a_series_pulled_from_the_pacs_reaches_a_worker_on_another_machine_through_the
         entries(&other_data.join("scans").join(&scan).join("series")).len(),
         68
     );
+    // Nothing of the job stays on the worker's machine once its outputs are in the store.
+    assert!(!other_data.join("jobs").join(&job).exists());
     // The same CT, settings and trace: the same fields.
     for k in 0..2 {
         let field = |job: &str| bytes(&api, &format!("/v1/jobs/{job}/frames/{k}/displacement"));

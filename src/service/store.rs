@@ -824,6 +824,9 @@ impl Store {
                 tracing::warn!(job = %id, "cannot remove the local copy of the outputs: {e}");
             }
         }
+        // On a worker's own data directory nothing else is left of the job, and its deletion
+        // happens on the API's machine; a directory with a record or a target stays.
+        let _ = std::fs::remove_dir(self.job_dir(id));
     }
 
     /// Removes `relative/` from the object store, if there is one; whether anything was there.
