@@ -58,7 +58,7 @@ fn manifest_env(yaml: &str) -> BTreeMap<String, String> {
             pair[0].strip_prefix("- name: "),
             pair[1].strip_prefix("value: "),
         ) {
-            if name.starts_with("LUNGMOTION_") {
+            if name.starts_with("LUNGMOTION_") || name.starts_with("AWS_") {
                 env.insert(name.to_string(), value.trim_matches('"').to_string());
             }
         }
@@ -83,7 +83,7 @@ fn compose_env(yaml: &str) -> BTreeMap<String, BTreeMap<String, String>> {
             block = text.split(':').next().unwrap_or("").to_string();
         }
         if let Some((name, value)) = text.split_once(": ") {
-            if name.starts_with("LUNGMOTION_") {
+            if name.starts_with("LUNGMOTION_") || name.starts_with("AWS_") {
                 by_block
                     .entry(block.clone())
                     .or_default()
@@ -199,6 +199,10 @@ fn the_api_and_worker_environments_resolve_to_settings_the_service_starts_with()
         "db-password",
         secret(&dir, "db-password", "hunter2-but-long\n"),
     );
+    secrets.insert(
+        "s3-secret-access-key",
+        secret(&dir, "s3-secret-access-key", "s3-secret-of-the-site\n"),
+    );
 
     let api = manifest_env(&read(&deploy("kubernetes/api.yaml")));
     let worker = manifest_env(&read(&deploy("kubernetes/worker.yaml")));
@@ -232,6 +236,20 @@ fn the_api_and_worker_environments_resolve_to_settings_the_service_starts_with()
         assert_eq!(config.data_dir, Path::new("/var/lib/lungmotion"), "{what}");
         // Below the pods' memory limits (6 and 8 GiB).
         assert_eq!(config.ingest_memory_mib, 4096, "{what}");
+        // Every process on the bucket, its secret key from the secret's file.
+        let blobs = config.object_store.as_ref().expect("an object store");
+        assert_eq!(blobs.url, "s3://lungmotion/site", "{what}");
+        assert_eq!(blobs.access_key_id.as_deref(), Some("lungmotion"), "{what}");
+        assert_eq!(
+            blobs.secret_access_key.as_deref(),
+            Some("s3-secret-of-the-site"),
+            "{what}"
+        );
+        blobs.validate().unwrap_or_else(|e| panic!("{what}: {e}"));
+        if listen.is_none() {
+            // Not the default (10 240): read from the environment.
+            assert_eq!(blobs.fetched_scans_mib, 8192, "{what}");
+        }
         if listen.is_some() {
             let token = config.api_token.as_deref();
             assert_eq!(token, Some("0123456789abcdef0123456789abcdef"), "{what}");

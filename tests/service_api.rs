@@ -247,6 +247,11 @@ fn nifti_journey_gives_the_clis_displacement_field() {
         stored == field_gz,
         "the served field differs from the stored {relative}"
     );
+    // Ranges of it, from the data directory or the object store, as the stored bytes.
+    let field_path = format!("/v1/jobs/{job_id}/frames/{k}/displacement");
+    assert_ranges_served(&server, &field_path, &stored);
+    let file_path = format!("/v1/jobs/{job_id}/files/frames/{k}/displacement.nii.gz");
+    assert_ranges_served(&server, &file_path, &stored);
     let (served_geometry, served) =
         nifti::read_nifti_vector_field_bytes(&field_gz, "served field").unwrap();
     assert_on_phantom_grid(&served_geometry, "served field");

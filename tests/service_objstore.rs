@@ -12,10 +12,13 @@
 //! * Bad input: a bucket that does not exist and refused credentials, named at start; both
 //!   named by `/readyz` (`503`) when they go wrong while serving.
 //! * Two machines: an API process and a `lungmotion worker` with data directories of their own,
-//!   sharing only PostgreSQL and the bucket: the worker fetches the scan, the API serves the
-//!   worker's outputs from the store.
+//!   sharing only PostgreSQL and the bucket: the worker fetches the scan and the job's copy
+//!   of an uploaded target, the API serves the worker's outputs from the store.
+//! * A series pulled from a PACS (Orthanc) by one worker is put in the store; a second worker
+//!   on a third machine fetches it for a later job on that scan; deleting leaves no object.
 #![cfg(feature = "cli")]
 
+mod orthanc_support;
 mod service_support;
 
 use std::time::{Duration, Instant};
@@ -194,6 +197,21 @@ fn a_journey_through_the_object_store_matches_the_directory_store_and_leaves_no_
     assert_eq!(without_times(&summary), without_times(&plain_summary));
     let frames = server.get_json(&format!("/v1/jobs/{job}/frames"));
     assert_eq!(frames["frames"].as_array().unwrap().len(), 4);
+    // Ranges, each a ranged GET of the object, as the object's bytes.
+    let (field_object, _) = s3.object(
+        BUCKET,
+        &format!("site-a/jobs/{job}/out/frames/1/displacement.nii.gz"),
+    );
+    assert_ranges_served(
+        &server,
+        &format!("/v1/jobs/{job}/frames/1/displacement"),
+        &field_object,
+    );
+    assert_ranges_served(
+        &server,
+        &format!("/v1/jobs/{job}/files/frames/1/displacement.nii.gz"),
+        &field_object,
+    );
     for k in 0..4 {
         let field = format!("/v1/jobs/{job}/frames/{k}/displacement");
         assert!(
@@ -491,13 +509,34 @@ fn an_api_process_and_a_worker_share_only_the_database_and_the_bucket() {
         &env,
     );
     let scan = api.upload_scan(&sample("phantom-ct.nii.gz"));
-    let job = api.submit(&scan, &simulation_request(2, &tracked_points(), 12.0, 3));
+    // A target uploaded to the API's machine: the job's copy reaches the worker through the
+    // store (the phantom's labels, its tumour as the mask's label 8).
+    let resp = api
+        .client()
+        .put(api.url(&format!("/v1/scans/{scan}/targets/gtv")))
+        .header("content-type", "application/octet-stream")
+        .body(std::fs::read(sample("phantom-truth.nii.gz")).unwrap())
+        .send()
+        .unwrap();
+    assert_eq!(resp.status(), 201, "{:?}", resp.text());
+    let mut request = simulation_request(2, &tracked_points(), 12.0, 3);
+    request["target"] = serde_json::json!({"upload": "gtv", "label": 8});
+    let job = api.submit(&scan, &request);
+    let target_keys = s3.keys(BUCKET, &format!("cohort/jobs/{job}/target/"));
+    assert_eq!(target_keys.len(), 1, "{target_keys:?}");
+    let (target_object, _) = s3.object(BUCKET, &target_keys[0]);
+    assert!(target_object == std::fs::read(sample("phantom-truth.nii.gz")).unwrap());
     api.wait_for_state(&job, &["done"], JOB_TIMEOUT);
-    assert!(
-        worker.log().contains("scan fetched from the object store"),
-        "{}",
-        worker.log()
-    );
+    for line in [
+        "scan fetched from the object store",
+        "target fetched from the object store",
+    ] {
+        assert!(worker.log().contains(line), "{line}: {}", worker.log());
+    }
+    let summary = api.get_json(&format!("/v1/jobs/{job}/summary"));
+    assert!(summary["target"].is_object(), "{summary}");
+    // The worker keeps nothing of the job once it ran (its deletion happens elsewhere).
+    assert!(!worker_data.join("jobs").join(&job).exists());
     for k in 0..3 {
         let served = bytes(&api, &format!("/v1/jobs/{job}/frames/{k}/displacement"));
         let (object, _) = s3.object(
@@ -506,12 +545,141 @@ fn an_api_process_and_a_worker_share_only_the_database_and_the_bucket() {
         );
         assert!(served == object, "frame {k}");
     }
-    assert!(!worker_data.join("jobs").join(&job).join("out").exists());
     assert!(!api.data_dir().join("jobs").join(&job).join("out").exists());
     assert_eq!(api.delete(&format!("/v1/jobs/{job}")).status(), 204);
     assert_eq!(api.delete(&format!("/v1/scans/{scan}")).status(), 204);
     assert_eq!(
         s3.keys(BUCKET, "cohort/"),
+        Vec::<String>::new(),
+        "orphaned objects"
+    );
+}
+
+/// The bundled DICOM series' StudyInstanceUID.
+fn phantom_study_uid() -> String {
+    use dicom_dictionary_std::tags;
+    let first = std::fs::read_dir(sample("phantom-dicom"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    dicom_object::open_file(first)
+        .unwrap()
+        .element(tags::STUDY_INSTANCE_UID)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .trim_end_matches('\0')
+        .to_string()
+}
+
+#[test]
+#[cfg_attr(
+    not(feature = "slow-tests"),
+    ignore = "needs Orthanc with its DICOMweb plugin (.ci/run installs it): cargo test --features slow-tests --test service_objstore"
+)]
+fn a_series_pulled_from_the_pacs_reaches_a_worker_on_another_machine_through_the_store() {
+    use orthanc_support::Orthanc;
+    use service_support::postgres::{PgServer, WorkerProcess};
+    let orthanc = Orthanc::start("objstore");
+    assert_eq!(orthanc.store_files(&sample("phantom-dicom")), 68);
+    let scratch = Scratch::new("objstore-pacs");
+    let s3 = S3Server::start(&scratch.join("moto"));
+    s3.create_bucket(BUCKET);
+    let db = PgServer::start(&scratch.join("postgres"));
+    let url = db.url();
+    let pacs = orthanc.root();
+    let owned = s3.service_env(BUCKET, "pacs");
+    let mut env: Vec<(&str, &str)> = owned
+        .iter()
+        .map(|(k, v)| (k.as_str(), v.as_str()))
+        .collect();
+    env.push(("LUNGMOTION_POSTGRES_URL", url.as_str()));
+    env.push(("LUNGMOTION_PACS_URL", pacs.as_str()));
+    // Three machines: each process has a data directory of its own.
+    std::fs::create_dir_all(scratch.join("api")).unwrap();
+    let api = ServerProcess::start_with_env(&scratch.join("api").join("data"), &[], &env);
+    let puller_data = scratch.join("puller-data");
+    let mut puller = WorkerProcess::start(
+        &puller_data,
+        &scratch.join("puller.log"),
+        &["--workers", "1"],
+        &env,
+    );
+
+    let (time_s, volume_ml) = breathing_trace(2);
+    let mut request = serde_json::json!({
+        "ct": {"dicomweb": {"study": phantom_study_uid()}},
+        "trace": {"time_s": time_s, "volume_ml": volume_ml},
+        "element_size_mm": 12,
+        "motion": {"instants": {"kind": "phases", "count": 2}},
+        "outputs": {"quicklooks": false},
+    });
+    let resp = api
+        .client()
+        .post(api.url("/v1/simulations"))
+        .json(&request)
+        .send()
+        .unwrap();
+    let body: serde_json::Value = resp.json().unwrap();
+    let (pulled_job, scan) = (
+        body["job_id"].as_str().unwrap().to_string(),
+        body["scan_id"].as_str().unwrap().to_string(),
+    );
+    let done = api.wait_for_state(&pulled_job, &["done"], JOB_TIMEOUT);
+    assert_eq!(done["state"], "done", "{done}\n{}", puller.log());
+    // The pulled series (68 instances) and its stored ingest are objects of the scan.
+    let series_keys = s3.keys(BUCKET, &format!("pacs/scans/{scan}/series/"));
+    assert_eq!(series_keys.len(), 68, "{series_keys:?}");
+    let ingest_key = format!("pacs/scans/{scan}/ingest.bin");
+    assert!(s3.keys(BUCKET, &ingest_key) == vec![ingest_key.clone()]);
+    let local_series = puller_data.join("scans").join(&scan).join("series");
+    for key in &series_keys[..3] {
+        let name = key.rsplit('/').next().unwrap();
+        let (object, _) = s3.object(BUCKET, key);
+        assert!(
+            object == std::fs::read(local_series.join(name)).unwrap(),
+            "{key}"
+        );
+    }
+    puller.kill();
+
+    // A worker on a third machine runs a later job on that scan: it fetches the series.
+    let other_data = scratch.join("other-data");
+    let other = WorkerProcess::start(
+        &other_data,
+        &scratch.join("other.log"),
+        &["--workers", "1"],
+        &env,
+    );
+    request.as_object_mut().unwrap().remove("ct");
+    let job = api.submit(&scan, &request);
+    let done = api.wait_for_state(&job, &["done"], JOB_TIMEOUT);
+    assert_eq!(done["state"], "done", "{done}\n{}", other.log());
+    assert!(
+        other.log().contains("scan fetched from the object store"),
+        "{}",
+        other.log()
+    );
+    assert_eq!(
+        entries(&other_data.join("scans").join(&scan).join("series")).len(),
+        68
+    );
+    // Nothing of the job stays on the worker's machine once its outputs are in the store.
+    assert!(!other_data.join("jobs").join(&job).exists());
+    // The same CT, settings and trace: the same fields.
+    for k in 0..2 {
+        let field = |job: &str| bytes(&api, &format!("/v1/jobs/{job}/frames/{k}/displacement"));
+        assert!(field(&job) == field(&pulled_job), "frame {k}");
+    }
+
+    for id in [&pulled_job, &job] {
+        assert_eq!(api.delete(&format!("/v1/jobs/{id}")).status(), 204);
+    }
+    assert_eq!(api.delete(&format!("/v1/scans/{scan}")).status(), 204);
+    assert_eq!(
+        s3.keys(BUCKET, "pacs/"),
         Vec::<String>::new(),
         "orphaned objects"
     );

@@ -272,11 +272,16 @@ fn a_journey_through_an_api_process_and_a_separate_worker() {
         ("LUNGMOTION_LOG_FORMAT", "json"),
     ];
     let server = api(&data, &url, &env[1..]);
+    // With LUNGMOTION_TEST_OBJECT_STORE=s3 the API process has an S3 server of its own; the
+    // worker must keep its outputs there too.
+    let objects_env = server.object_store_env();
+    let mut worker_env = env.to_vec();
+    worker_env.extend(objects_env.iter().map(|(k, v)| (k.as_str(), v.as_str())));
     let mut worker = WorkerProcess::start(
         &data,
         &scratch.join("worker.log"),
         &["--workers", "1"],
-        &env,
+        &worker_env,
     );
     let scan = server.upload_scan(&sample("phantom-ct.nii.gz"));
     assert_eq!(server.get(&format!("/v1/scans/{scan}")).status(), 200);

@@ -29,7 +29,8 @@ use object_store::local::LocalFileSystem;
 use object_store::path::Path as Key;
 use object_store::signer::Signer;
 use object_store::{
-    Attribute, Attributes, ObjectStore, PutMultipartOptions, PutOptions, PutPayload, WriteMultipart,
+    Attribute, Attributes, GetOptions, GetRange, ObjectStore, PutMultipartOptions, PutOptions,
+    PutPayload, WriteMultipart,
 };
 use tokio::io::AsyncReadExt;
 
@@ -40,6 +41,10 @@ use crate::{Error, Result};
 pub const DEFAULT_MULTIPART_PART_MIB: u64 = 16;
 /// Smallest part size S3 accepts (but for the last part), MiB.
 const MIN_PART_MIB: u64 = 5;
+/// Default bound of a worker's copies of scans fetched from the store, MiB: about 50
+/// POPI-sized scans (81 MB zipped upload plus 128 MB stored ingest at 8 mm each), so the
+/// scans of a day's jobs stay local while a worker's disk never fills with a cohort's.
+pub const DEFAULT_FETCHED_SCANS_MIB: u64 = 10_240;
 /// Default lifetime of a presigned GET URL, s.
 pub const DEFAULT_PRESIGNED_TTL_S: f64 = 300.0;
 /// Parts of one multipart upload in flight at once.
@@ -70,6 +75,9 @@ pub struct BlobSettings {
     pub presigned_ttl_s: f64,
     /// Part size of multipart uploads, and the size above which a file is sent in parts, MiB.
     pub multipart_part_mib: u64,
+    /// Bound of the copies of scans fetched from the store into the data directory, MiB;
+    /// beyond it the least recently used ones not in use are removed (0: only those in use).
+    pub fetched_scans_mib: u64,
 }
 
 impl std::fmt::Debug for BlobSettings {
@@ -86,6 +94,7 @@ impl std::fmt::Debug for BlobSettings {
             .field("presigned_get", &self.presigned_get)
             .field("presigned_ttl_s", &self.presigned_ttl_s)
             .field("multipart_part_mib", &self.multipart_part_mib)
+            .field("fetched_scans_mib", &self.fetched_scans_mib)
             .finish()
     }
 }
@@ -102,6 +111,7 @@ impl BlobSettings {
             presigned_get: false,
             presigned_ttl_s: DEFAULT_PRESIGNED_TTL_S,
             multipart_part_mib: DEFAULT_MULTIPART_PART_MIB,
+            fetched_scans_mib: DEFAULT_FETCHED_SCANS_MIB,
         }
     }
 
@@ -216,6 +226,8 @@ struct Inner {
     presigned_ttl: Duration,
     prefix: String,
     part_bytes: usize,
+    /// Bound of the scans fetched into the data directory, bytes.
+    fetched_scans_bytes: u64,
     /// Whether the store takes content types with a PUT (S3 does, a directory does not).
     attributes: bool,
     /// `s3://bucket/prefix at <endpoint>`, for errors and logs.
@@ -320,6 +332,7 @@ impl BlobStore {
                 presigned_ttl: Duration::from_secs_f64(settings.presigned_ttl_s),
                 prefix,
                 part_bytes: (settings.multipart_part_mib << 20) as usize,
+                fetched_scans_bytes: settings.fetched_scans_mib.saturating_mul(1 << 20),
                 attributes,
                 shown,
                 bucket,
@@ -337,6 +350,11 @@ impl BlobStore {
     /// The store as `s3://bucket/prefix at <endpoint>` (or its `file://` URL).
     pub fn shown(&self) -> &str {
         &self.inner.shown
+    }
+
+    /// Bound of the copies of scans fetched into the data directory, bytes.
+    pub fn fetched_scans_bytes(&self) -> u64 {
+        self.inner.fetched_scans_bytes
     }
 
     /// Whether outputs are answered with a presigned URL.
@@ -531,35 +549,78 @@ impl BlobStore {
     pub fn fetch_file(&self, relative: &str, dest: &Path) -> Result<bool> {
         let this = self.clone();
         let (relative, dest) = (relative.to_string(), dest.to_path_buf());
+        self.run(async move { this.fetch_file_async(&relative, &dest).await })
+    }
+
+    async fn fetch_file_async(&self, relative: &str, dest: &Path) -> Result<bool> {
+        let got = match self.inner.store.get(&self.key(relative)).await {
+            Ok(got) => got,
+            Err(object_store::Error::NotFound { .. }) => return Ok(false),
+            Err(e) => return Err(self.error(relative, self.explain(&e))),
+        };
+        // Beside the destination under its whole name plus a suffix: files of one tree that
+        // differ only in their extension must not share a partial file.
+        let mut partial = dest.as_os_str().to_owned();
+        partial.push(".fetching");
+        let partial = PathBuf::from(partial);
+        let io = |e: std::io::Error| Error::io(crate::IoOp::Write, &partial, e);
+        let mut file = tokio::fs::File::create(&partial).await.map_err(io)?;
+        let mut stream = got.into_stream();
+        let written: Result<()> = async {
+            while let Some(chunk) = stream.next().await {
+                let chunk = chunk.map_err(|e| self.error(relative, self.explain(&e)))?;
+                tokio::io::AsyncWriteExt::write_all(&mut file, &chunk)
+                    .await
+                    .map_err(io)?;
+            }
+            file.sync_all().await.map_err(io)
+        }
+        .await;
+        if let Err(e) = written {
+            let _ = tokio::fs::remove_file(&partial).await;
+            return Err(e);
+        }
+        tokio::fs::rename(&partial, dest)
+            .await
+            .map_err(|e| Error::io(crate::IoOp::Rename, &partial, e))?;
+        Ok(true)
+    }
+
+    /// Fetches every object under `relative/` into the directory `dest` (created) under its
+    /// path below `relative/`, several at once; how many files and bytes. Nothing listed is
+    /// `(0, 0)`. `dest` should be a staging directory: a failure leaves it half filled.
+    pub fn fetch_tree(&self, relative: &str, dest: &Path) -> Result<(usize, u64)> {
+        let listed = self.list(relative)?;
+        let this = self.clone();
+        let relative = relative.trim_end_matches('/').to_string();
+        let dest = dest.to_path_buf();
         self.run(async move {
-            let key = this.key(&relative);
-            let got = match this.inner.store.get(&key).await {
-                Ok(got) => got,
-                Err(object_store::Error::NotFound { .. }) => return Ok(false),
-                Err(e) => return Err(this.error(&relative, this.explain(&e))),
-            };
-            let partial = dest.with_extension("fetching");
-            let io = |e: std::io::Error| Error::io(crate::IoOp::Write, &partial, e);
-            let mut file = tokio::fs::File::create(&partial).await.map_err(io)?;
-            let mut stream = got.into_stream();
-            let written: Result<()> = async {
-                while let Some(chunk) = stream.next().await {
-                    let chunk = chunk.map_err(|e| this.error(&relative, this.explain(&e)))?;
-                    tokio::io::AsyncWriteExt::write_all(&mut file, &chunk)
-                        .await
-                        .map_err(io)?;
-                }
-                file.sync_all().await.map_err(io)
-            }
-            .await;
-            if let Err(e) = written {
-                let _ = tokio::fs::remove_file(&partial).await;
-                return Err(e);
-            }
-            tokio::fs::rename(&partial, &dest)
-                .await
-                .map_err(|e| Error::io(crate::IoOp::Rename, &partial, e))?;
-            Ok(true)
+            let count = listed.len();
+            let bytes: Vec<u64> = futures_util::stream::iter(listed)
+                .map(|(name, size)| {
+                    let (this, key) = (this.clone(), format!("{relative}/{name}"));
+                    // Listed names are `/`-separated keys below the prefix; none climbs out.
+                    let path = name
+                        .split('/')
+                        .filter(|part| !part.is_empty() && *part != "." && *part != "..")
+                        .fold(dest.clone(), |p, part| p.join(part));
+                    async move {
+                        if let Some(parent) = path.parent() {
+                            tokio::fs::create_dir_all(parent)
+                                .await
+                                .map_err(|e| Error::io(crate::IoOp::CreateDir, parent, e))?;
+                        }
+                        if this.fetch_file_async(&key, &path).await? {
+                            Ok(size)
+                        } else {
+                            Err(this.error(&key, "listed, then gone before it was fetched"))
+                        }
+                    }
+                })
+                .buffer_unordered(FILES_IN_FLIGHT)
+                .try_collect()
+                .await?;
+            Ok((count, bytes.iter().sum()))
         })
     }
 
@@ -616,6 +677,47 @@ impl BlobStore {
                 .map(|chunk| chunk.map_err(std::io::Error::other))
                 .boxed();
             Ok(Some((size, stream)))
+        })
+        .await
+    }
+
+    /// The size of the object `relative` from async code (a HEAD), `None` when there is none.
+    pub async fn head(&self, relative: &str) -> Result<Option<u64>> {
+        let this = self.clone();
+        let relative = relative.to_string();
+        self.run_async(async move { this.size_async(&relative).await })
+            .await
+    }
+
+    /// The bytes `range` (end exclusive, inside the object) of the object `relative` as a
+    /// stream, fetched with a ranged GET so that only those bytes travel; `None` when there is
+    /// no such object. The stream is driven by the client's runtime.
+    pub async fn get_range_stream(
+        &self,
+        relative: &str,
+        range: std::ops::Range<u64>,
+    ) -> Result<Option<BoxStream<'static, std::io::Result<Bytes>>>> {
+        let this = self.clone();
+        let relative = relative.to_string();
+        self.run_async(async move {
+            let options = GetOptions {
+                range: Some(GetRange::Bounded(range)),
+                ..GetOptions::default()
+            };
+            match this
+                .inner
+                .store
+                .get_opts(&this.key(&relative), options)
+                .await
+            {
+                Ok(got) => Ok(Some(
+                    got.into_stream()
+                        .map(|chunk| chunk.map_err(std::io::Error::other))
+                        .boxed(),
+                )),
+                Err(object_store::Error::NotFound { .. }) => Ok(None),
+                Err(e) => Err(this.error(&relative, this.explain(&e))),
+            }
         })
         .await
     }

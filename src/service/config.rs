@@ -43,6 +43,7 @@
 //! presigned_get = false       # outputs answered with 307 to a presigned URL
 //! presigned_ttl_s = 300
 //! object_store_multipart_part_mib = 16
+//! fetched_scans_mib = 10240   # a worker's copies of scans fetched from the store, LRU
 //! ```
 
 use std::net::SocketAddr;
@@ -288,6 +289,7 @@ struct StoreFile {
     presigned_get: Option<bool>,
     presigned_ttl_s: Option<f64>,
     object_store_multipart_part_mib: Option<u64>,
+    fetched_scans_mib: Option<u64>,
 }
 
 /// What the command line (`lungmotion serve`) may override, each over the file and the
@@ -311,7 +313,7 @@ pub struct ServeOverrides {
 }
 
 /// Environment variables the service reads (each overrides the file's key).
-pub const ENV_VARS: [&str; 33 + PACS_ENV_VARS.len()] = [
+pub const ENV_VARS: [&str; 34 + PACS_ENV_VARS.len()] = [
     "LUNGMOTION_LISTEN",
     "LUNGMOTION_DATA_DIR",
     "LUNGMOTION_WORKERS",
@@ -345,6 +347,7 @@ pub const ENV_VARS: [&str; 33 + PACS_ENV_VARS.len()] = [
     "AWS_SECRET_ACCESS_KEY",
     "AWS_SECRET_ACCESS_KEY_FILE",
     "LUNGMOTION_PRESIGNED_GET",
+    "LUNGMOTION_FETCHED_SCANS_MIB",
     PACS_ENV_VARS[0],
     PACS_ENV_VARS[1],
     PACS_ENV_VARS[2],
@@ -760,6 +763,7 @@ impl ServiceConfig {
             &mut blobs.multipart_part_mib,
             file.object_store_multipart_part_mib,
         );
+        set(&mut blobs.fetched_scans_mib, file.fetched_scans_mib);
         let postgres = self
             .postgres
             .get_or_insert_with(|| PostgresSettings::new(String::new()));
@@ -845,6 +849,17 @@ impl ServiceConfig {
         }
         if let Some(path) = env("AWS_SECRET_ACCESS_KEY_FILE") {
             blobs.secret_access_key = Some(read_token_file(Path::new(&path))?);
+        }
+        if let Some(v) = env("LUNGMOTION_FETCHED_SCANS_MIB") {
+            blobs.fetched_scans_mib = v.trim().parse().map_err(|_| {
+                Error::settings(
+                    "service configuration",
+                    format!(
+                        "environment LUNGMOTION_FETCHED_SCANS_MIB={v:?} is not a whole number \
+                         of MiB"
+                    ),
+                )
+            })?;
         }
         if let Some(v) = env("LUNGMOTION_PRESIGNED_GET") {
             blobs.presigned_get = match v.trim() {

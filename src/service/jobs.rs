@@ -22,6 +22,7 @@ use super::records::Records;
 use super::store::{
     now_rfc3339, JobProgress, JobRecord, JobRequest, JobState, PacsActivity, PacsSeries, Store,
 };
+use super::targets::{JobTarget, TargetChoice};
 use crate::breathing::BreathingTrace;
 use crate::run::{run_breathing_on, IngestedScan, RunInputs, RunObserver};
 use crate::simulation::CancelFlag;
@@ -809,8 +810,15 @@ fn execute(shared: &Shared, id: JobId, scan_id: ScanId, live: &LiveJob) -> Resul
         series: scan.series_or(config.series),
         ..config
     };
-    // A worker on another machine than the upload's API process fetches it first.
-    shared.store.ensure_scan_local(&scan)?;
+    // A worker on another machine than the upload's API process fetches it first, and holds
+    // the copy until the run ends so that no eviction removes it under the run.
+    let _copy = shared.store.ensure_scan_local(&scan)?;
+    let _target_copy = match &target {
+        Some(JobTarget::Upload(TargetChoice {
+            file: Some(file), ..
+        })) => Some(shared.store.ensure_job_target_local(id, file)?),
+        _ => None,
+    };
     let inputs = RunInputs {
         ct_path: shared.store.scan_file(&scan),
         trace: BreathingTrace::new(time_s, volume_ml)?,

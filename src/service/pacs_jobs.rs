@@ -105,8 +105,15 @@ impl PacsAccess {
             ingest,
             series: None,
         };
-        records.put_scan(&record, &dir)?;
+        // In the object store (when there is one) before the record makes it visible, so a
+        // worker on another machine running a later job on this scan fetches it from there.
+        store.put_scan_blobs(&record, &dir, Some(&stored_ingest))?;
+        if let Err(e) = records.put_scan(&record, &dir) {
+            let _ = store.delete_scan(scan_id);
+            return Err(e);
+        }
         adopt_stored_ingest(store, scan_id, &stored_ingest);
+        store.mark_fetched_copy(&record);
         Ok(series_uid)
     }
 

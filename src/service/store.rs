@@ -308,6 +308,43 @@ pub struct Store {
     /// The object store holding the uploads and outputs, when one is configured: the data
     /// directory then keeps a local copy of the scans and runs' scratch outputs only.
     blobs: Option<BlobStore>,
+    /// Held while this process fetches a scan or evicts fetched copies, so that two of its
+    /// jobs never fetch one scan at once and a fetch never races an eviction.
+    fetches: Arc<Mutex<()>>,
+}
+
+/// A job's hold on the local copy of its scan: while it lives, no eviction removes the copy.
+/// A shared lock on the copy's mark file, which every process of this host sees (evictions
+/// take it exclusively, without waiting, and skip a copy in use).
+#[derive(Debug)]
+pub struct ScanCopyHold(Option<std::fs::File>);
+
+/// A job's target fetched from the object store, removed when dropped.
+#[derive(Debug)]
+pub struct FetchedTarget(Option<PathBuf>);
+
+impl Drop for FetchedTarget {
+    fn drop(&mut self) {
+        if let Some(dir) = self.0.take() {
+            let _ = std::fs::remove_dir_all(&dir);
+            // The job's directory too when nothing else is left in it on this machine.
+            if let Some(job) = dir.parent() {
+                let _ = std::fs::remove_dir(job);
+            }
+        }
+    }
+}
+
+impl ScanCopyHold {
+    /// A hold on nothing: the scan is this process's own (its upload or pull), never evicted.
+    pub fn none() -> Self {
+        ScanCopyHold(None)
+    }
+
+    /// Whether this holds a fetched copy (rather than the process's own).
+    pub fn holds(&self) -> bool {
+        self.0.is_some()
+    }
 }
 
 /// What storing an uploaded target came to.
@@ -323,6 +360,10 @@ pub enum TargetStored {
 
 const SCAN_RECORD: &str = "scan.json";
 const STORED_INGEST: &str = "ingest.bin";
+/// In a scan's directory: its upload (or pulled series) and stored ingest there are a copy
+/// fetched from the object store, which eviction may remove. Holds the copy's file name (the
+/// record may live in PostgreSQL, which eviction does not ask).
+const FETCHED_MARK: &str = ".fetched";
 const JOB_RECORD: &str = "job.json";
 const JOB_REQUEST: &str = "request.json";
 const TARGET_RECORD: &str = "target.json";
@@ -443,6 +484,7 @@ impl Store {
             targets: Arc::default(),
             shared: false,
             blobs: None,
+            fetches: Arc::default(),
         };
         for dir in ["scans", "jobs"] {
             let dir = root.join(dir);
@@ -467,6 +509,7 @@ impl Store {
             targets: Arc::default(),
             shared: true,
             blobs: None,
+            fetches: Arc::default(),
         };
         for dir in ["scans", "jobs", "tmp"] {
             let dir = root.join(dir);
@@ -550,7 +593,13 @@ impl Store {
         };
         let id = record.scan_id;
         let put = (|| {
-            blobs.put_file(&format!("scans/{id}/{}", record.file_name), upload)?;
+            let key = format!("scans/{id}/{}", record.file_name);
+            // A series pulled from the PACS is a directory of instances.
+            if upload.is_dir() {
+                blobs.put_tree(&key, upload)?;
+            } else {
+                blobs.put_file(&key, upload)?;
+            }
             match stored {
                 Some(stored) if stored.is_file() => {
                     blobs.put_file(&format!("scans/{id}/{STORED_INGEST}"), stored)?;
@@ -565,36 +614,156 @@ impl Store {
         put
     }
 
-    /// Makes sure a scan's upload (and its stored ingest, when the object store has one) is
-    /// in the data directory, fetching them from the object store when this process has no
-    /// copy (a worker on another machine).
-    pub fn ensure_scan_local(&self, record: &ScanRecord) -> Result<()> {
+    /// Makes sure a scan's upload or pulled series (and its stored ingest, when the object
+    /// store has one) is in the data directory, fetching them from the object store when this
+    /// process has no copy (a worker on another machine), and holds that copy for the caller's
+    /// run. After a fetch, the fetched copies beyond `fetched_scans_mib` that no job holds are
+    /// removed, least recently used first (see [`Store::evict_fetched_scans`]).
+    pub fn ensure_scan_local(&self, record: &ScanRecord) -> Result<ScanCopyHold> {
         let Some(blobs) = &self.blobs else {
-            return Ok(());
+            return Ok(ScanCopyHold::none());
+        };
+        let _one_at_a_time = lock(&self.fetches);
+        let id = record.scan_id;
+        let file = self.scan_file(record);
+        let dir = self.scan_dir(id);
+        let mark = dir.join(FETCHED_MARK);
+        // The upload's own copy (or a pull's, or a shared mount's): never evicted.
+        if file.exists() && !mark.exists() {
+            return Ok(ScanCopyHold::none());
+        }
+        std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
+        // Held before looking: an eviction by another process is over once the hold is had.
+        let hold = hold_copy(&mark, &record.file_name)?;
+        if file.exists() {
+            return Ok(hold);
+        }
+        let started = std::time::Instant::now();
+        let staging = self.tmp_path("fetch");
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
+        let fetched = self.fetch_scan_into(blobs, record, &staging);
+        let _ = std::fs::remove_dir_all(&staging);
+        let bytes = fetched?;
+        tracing::info!(scan = %id, bytes, seconds = started.elapsed().as_secs_f64(), "scan fetched from the object store");
+        match self.evict_fetched_scans(blobs.fetched_scans_bytes()) {
+            Ok(_) => {}
+            Err(e) => tracing::warn!("evicting fetched scan copies: {e}"),
+        }
+        Ok(hold)
+    }
+
+    /// Marks the scan's local files as a copy of its objects, which eviction may remove like
+    /// a fetched one (a series this worker pulled from the PACS and put in the object store);
+    /// nothing without an object store. A failure is logged: the copy then stays.
+    pub fn mark_fetched_copy(&self, record: &ScanRecord) {
+        if self.blobs.is_none() {
+            return;
+        }
+        let mark = self.scan_dir(record.scan_id).join(FETCHED_MARK);
+        if let Err(e) = write_durable(&mark, record.file_name.as_bytes()) {
+            tracing::warn!(scan = %record.scan_id, "cannot mark the pulled series as evictable: {e}");
+        }
+    }
+
+    /// Fetches a scan's upload (a file, or the tree of a pulled series) and stored ingest
+    /// into `staging`, then moves them into the scan's directory; the bytes fetched.
+    fn fetch_scan_into(
+        &self,
+        blobs: &BlobStore,
+        record: &ScanRecord,
+        staging: &Path,
+    ) -> Result<u64> {
+        let id = record.scan_id;
+        let key = format!("scans/{id}/{}", record.file_name);
+        let staged = staging.join(&record.file_name);
+        let mut bytes = if blobs.fetch_file(&key, &staged)? {
+            std::fs::metadata(&staged)
+                .at(IoOp::Metadata, &staged)?
+                .len()
+        } else {
+            match blobs.fetch_tree(&key, &staged)? {
+                (0, _) => {
+                    return Err(Error::ObjectStore {
+                        store: blobs.shown().to_string(),
+                        key: Some(key),
+                        reason: "the scan's upload is not in the object store".into(),
+                    })
+                }
+                (_, bytes) => bytes,
+            }
         };
         let file = self.scan_file(record);
-        // A file, or the directory of a series pulled from the PACS (kept locally only).
-        if file.exists() {
-            return Ok(());
-        }
-        let id = record.scan_id;
-        let dir = self.scan_dir(id);
-        std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
-        let started = std::time::Instant::now();
-        let key = format!("scans/{id}/{}", record.file_name);
-        if !blobs.fetch_file(&key, &file)? {
-            return Err(Error::ObjectStore {
-                store: blobs.shown().to_string(),
-                key: Some(key),
-                reason: "the scan's upload is not in the object store".into(),
-            });
+        if let Err(e) = std::fs::rename(&staged, &file) {
+            // Another process sharing this data directory fetched the same series first.
+            if !(staged.is_dir() && file.is_dir()) {
+                return Err(Error::io(IoOp::Rename, &staged, e));
+            }
         }
         let stored = self.stored_ingest_file(id);
         if !stored.is_file() {
-            blobs.fetch_file(&format!("scans/{id}/{STORED_INGEST}"), &stored)?;
+            let staged = staging.join(STORED_INGEST);
+            if blobs.fetch_file(&format!("scans/{id}/{STORED_INGEST}"), &staged)? {
+                bytes += std::fs::metadata(&staged)
+                    .at(IoOp::Metadata, &staged)?
+                    .len();
+                std::fs::rename(&staged, &stored).at(IoOp::Rename, &staged)?;
+            }
         }
-        tracing::info!(scan = %id, seconds = started.elapsed().as_secs_f64(), "scan fetched from the object store");
-        Ok(())
+        Ok(bytes)
+    }
+
+    /// Removes the copies of scans fetched from the object store that no job holds, least
+    /// recently used first (a copy is used when a job takes its hold), until the fetched copies
+    /// left hold at most `limit` bytes; a copy's scan directory and mark stay, so a later job
+    /// fetches it again. The upload's own copy on the API's machine, a pull's, and whatever a
+    /// scan directory holds besides (records, targets) are never touched. The bytes removed.
+    pub fn evict_fetched_scans(&self, limit: u64) -> Result<u64> {
+        let scans = self.root.join("scans");
+        let mut copies = Vec::new();
+        for entry in std::fs::read_dir(&scans).at(IoOp::List, &scans)?.flatten() {
+            let dir = entry.path();
+            let mark = dir.join(FETCHED_MARK);
+            let Ok(name) = std::fs::read_to_string(&mark) else {
+                continue;
+            };
+            // A plain name only (a mark being written is still empty): never the directory
+            // itself, which holds the directory store's record and the targets.
+            let name = name.trim();
+            if name.is_empty() || name.contains('/') || name == "." || name == ".." {
+                continue;
+            }
+            let parts = [dir.join(name), dir.join(STORED_INGEST)];
+            let bytes: u64 = parts.iter().map(|p| entry_bytes(p)).sum();
+            if bytes == 0 {
+                continue;
+            }
+            let used = std::fs::metadata(&mark)
+                .and_then(|m| m.modified())
+                .unwrap_or(SystemTime::UNIX_EPOCH);
+            copies.push((used, mark, parts, bytes));
+        }
+        copies.sort_by_key(|c| c.0);
+        let mut total: u64 = copies.iter().map(|c| c.3).sum();
+        let mut removed = 0;
+        for (_, mark, parts, bytes) in copies {
+            if total <= limit {
+                break;
+            }
+            let Ok(file) = std::fs::File::open(&mark) else {
+                continue;
+            };
+            // A job's hold (shared) makes this fail at once: that copy is in use.
+            if file.try_lock().is_err() {
+                continue;
+            }
+            for part in &parts {
+                let _ = std::fs::remove_dir_all(part).or_else(|_| std::fs::remove_file(part));
+            }
+            total -= bytes;
+            removed += bytes;
+            tracing::info!(copy = %mark.parent().unwrap_or(&mark).display(), bytes, "evicted a fetched scan copy");
+        }
+        Ok(removed)
     }
 
     /// Puts a finished run's outputs (`jobs/<id>/out/`) in the object store, logging what it
@@ -655,6 +824,9 @@ impl Store {
                 tracing::warn!(job = %id, "cannot remove the local copy of the outputs: {e}");
             }
         }
+        // On a worker's own data directory nothing else is left of the job, and its deletion
+        // happens on the API's machine; a directory with a record or a target stays.
+        let _ = std::fs::remove_dir(self.job_dir(id));
     }
 
     /// Removes `relative/` from the object store, if there is one; whether anything was there.
@@ -927,7 +1099,45 @@ impl Store {
             let _ = std::fs::remove_dir_all(&staging);
             return Err(e);
         }
+        // The job's copy of its target in the object store too (before the record makes the
+        // job visible), for a worker on another machine (see ensure_job_target_local).
+        if let (Some(blobs), Some(source)) = (&self.blobs, target) {
+            let name = source.file_name().unwrap_or_default().to_string_lossy();
+            let key = format!("jobs/{id}/{JOB_TARGET_DIR}/{name}");
+            if let Err(e) = blobs.put_file(&key, &staging.join(JOB_TARGET_DIR).join(&*name)) {
+                let _ = std::fs::remove_dir_all(&staging);
+                let _ = blobs.delete_prefix(&format!("jobs/{id}"));
+                return Err(e);
+            }
+        }
         publish_dir(&staging, &self.job_dir(id))
+    }
+
+    /// Makes sure a job's copy of its uploaded target (`target/<file>`) is in the data
+    /// directory, fetching it from the object store when this process has none (a worker on
+    /// another machine than the API process the job was submitted to); nothing without one.
+    /// A fetched copy is removed when the returned guard is dropped (after the run): the
+    /// job's deletion happens on the API's machine and would never reach it.
+    pub fn ensure_job_target_local(&self, id: JobId, file: &str) -> Result<FetchedTarget> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(FetchedTarget(None));
+        };
+        let dir = self.job_target_dir(id);
+        let local = dir.join(file);
+        if local.is_file() {
+            return Ok(FetchedTarget(None));
+        }
+        std::fs::create_dir_all(&dir).at(IoOp::CreateDir, &dir)?;
+        let key = format!("jobs/{id}/{JOB_TARGET_DIR}/{file}");
+        if !blobs.fetch_file(&key, &local)? {
+            return Err(Error::ObjectStore {
+                store: blobs.shown().to_string(),
+                key: Some(key),
+                reason: "the job's copy of its target is not in the object store".into(),
+            });
+        }
+        tracing::info!(job = %id, file, "target fetched from the object store");
+        Ok(FetchedTarget(Some(dir)))
     }
 
     /// Replaces a job's record.
@@ -1096,6 +1306,35 @@ fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     write_durable(path, &bytes)
 }
 
+/// Opens (creating) a fetched copy's mark, names the copy's file in it, takes a shared lock
+/// on it (waiting for an eviction in progress) and stamps it as used now.
+fn hold_copy(mark: &Path, file_name: &str) -> Result<ScanCopyHold> {
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(mark)
+        .at(IoOp::Write, mark)?;
+    // Part of opening it for use (IoOp has no lock of its own).
+    file.lock_shared().at(IoOp::Open, mark)?;
+    if file.metadata().map(|m| m.len()).unwrap_or(0) == 0 {
+        std::io::Write::write_all(&mut &file, file_name.as_bytes()).at(IoOp::Write, mark)?;
+    }
+    // The time eviction orders copies by: this use.
+    file.set_modified(SystemTime::now()).at(IoOp::Write, mark)?;
+    Ok(ScanCopyHold(Some(file)))
+}
+
+/// Bytes of a file, or of everything under a directory; 0 when there is nothing.
+fn entry_bytes(path: &Path) -> u64 {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_dir() => directory_bytes(path),
+        Ok(m) => m.len(),
+        Err(_) => 0,
+    }
+}
+
 fn publish_dir(staging: &Path, target: &Path) -> Result<()> {
     sync_dir(staging);
     std::fs::rename(staging, target).at(IoOp::Replace, target)?;
@@ -1241,6 +1480,107 @@ mod tests {
         // Without an object store, nothing to do.
         let plain = Store::open_shared(&dir.join("data")).unwrap();
         assert_eq!(plain.sweep_orphan_blobs(&scans, &jobs, later).unwrap(), 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn fetched_scan_copies_are_evicted_least_recently_used_first_and_never_in_use() {
+        let dir = std::env::temp_dir().join(format!("lm-store-evict-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let settings = super::super::blobs::BlobSettings::new(format!(
+            "file://{}",
+            dir.join("blobs").display()
+        ));
+        let blobs = BlobStore::open(&settings).unwrap();
+        // The API's machine: the uploads are its own copies.
+        let api = Store::open_shared(&dir.join("api"))
+            .unwrap()
+            .with_blobs(Some(blobs.clone()));
+        let record = |file_name: &str, format: &str| ScanRecord {
+            scan_id: ScanId::random(),
+            created_at: now_rfc3339(),
+            format: format.into(),
+            upload_bytes: 0,
+            file_name: file_name.into(),
+            ingest: serde_json::json!({}),
+            series: None,
+        };
+        // Three uploads of 1 000 bytes (one with a stored ingest of 500 more) and a pulled
+        // series of two instances (800 bytes).
+        let mut scans = Vec::new();
+        for (i, bytes) in [1000usize, 1000, 1000].into_iter().enumerate() {
+            let scan = record("scan.nii.gz", "nifti");
+            let upload = api.tmp_path("upload");
+            std::fs::write(&upload, vec![i as u8; bytes]).unwrap();
+            let stored = api.tmp_path("stored");
+            if i == 0 {
+                std::fs::write(&stored, vec![7u8; 500]).unwrap();
+            }
+            api.put_scan_blobs(&scan, &upload, Some(&stored)).unwrap();
+            api.put_scan(&scan, &upload).unwrap();
+            scans.push(scan);
+        }
+        let series = record("series", "dicomweb");
+        let pulled = api.tmp_path("pull");
+        std::fs::create_dir_all(pulled.join("sub")).unwrap();
+        std::fs::write(pulled.join("1.2.3.dcm"), vec![1u8; 400]).unwrap();
+        std::fs::write(pulled.join("sub").join("1.2.3.4"), vec![2u8; 400]).unwrap();
+        api.put_scan_blobs(&series, &pulled, None).unwrap();
+        api.put_scan(&series, &pulled).unwrap();
+
+        // A worker on another machine: nothing local, everything fetched.
+        let worker = Store::open_shared(&dir.join("worker"))
+            .unwrap()
+            .with_blobs(Some(blobs.clone()));
+        let use_scan = |scan: &ScanRecord| {
+            let hold = worker.ensure_scan_local(scan).unwrap();
+            assert!(hold.holds(), "a fetched copy is held");
+            // Distinct use times, whatever the file system's clock granularity.
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            hold
+        };
+        let here = |scan: &ScanRecord| worker.scan_file(scan).exists();
+        drop(use_scan(&scans[0]));
+        assert_eq!(
+            std::fs::read(worker.stored_ingest_file(scans[0].scan_id)).unwrap(),
+            vec![7u8; 500]
+        );
+        drop(use_scan(&series));
+        assert_eq!(
+            std::fs::read(worker.scan_file(&series).join("sub").join("1.2.3.4")).unwrap(),
+            vec![2u8; 400]
+        );
+        drop(use_scan(&scans[1]));
+        let running = use_scan(&scans[2]);
+        // 1 500 + 800 + 1 000 + 1 000 bytes fetched; at most 2 900 kept: the least recently
+        // used (the first upload with its stored ingest) goes, alone.
+        assert_eq!(worker.evict_fetched_scans(2900).unwrap(), 1500);
+        assert!(!here(&scans[0]) && !worker.stored_ingest_file(scans[0].scan_id).exists());
+        assert!(here(&series) && here(&scans[1]) && here(&scans[2]));
+        // The series used again is now the most recent but for the running job's scan,
+        // which is never evicted while held, even with nothing allowed.
+        drop(use_scan(&series));
+        assert_eq!(worker.evict_fetched_scans(0).unwrap(), 1800);
+        assert!(!here(&scans[1]) && !here(&series) && here(&scans[2]));
+        drop(running);
+        assert_eq!(worker.evict_fetched_scans(0).unwrap(), 1000);
+        assert!(!here(&scans[2]));
+        // An evicted copy comes back whole at the next use.
+        drop(use_scan(&scans[0]));
+        assert_eq!(
+            std::fs::read(worker.scan_file(&scans[0])).unwrap(),
+            vec![0u8; 1000]
+        );
+        // The uploads' own copies on the API's machine are not copies to evict.
+        assert!(!api.ensure_scan_local(&scans[1]).unwrap().holds());
+        assert_eq!(api.evict_fetched_scans(0).unwrap(), 0);
+        assert!(api.scan_file(&scans[1]).exists());
+        // Deleting a scan removes its objects, a pulled series' tree among them.
+        assert!(api.delete_scan(series.scan_id).unwrap());
+        assert!(blobs
+            .list(&format!("scans/{}", series.scan_id))
+            .unwrap()
+            .is_empty());
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -298,6 +298,16 @@ impl ServerProcess {
         self.objects.as_ref()
     }
 
+    /// The object store settings it was started with by `LUNGMOTION_TEST_OBJECT_STORE=s3`
+    /// (none otherwise), for the other processes a test starts on its store: a worker given
+    /// none would keep its outputs where this server never looks.
+    pub fn object_store_env(&self) -> Vec<(String, String)> {
+        self.objects
+            .as_ref()
+            .map(|s3| s3.service_env(TEST_BUCKET, "lm"))
+            .unwrap_or_default()
+    }
+
     /// The shared client.
     pub fn client(&self) -> &Client {
         &self.client
@@ -705,4 +715,64 @@ pub fn run_cli(args: &[&dyn AsRef<std::ffi::OsStr>]) {
         args.first().map(|a| a.as_ref()),
         String::from_utf8_lossy(&output.stderr)
     );
+}
+
+/// Checks the `Range` answers of the file GET `path` against the file's bytes `whole`: one
+/// range (`a-b`, `a-`, `-n`, clipped past the end) is `206` with its bytes and
+/// `Content-Range`; a range past the end is `416` with `Content-Range: bytes */len`; several
+/// ranges are the whole file (`200`); every answer says `Accept-Ranges: bytes`.
+pub fn assert_ranges_served(server: &ServerProcess, path: &str, whole: &[u8]) {
+    let len = whole.len();
+    assert!(
+        len > 300,
+        "{path}: too small a file for the range checks ({len} bytes)"
+    );
+    let get = |range: &str| {
+        let resp = server
+            .client()
+            .get(server.url(path))
+            .header("range", range)
+            .send()
+            .unwrap();
+        let status = resp.status().as_u16();
+        let header = |name: &str| {
+            resp.headers()
+                .get(name)
+                .map(|v| v.to_str().unwrap().to_string())
+                .unwrap_or_default()
+        };
+        let (accept, content_range) = (header("accept-ranges"), header("content-range"));
+        (
+            status,
+            accept,
+            content_range,
+            resp.bytes().unwrap().to_vec(),
+        )
+    };
+    let cases = [
+        ("bytes=100-299", 100, 300),
+        ("bytes=0-0", 0, 1),
+        (&format!("bytes={}-", len - 77) as &str, len - 77, len),
+        ("bytes=-123", len - 123, len),
+        (&format!("bytes=200-{}", len + 1000) as &str, 200, len),
+    ]
+    .map(|(r, a, b)| (r.to_string(), a, b));
+    for (range, start, end) in &cases {
+        let (status, accept, content_range, body) = get(range);
+        assert_eq!(status, 206, "{path} {range}");
+        assert_eq!(accept, "bytes", "{path} {range}");
+        assert_eq!(
+            content_range,
+            format!("bytes {start}-{}/{len}", end - 1),
+            "{path} {range}"
+        );
+        assert!(body == whole[*start..*end], "{path} {range}: other bytes");
+    }
+    let (status, _, content_range, _) = get(&format!("bytes={len}-"));
+    assert_eq!(status, 416, "{path} past the end");
+    assert_eq!(content_range, format!("bytes */{len}"), "{path}");
+    let (status, accept, content_range, body) = get("bytes=0-9,20-29");
+    assert_eq!(status, 200, "{path}: several ranges");
+    assert_eq!((accept.as_str(), content_range.as_str()), ("bytes", ""));
+    assert!(body == whole, "{path}: several ranges give the whole file");
 }

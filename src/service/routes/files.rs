@@ -328,6 +328,10 @@ pub async fn job_files(
             XML meshes, else application/octet-stream)",
          content(("application/gzip"), ("application/json"), ("text/csv"), ("image/png"),
                  ("application/xml"), ("application/octet-stream"))),
+        (status = 206, description = "One range of the file (`Range: bytes=a-b`, `a-` or \
+            `-n`) with `Content-Range`; several ranges are answered 200 with the whole file"),
+        (status = 416, description = "The range starts past the file's end; `Content-Range: \
+            bytes */<length>`", body = Problem, content_type = "application/problem+json"),
         (status = 307, description = "With an S3 object store and `presigned_get`: the \
             object's presigned URL in `Location`"),
         (status = 404, description = "No such job or file", body = Problem, content_type = "application/problem+json"),
@@ -338,7 +342,9 @@ pub async fn job_files(
 pub async fn job_file(
     State(state): State<SharedState>,
     Path((id, relative)): Path<(String, String)>,
+    headers: axum::http::HeaderMap,
 ) -> ApiResult<Response> {
+    let range = headers.get(axum::http::header::RANGE);
     let id = job_id(&id)?;
     let worker_state = state.clone();
     let shown = relative.clone();
@@ -350,22 +356,29 @@ pub async fn job_file(
                 "the job wrote no file {relative:?}"
             )));
         }
-        return output_response(&state, id, &relative, content_type_of(&shown), filename)
-            .await
-            .map_err(|e| {
-                if e.status == axum::http::StatusCode::NOT_FOUND {
-                    ApiError::not_found(format!("the job wrote no file {relative:?}"))
-                } else {
-                    e
-                }
-            });
+        return output_response(
+            &state,
+            id,
+            &relative,
+            content_type_of(&shown),
+            filename,
+            range,
+        )
+        .await
+        .map_err(|e| {
+            if e.status == axum::http::StatusCode::NOT_FOUND {
+                ApiError::not_found(format!("the job wrote no file {relative:?}"))
+            } else {
+                e
+            }
+        });
     }
     let path = blocking(move || {
         finished_job(&worker_state, id)?;
         resolve_output(&worker_state.store.job_output_dir(id), &relative)
     })
     .await?;
-    super::results::file_response(path, content_type_of(&shown), filename).await
+    super::results::file_response(path, content_type_of(&shown), filename, range).await
 }
 
 #[cfg(test)]

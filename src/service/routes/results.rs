@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use axum::body::Body;
 use axum::extract::{Path, Query, State};
-use axum::http::{header, HeaderValue};
-use axum::response::Response;
+use axum::http::{header, HeaderMap, HeaderValue};
+use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -50,54 +50,176 @@ pub struct FieldFormat {
     pub format: Option<String>,
 }
 
-/// Streams one of the job's files as an attachment.
+/// What a request's `Range` header asks of a file of `len` bytes (RFC 9110, section 14).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) enum ByteRange {
+    /// No usable `Range` (none, another unit, several ranges, or one that does not parse, which
+    /// the RFC lets a server ignore): the whole file, `200`.
+    Whole,
+    /// One satisfiable range, bytes `start..end` (end exclusive, clipped to the file): `206`.
+    Part(std::ops::Range<u64>),
+    /// A range starting at or past the end, or a zero-length suffix: `416`.
+    Unsatisfiable,
+}
+
+/// Reads a `Range` header against a file of `len` bytes: `bytes=a-b`, `bytes=a-` and
+/// `bytes=-n` (the last `n` bytes) are served; several ranges get the whole file, since one
+/// `multipart/byteranges` answer would cost more code than clients of these files need.
+pub(super) fn byte_range(header: Option<&HeaderValue>, len: u64) -> ByteRange {
+    let Some(text) = header.and_then(|h| h.to_str().ok()) else {
+        return ByteRange::Whole;
+    };
+    let Some((unit, spec)) = text.trim().split_once('=') else {
+        return ByteRange::Whole;
+    };
+    if !unit.trim().eq_ignore_ascii_case("bytes") || spec.contains(',') {
+        return ByteRange::Whole;
+    }
+    let Some((first, last)) = spec.trim().split_once('-') else {
+        return ByteRange::Whole;
+    };
+    let number = |s: &str| -> Option<u64> {
+        (!s.is_empty() && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse().ok())
+            .flatten()
+    };
+    match (first.trim(), last.trim()) {
+        ("", suffix) => match number(suffix) {
+            None => ByteRange::Whole,
+            Some(0) => ByteRange::Unsatisfiable,
+            Some(_) if len == 0 => ByteRange::Unsatisfiable,
+            Some(n) => ByteRange::Part(len.saturating_sub(n)..len),
+        },
+        (start, "") => match number(start) {
+            None => ByteRange::Whole,
+            Some(a) if a >= len => ByteRange::Unsatisfiable,
+            Some(a) => ByteRange::Part(a..len),
+        },
+        (start, end) => match (number(start), number(end)) {
+            (Some(a), Some(b)) if a <= b => {
+                if a >= len {
+                    ByteRange::Unsatisfiable
+                } else {
+                    ByteRange::Part(a..b.min(len - 1) + 1)
+                }
+            }
+            // `b < a` or not numbers: invalid, so ignored.
+            _ => ByteRange::Whole,
+        },
+    }
+}
+
+/// `416` for a file of `len` bytes, with `Content-Range: bytes */len` as the RFC asks.
+fn range_not_satisfiable(filename: &str, len: u64) -> Response {
+    let mut response = ApiError::new(
+        axum::http::StatusCode::RANGE_NOT_SATISFIABLE,
+        "range-not-satisfiable",
+        format!("{filename} has {len} bytes; the range asked for starts past its end"),
+    )
+    .into_response();
+    if let Ok(v) = HeaderValue::from_str(&format!("bytes */{len}")) {
+        response.headers_mut().insert(header::CONTENT_RANGE, v);
+    }
+    response
+}
+
+/// A file's answer: `200` with the whole `len` bytes, or `206` with the bytes `part` of them
+/// (`Content-Range`); both say that ranges are served.
+fn file_answer(
+    body: Body,
+    content_type: &'static str,
+    filename: &str,
+    len: u64,
+    part: Option<std::ops::Range<u64>>,
+) -> Response {
+    let mut response = Response::new(body);
+    let headers = response.headers_mut();
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    headers.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
+    match &part {
+        Some(r) => {
+            headers.insert(header::CONTENT_LENGTH, HeaderValue::from(r.end - r.start));
+            if let Ok(v) = HeaderValue::from_str(&format!("bytes {}-{}/{len}", r.start, r.end - 1))
+            {
+                headers.insert(header::CONTENT_RANGE, v);
+            }
+        }
+        None => {
+            headers.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+        }
+    }
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{filename}\"")) {
+        headers.insert(header::CONTENT_DISPOSITION, v);
+    }
+    if part.is_some() {
+        *response.status_mut() = axum::http::StatusCode::PARTIAL_CONTENT;
+    }
+    response
+}
+
+/// Streams one of the job's files as an attachment, or the one range of it that `range` (the
+/// request's `Range` header) asks for.
 pub(super) async fn file_response(
     path: PathBuf,
     content_type: &'static str,
     filename: String,
+    range: Option<&HeaderValue>,
 ) -> ApiResult<Response> {
-    let file = tokio::fs::File::open(&path).await.map_err(|e| {
+    use tokio::io::{AsyncReadExt, AsyncSeekExt};
+    let unreadable = |e: std::io::Error| {
         if e.kind() == std::io::ErrorKind::NotFound {
             ApiError::not_found(format!("{filename} is missing from the job's outputs"))
         } else {
             ApiError::internal(format!("cannot read {}: {e}", path.display()))
         }
-    })?;
-    let len = file.metadata().await.map(|m| m.len()).ok();
-    let body = Body::from_stream(tokio_util::io::ReaderStream::with_capacity(file, 256 << 10));
-    let mut response = Response::new(body);
-    let headers = response.headers_mut();
-    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-    if let Some(len) = len {
-        headers.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
-    }
-    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{filename}\"")) {
-        headers.insert(header::CONTENT_DISPOSITION, v);
-    }
-    Ok(response)
+    };
+    let mut file = tokio::fs::File::open(&path).await.map_err(unreadable)?;
+    let len = file.metadata().await.map_err(unreadable)?.len();
+    Ok(match byte_range(range, len) {
+        ByteRange::Whole => {
+            let body =
+                Body::from_stream(tokio_util::io::ReaderStream::with_capacity(file, 256 << 10));
+            file_answer(body, content_type, &filename, len, None)
+        }
+        ByteRange::Part(r) => {
+            file.seek(std::io::SeekFrom::Start(r.start))
+                .await
+                .map_err(unreadable)?;
+            let part = file.take(r.end - r.start);
+            let body =
+                Body::from_stream(tokio_util::io::ReaderStream::with_capacity(part, 256 << 10));
+            file_answer(body, content_type, &filename, len, Some(r))
+        }
+        ByteRange::Unsatisfiable => range_not_satisfiable(&filename, len),
+    })
 }
 
 /// Serves the output file `relative` (a path in the run's output directory) of job `id`: from
 /// the data directory, or from the object store when there is one (streamed, or a `307` to a
-/// presigned URL with `presigned_get`). 404 naming `filename` when it is not there.
+/// presigned URL with `presigned_get`, where the client sends its `Range` to the store). 404
+/// naming `filename` when it is not there. One range (`range`, the request's `Range` header)
+/// is served as `206` from either store; from the object store with a ranged GET, after a HEAD
+/// for the object's size, so only those bytes leave the store.
 pub(super) async fn output_response(
     state: &AppState,
     id: JobId,
     relative: &str,
     content_type: &'static str,
     filename: String,
+    range: Option<&HeaderValue>,
 ) -> ApiResult<Response> {
     let Some(blobs) = state.store.blobs() else {
         let path = state.store.job_output_dir(id).join(relative);
-        return file_response(path, content_type, filename).await;
+        return file_response(path, content_type, filename, range).await;
     };
     let key = format!("jobs/{id}/{}/{relative}", crate::service::store::JOB_OUTPUT);
     let missing = || ApiError::not_found(format!("{filename} is missing from the job's outputs"));
+    let failed = |e: crate::Error| ApiError::internal(e.to_string());
     if blobs.presigns() {
         let url = blobs
             .presigned_get(&key)
             .await
-            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(failed)?
             .ok_or_else(missing)?;
         let mut response = Response::new(Body::empty());
         *response.status_mut() = axum::http::StatusCode::TEMPORARY_REDIRECT;
@@ -106,19 +228,38 @@ pub(super) async fn output_response(
         response.headers_mut().insert(header::LOCATION, location);
         return Ok(response);
     }
+    if range.is_some() {
+        let len = blobs
+            .head(&key)
+            .await
+            .map_err(failed)?
+            .ok_or_else(missing)?;
+        match byte_range(range, len) {
+            ByteRange::Whole => {}
+            ByteRange::Part(r) => {
+                let stream = blobs
+                    .get_range_stream(&key, r.clone())
+                    .await
+                    .map_err(failed)?
+                    .ok_or_else(missing)?;
+                let body = Body::from_stream(stream);
+                return Ok(file_answer(body, content_type, &filename, len, Some(r)));
+            }
+            ByteRange::Unsatisfiable => return Ok(range_not_satisfiable(&filename, len)),
+        }
+    }
     let (len, stream) = blobs
         .get_stream(&key)
         .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(failed)?
         .ok_or_else(missing)?;
-    let mut response = Response::new(Body::from_stream(stream));
-    let headers = response.headers_mut();
-    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-    headers.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
-    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{filename}\"")) {
-        headers.insert(header::CONTENT_DISPOSITION, v);
-    }
-    Ok(response)
+    Ok(file_answer(
+        Body::from_stream(stream),
+        content_type,
+        &filename,
+        len,
+        None,
+    ))
 }
 
 /// Whether the job's output file `relative` exists (locally or in the object store).
@@ -193,6 +334,7 @@ pub(super) fn read_output(
 pub async fn job_summary(
     State(state): State<SharedState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
 ) -> ApiResult<Response> {
     let id = job_id(&id)?;
     finished_job(&state, id)?;
@@ -202,6 +344,7 @@ pub async fn job_summary(
         "summary.json",
         "application/json",
         format!("{id}-summary.json"),
+        headers.get(header::RANGE),
     )
     .await
 }
@@ -255,6 +398,10 @@ pub async fn job_frames(
             outside the lungs) or, with \
             `format=mha`, the same as MetaImage",
          content(("application/gzip"), ("application/octet-stream"))),
+        (status = 206, description = "One range of the file (`Range: bytes=a-b`, `a-` or \
+            `-n`) with `Content-Range`; several ranges are answered 200 with the whole file"),
+        (status = 416, description = "The range starts past the file's end; `Content-Range: \
+            bytes */<length>`", body = Problem, content_type = "application/problem+json"),
         (status = 307, description = "With an S3 object store and `presigned_get`: the \
             object's presigned URL in `Location`"),
         (status = 404, description = "No such job or frame", body = Problem, content_type = "application/problem+json"),
@@ -266,7 +413,9 @@ pub async fn frame_displacement(
     State(state): State<SharedState>,
     Path((id, k)): Path<(String, String)>,
     Query(format): Query<FieldFormat>,
+    headers: HeaderMap,
 ) -> ApiResult<Response> {
+    let range = headers.get(header::RANGE);
     let id = job_id(&id)?;
     finished_job(&state, id)?;
     let k: usize = k
@@ -290,6 +439,7 @@ pub async fn frame_displacement(
                 &field,
                 "application/gzip",
                 format!("{id}-frame-{k}.nii.gz"),
+                range,
             )
             .await
         }
@@ -307,6 +457,7 @@ pub async fn frame_displacement(
                     &written,
                     "application/octet-stream",
                     format!("{id}-frame-{k}.mha"),
+                    range,
                 )
                 .await;
             }
@@ -318,6 +469,7 @@ pub async fn frame_displacement(
                 path,
                 "application/octet-stream",
                 format!("{id}-frame-{k}.mha"),
+                range,
             )
             .await
         }
@@ -388,6 +540,7 @@ fn metaimage_copy(state: &AppState, id: JobId, k: usize) -> ApiResult<PathBuf> {
 pub async fn job_trajectories(
     State(state): State<SharedState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
 ) -> ApiResult<Response> {
     let id = job_id(&id)?;
     finished_job(&state, id)?;
@@ -403,6 +556,45 @@ pub async fn job_trajectories(
         "trajectories.csv",
         "text/csv",
         format!("{id}-trajectories.csv"),
+        headers.get(header::RANGE),
     )
     .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_byte_range_is_served_and_the_rest_is_whole_or_unsatisfiable() {
+        let ask =
+            |text: &str, len: u64| byte_range(Some(&HeaderValue::from_str(text).unwrap()), len);
+        assert_eq!(byte_range(None, 10), ByteRange::Whole);
+        assert_eq!(ask("bytes=0-3", 10), ByteRange::Part(0..4));
+        assert_eq!(ask("bytes=4-", 10), ByteRange::Part(4..10));
+        assert_eq!(ask("bytes=-3", 10), ByteRange::Part(7..10));
+        // Past the end: clipped; a suffix longer than the file is the whole file as a range.
+        assert_eq!(ask("bytes=8-100", 10), ByteRange::Part(8..10));
+        assert_eq!(ask("bytes=-100", 10), ByteRange::Part(0..10));
+        assert_eq!(ask("Bytes = 2-2", 10), ByteRange::Part(2..3));
+        for unsatisfiable in ["bytes=10-", "bytes=10-12", "bytes=-0"] {
+            assert_eq!(
+                ask(unsatisfiable, 10),
+                ByteRange::Unsatisfiable,
+                "{unsatisfiable}"
+            );
+        }
+        assert_eq!(ask("bytes=-1", 0), ByteRange::Unsatisfiable);
+        // Ignored, as the RFC allows: several ranges, another unit, nonsense, b < a.
+        for whole in [
+            "bytes=0-1,4-5",
+            "items=0-1",
+            "bytes=a-b",
+            "bytes=5-2",
+            "bytes=",
+            "0-1",
+        ] {
+            assert_eq!(ask(whole, 10), ByteRange::Whole, "{whole}");
+        }
+    }
 }
