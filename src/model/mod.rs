@@ -1,6 +1,7 @@
-//! The mechanical model: material, element, mesh, constraints and loads.
+//! The mechanical model: material, element, mesh, constraints, contact and loads.
 
 pub mod constraints;
+pub mod contact;
 pub mod cube_lattice;
 pub mod element;
 pub mod grid;
@@ -12,6 +13,7 @@ pub mod spring_law;
 pub mod volumetric;
 
 pub use constraints::{ConstraintSet, NodeConstraint};
+pub use contact::{Contact, HuntCrossley, Obstacle, ObstacleMotion};
 pub use cube_lattice::CubeLattice;
 pub use element::{BrickCoefficients, BrickShape};
 pub use grid::VoxelGrid;

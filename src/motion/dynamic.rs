@@ -302,7 +302,8 @@ fn damped_scene(scene: &Scene, damping_ratio: f64) -> Result<Scene> {
         .into_iter()
         .map(|c| c.with_damping_ratio(damping_ratio))
         .collect();
-    Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())
+    Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?
+        .with_contact(scene.contact().clone())
 }
 
 /// The bellows law's compliance, mL/Pa, and whether it was calibrated: the given one, else
@@ -514,7 +515,7 @@ impl<'s> ExplicitState<'s> {
             self.scene,
             &self.x,
             &self.v,
-            load_factor,
+            (load_factor, self.t_s),
             &self.inv_mass,
             (&mut self.force, &mut self.external),
             &mut self.a,
@@ -552,19 +553,21 @@ fn check_output_times(times: &[f64], t_start: f64, t_end: f64) -> Result<()> {
     Ok(())
 }
 
-/// Accelerations of the free motion under internal forces (dampers read `v`) and the scene's
-/// loads scaled by `load_factor`; `scratch` holds the force and external-load buffers.
+/// Accelerations of the free motion under internal forces (dampers read `v`), contact with the
+/// obstacles where they are at `t_s` and the scene's loads scaled by `load_factor`;
+/// `scratch` holds the force and external-load buffers.
 fn accelerations(
     scene: &Scene,
     x: &[V3],
     v: &[V3],
-    load_factor: f64,
+    (load_factor, t_s): (f64, f64),
     inv_mass: &[f64],
     scratch: (&mut [V3], &mut [V3]),
     a: &mut [V3],
 ) {
     let (force, external) = scratch;
     scene.internal_forces(x, Some(v), force);
+    scene.add_contact_forces(x, Some(v), t_s, force);
     scene.external_forces(x, external);
     for (f, e) in force.iter_mut().zip(external.iter()) {
         *f += e * load_factor;

@@ -15,7 +15,8 @@ use crate::{Error, Result};
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct TimeStepBound {
     /// Upper bound on the highest angular eigenfrequency ω_max (rad/s), from Gershgorin discs of
-    /// M⁻¹K with K the small-strain stiffness of springs and corrections.
+    /// M⁻¹K with K the small-strain stiffness of springs and corrections (and of linear
+    /// contact penalties, n = 1).
     pub omega_max_rad_per_s: f64,
     /// Upper bound on the damping rate of the highest mode (1/s), from Gershgorin discs of M⁻¹C.
     pub damping_rate_per_s: f64,
@@ -59,6 +60,18 @@ impl TimeStepBound {
                 for i in 0..3 {
                     k_sum[node as usize][i] += kr[3 * k + i];
                     c_sum[node as usize][i] += cr[3 * k + i];
+                }
+            }
+        }
+        // A linear penalty (n = 1) is a spring to the obstacle of stiffness k on each tested
+        // node; other exponents have no bound independent of the penetration (their tangent
+        // n·k·δⁿ⁻¹ grows with it), and their step is the caller's to choose.
+        for o in &scene.contact().obstacles {
+            if o.law.exponent == 1.0 {
+                for &n in &o.nodes {
+                    for k in &mut k_sum[n as usize] {
+                        *k += o.law.stiffness_n_per_m_pow_n;
+                    }
                 }
             }
         }
@@ -198,7 +211,7 @@ impl<'s> ExplicitIntegrator<'s> {
     fn update_accelerations(&mut self, with_velocities: bool) {
         let vel = with_velocities.then_some(&self.velocities[..]);
         self.scene
-            .total_forces(&self.positions, vel, &mut self.force);
+            .total_forces_at(&self.positions, vel, self.time_s, &mut self.force);
         self.scene
             .constraints
             .project_field(&self.positions, &mut self.force);
@@ -229,6 +242,8 @@ impl<'s> ExplicitIntegrator<'s> {
         self.scene
             .constraints
             .project_field(&self.positions, &mut self.velocities);
+        // Moving obstacles are where they are at the end of the step.
+        self.time_s += h;
         self.update_accelerations(true);
         for (v, a) in self.velocities.iter_mut().zip(&self.accelerations) {
             *v += a * (0.5 * h);
@@ -236,7 +251,6 @@ impl<'s> ExplicitIntegrator<'s> {
         self.scene
             .constraints
             .project_field(&self.positions, &mut self.velocities);
-        self.time_s += h;
         self.steps += 1;
     }
 
@@ -287,7 +301,9 @@ impl<'s> ExplicitIntegrator<'s> {
                 ));
             }
             let (a, b) = (&mut self.force, &mut self.scratch);
-            residual = self.scene.relative_residual(&self.positions, (a, b));
+            residual = self
+                .scene
+                .relative_residual_at(&self.positions, self.time_s, (a, b));
             if residual < 0.9 * best {
                 (best, best_since) = (residual, self.steps);
             }

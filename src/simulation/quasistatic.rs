@@ -121,6 +121,8 @@ pub struct QuasiStaticSolver<'s> {
     shift_scale: f64,
     /// Imposed displacements are applied at λ times this (1: in step with the loads).
     imposed_motion_scale: f64,
+    /// Moving obstacles are held where they are at this time, s.
+    contact_time_s: f64,
     setup_time_s: f64,
 }
 
@@ -186,6 +188,7 @@ impl<'s> QuasiStaticSolver<'s> {
             shift_scale: shift_scale(scene),
             shift: 0.0,
             imposed_motion_scale: 1.0,
+            contact_time_s: 0.0,
             projector,
             preconditioner,
             setup_time_s: start.elapsed().as_secs_f64(),
@@ -338,9 +341,11 @@ impl<'s> QuasiStaticSolver<'s> {
             constraints,
             lambda,
             h_scale: shortest_edge_m(scene),
+            contact_time_s: self.contact_time_s,
         };
+        let t_c = self.contact_time_s;
         let mut sigma = 0.0;
-        let mut res = residual(scene, constraints, lambda, x, w);
+        let mut res = residual(scene, constraints, lambda, t_c, x, w);
         let mut stalled = 0;
         let mut capped_krylov = 0;
         for it in 0..self.settings.max_newton_iterations {
@@ -380,7 +385,7 @@ impl<'s> QuasiStaticSolver<'s> {
             let Some(new_res) = accepted else {
                 x.copy_from_slice(&base.x);
                 w.f = base.f;
-                res = residual(scene, constraints, lambda, x, w);
+                res = residual(scene, constraints, lambda, t_c, x, w);
                 report.residual = res;
                 return Err(Error::NotConverged {
                     iterations: it + 1,
@@ -471,7 +476,7 @@ impl<'s> QuasiStaticSolver<'s> {
         for attempt in 0..12 {
             self.set_shift(*sigma);
             let (delta, lin, lin_res) = self.linear_solve(
-                increment.lambda,
+                increment,
                 *sigma,
                 &base.x,
                 &base.f,
@@ -522,7 +527,8 @@ impl<'s> QuasiStaticSolver<'s> {
             .pressures
             .iter_mut()
             .for_each(|p| p.pressure_pa *= lambda);
-        let damped = Scene::new(mesh, constraints.clone(), loads)?;
+        let damped = Scene::new(mesh, constraints.clone(), loads)?
+            .with_contact(self.scene.contact().frozen_at(self.contact_time_s))?;
         let mut integrator = super::explicit::ExplicitIntegrator::from_positions(&damped, x)?;
         let outcome = integrator.run_to_equilibrium(&super::explicit::ExplicitSettings {
             residual_tolerance: tol,
@@ -571,6 +577,11 @@ impl<'s> QuasiStaticSolver<'s> {
         self.imposed_motion_scale
     }
 
+    /// Holds moving obstacles where they are at `t_s` in later solves (0 by default).
+    pub fn set_contact_time(&mut self, t_s: f64) {
+        self.contact_time_s = t_s;
+    }
+
     /// Stops every later solve, and the one under way at its next check, once `flag` is raised.
     pub fn set_cancel(&mut self, flag: super::CancelFlag) {
         self.settings.cancel = Some(flag);
@@ -609,7 +620,7 @@ impl<'s> QuasiStaticSolver<'s> {
     #[allow(clippy::too_many_arguments)]
     fn linear_solve(
         &mut self,
-        lambda: f64,
+        increment: &LoadIncrement,
         sigma: f64,
         x_base: &[V3],
         f_base: &[V3],
@@ -618,6 +629,7 @@ impl<'s> QuasiStaticSolver<'s> {
         h_scale: f64,
         report: &mut SolveReport,
     ) -> (Vec<f64>, usize, f64) {
+        let (lambda, t_c) = (increment.lambda, increment.contact_time_s);
         let scene = self.scene;
         let mass = &scene.mesh.node_mass_kg;
         let constrained = &self.constrained;
@@ -647,7 +659,7 @@ impl<'s> QuasiStaticSolver<'s> {
                 let nd = *nd as usize;
                 xp[nd] = x_base[nd] + pm * vn[nd] * hstep;
             }
-            total_force(scene, lambda, &xp, &mut fp, &mut ext);
+            total_force(scene, lambda, t_c, &xp, &mut fp, &mut ext);
             let on = nodes_mut(out);
             for ((((o, a), b), d), m) in on.iter_mut().zip(&fp).zip(f_base).zip(vn).zip(mass) {
                 *o = (b - a) / hstep + d * (sigma * m);
@@ -719,12 +731,14 @@ fn is_raised(flag: &Option<super::CancelFlag>) -> bool {
         .is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed))
 }
 
-/// One load increment's equilibrium problem: its constraints, load factor λ and the length
-/// scale of the finite-difference Jacobian (the shortest element edge).
+/// One load increment's equilibrium problem: its constraints, load factor λ, the length
+/// scale of the finite-difference Jacobian (the shortest element edge) and the time at which
+/// moving obstacles are held.
 struct LoadIncrement<'c> {
     constraints: &'c ConstraintSet,
     lambda: f64,
     h_scale: f64,
+    contact_time_s: f64,
 }
 
 /// The state a Newton iteration starts from (restored when no step is accepted), with the
@@ -787,6 +801,7 @@ fn line_search(
     let LoadIncrement {
         constraints,
         lambda,
+        contact_time_s,
         ..
     } = *increment;
     let res = base.residual;
@@ -797,7 +812,7 @@ fn line_search(
             *xi = b + d * alpha;
         }
         constraints.project_positions(x);
-        let new_res = residual(scene, constraints, lambda, x, w);
+        let new_res = residual(scene, constraints, lambda, contact_time_s, x, w);
         let ok = new_res.is_finite()
             && if sigma == 0.0 {
                 new_res < res
@@ -841,9 +856,19 @@ impl Work {
     }
 }
 
-/// f = internal + λ·external at x; `ext` receives the unscaled external force.
-fn total_force(scene: &Scene, lambda: f64, x: &[V3], f: &mut [V3], ext: &mut [V3]) -> (f64, f64) {
+/// f = internal + contact (obstacles held where they are at `t_c`) + λ·external at x; `ext`
+/// receives the unscaled external force. Contact is not scaled: it is a reaction, and counts
+/// with the internal forces in the residual's scale.
+fn total_force(
+    scene: &Scene,
+    lambda: f64,
+    t_c: f64,
+    x: &[V3],
+    f: &mut [V3],
+    ext: &mut [V3],
+) -> (f64, f64) {
     scene.internal_forces(x, None, f);
+    scene.add_contact_forces(x, None, t_c, f);
     scene.external_forces(x, ext);
     let mut ni = 0.0;
     let mut ne = 0.0;
@@ -860,10 +885,11 @@ fn residual(
     scene: &Scene,
     constraints: &ConstraintSet,
     lambda: f64,
+    t_c: f64,
     x: &[V3],
     w: &mut Work,
 ) -> f64 {
-    let (ni, ne) = total_force(scene, lambda, x, &mut w.f, &mut w.ext);
+    let (ni, ne) = total_force(scene, lambda, t_c, x, &mut w.f, &mut w.ext);
     w.r.copy_from_slice(&w.f);
     constraints.project_field(x, &mut w.r);
     let scale = ni.max(ne).max(force_floor_n(scene));
@@ -947,4 +973,115 @@ fn invert_blocks(
             d.try_inverse().unwrap_or_else(Matrix3::identity)
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use nalgebra::Vector3;
+
+    use super::*;
+    use crate::model::contact::{Contact, HuntCrossley, Obstacle, ObstacleMotion};
+    use crate::model::{Loads, Material, SignedDistanceField, VoxelGrid};
+
+    const EDGE_M: f64 = 0.005;
+
+    /// A soft block (E = 10 kPa) of `cells` cubes of 5 mm, bottom face on z = 0, with its
+    /// lattice coordinates.
+    fn block(cells: [usize; 3]) -> (crate::model::HexMesh, Vec<[u32; 3]>) {
+        let material = Material::new(10e3, 0.3, 1000.0).unwrap();
+        let gm = VoxelGrid::filled_box(cells, [EDGE_M; 3], Vector3::zeros())
+            .to_mesh(material)
+            .unwrap();
+        (gm.mesh, gm.node_lattice)
+    }
+
+    /// A node of the block carries about E·h = 50 N/m; a penalty a hundred times stiffer
+    /// lets an obstacle in by about a hundredth of how far it pushes.
+    const PENALTY_N_PER_M: f64 = 100.0 * 10e3 * EDGE_M;
+
+    #[test]
+    fn contact_keeps_nodes_outside_a_sphere_pushed_into_a_held_block() {
+        // 20 × 20 × 10 mm, top face held; a sphere of radius 15 mm under the middle of the
+        // bottom face rises 3 mm into it (a moving obstacle, held at t = 1 s for the solve).
+        let cells = [4, 4, 2];
+        let (mesh, lattice) = block(cells);
+        let mut cs = ConstraintSet::new(mesh.node_count());
+        for (i, l) in lattice.iter().enumerate() {
+            if l[2] == cells[2] as u32 {
+                cs.fix(i as u32, mesh.rest_positions_m[i]).unwrap();
+            }
+        }
+        let (r, centre) = (0.015, Vector3::new(0.01, 0.01, -0.015));
+        let push_m = 0.003;
+        let field = SignedDistanceField::from_fn(
+            Vector3::new(-0.01, -0.01, -0.04),
+            Vector3::new(0.03, 0.03, 0.015),
+            0.0025,
+            |p| (p - centre).norm() - r,
+        )
+        .unwrap();
+        for exponent in [1.0, 1.5] {
+            // Same stiffness at 0.1 mm penetration for both exponents.
+            let k = PENALTY_N_PER_M * 1e-4_f64.powf(1.0 - exponent);
+            let contact = Contact {
+                obstacles: vec![Obstacle {
+                    field: Arc::new(field.clone()),
+                    motion: ObstacleMotion::Translated {
+                        times_s: vec![0.0, 1.0],
+                        offsets_m: vec![Vector3::zeros(), Vector3::new(0.0, 0.0, push_m)],
+                    },
+                    law: HuntCrossley::new(k, exponent, 0.5).unwrap(),
+                    nodes: mesh.surface_nodes(),
+                }],
+            };
+            let scene = Scene::new(mesh.clone(), cs.clone(), Loads::default())
+                .unwrap()
+                .with_contact(contact)
+                .unwrap();
+            let mut solver =
+                QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
+            solver.set_contact_time(1.0);
+            let (x, report) = solver.solve(None).unwrap();
+            assert!(report.residual <= 1e-6, "n = {exponent}: {report:?}");
+            let deepest = scene.contact().deepest(&x, 1.0).unwrap();
+            println!(
+                "sphere pushed 3 mm into the block, n = {exponent}: deepest node {:.4} mm; \
+                 {} Newton, {} Krylov iterations, {} pseudo-time, {} relaxation steps",
+                deepest.depth_m * 1e3,
+                report.newton_iterations,
+                report.linear_iterations,
+                report.pseudo_time_steps,
+                report.relaxation_steps
+            );
+            // Without contact the bottom's middle node would sit `push_m` inside.
+            let rest_depth = scene
+                .contact()
+                .deepest(&mesh.rest_positions_m, 1.0)
+                .unwrap();
+            assert!((rest_depth.depth_m - push_m).abs() < 1e-4, "{rest_depth:?}");
+            assert!(
+                deepest.depth_m < 0.05 * push_m,
+                "n = {exponent}: {deepest:?} ({report:?})"
+            );
+            // The block gave way instead: its bottom's middle rose by about the push.
+            let mid = lattice.iter().position(|l| *l == [2, 2, 0]).unwrap();
+            let rise = x[mid].z - mesh.rest_positions_m[mid].z;
+            assert!(
+                rise > 0.9 * push_m && rise < push_m,
+                "n = {exponent}: rise {rise}"
+            );
+            // At rest (t = 0) the sphere only touches: nothing moves.
+            let mut at_rest =
+                QuasiStaticSolver::new(&scene, QuasiStaticSettings::default()).unwrap();
+            let (x0, _) = at_rest.solve(None).unwrap();
+            let moved = x0
+                .iter()
+                .zip(&mesh.rest_positions_m)
+                .map(|(a, b)| (a - b).norm())
+                .fold(0.0, f64::max);
+            assert!(moved < 1e-9, "{moved}");
+        }
+    }
 }

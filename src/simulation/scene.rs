@@ -2,7 +2,7 @@
 
 use super::forces::ForceEvaluator;
 use crate::math::V3;
-use crate::model::{ConstraintSet, HexMesh, Loads};
+use crate::model::{ConstraintSet, Contact, HexMesh, Loads};
 use crate::{Error, Result};
 
 /// Everything the solvers need: mesh, constraints, loads, and the packed force kernels.
@@ -14,6 +14,9 @@ pub struct Scene {
     pub constraints: ConstraintSet,
     /// External loads.
     pub loads: Loads,
+    /// Rigid obstacles the nodes are kept out of by penalty contact (none by default); set
+    /// with [`Scene::with_contact`].
+    contact: Contact,
     forces: ForceEvaluator,
 }
 
@@ -27,8 +30,29 @@ impl Scene {
             mesh,
             constraints,
             loads,
+            contact: Contact::default(),
             forces,
         })
+    }
+
+    /// The same scene with `contact` (checked against the mesh) in place of its obstacles.
+    pub fn with_contact(mut self, contact: Contact) -> Result<Self> {
+        contact.validate(self.node_count())?;
+        self.contact = contact;
+        Ok(self)
+    }
+
+    /// The scene's obstacles.
+    pub fn contact(&self) -> &Contact {
+        &self.contact
+    }
+
+    /// Adds the contact forces at positions `x`, velocities `v` (dampers off when `None`) and
+    /// time `t_s` (where moving obstacles are) to `out`.
+    pub fn add_contact_forces(&self, x: &[V3], v: Option<&[V3]>, t_s: f64, out: &mut [V3]) {
+        if !self.contact.is_empty() {
+            self.contact.accumulate(x, v, t_s, out);
+        }
     }
 
     /// Number of nodes.
@@ -59,10 +83,18 @@ impl Scene {
         self.forces.internal_forces(&self.mesh, x, v, out);
     }
 
-    /// Internal plus external force on every node (constraints not applied), into `out`.
+    /// Internal plus external force on every node (constraints not applied), into `out`,
+    /// with contact against the obstacles where they are at time 0.
     pub fn total_forces(&self, x: &[V3], v: Option<&[V3]>, out: &mut [V3]) {
+        self.total_forces_at(x, v, 0.0, out);
+    }
+
+    /// Internal, external and contact force on every node at time `t_s` (constraints not
+    /// applied), into `out`.
+    pub fn total_forces_at(&self, x: &[V3], v: Option<&[V3]>, t_s: f64, out: &mut [V3]) {
         self.forces.internal_forces(&self.mesh, x, v, out);
         self.loads.accumulate(&self.mesh, x, out);
+        self.add_contact_forces(x, v, t_s, out);
     }
 
     /// External forces only, into `out`.
@@ -74,10 +106,18 @@ impl Scene {
     /// Relative force residual ‖free part of total force‖ / max(‖external‖, ‖internal‖).
     ///
     /// `scratch` must hold two node-sized buffers; returns the residual and fills
-    /// `scratch.0` with the free part of the total force.
+    /// `scratch.0` with the free part of the total force. Obstacles are where they are at
+    /// time 0.
     pub fn relative_residual(&self, x: &[V3], scratch: (&mut [V3], &mut [V3])) -> f64 {
+        self.relative_residual_at(x, 0.0, scratch)
+    }
+
+    /// [`Scene::relative_residual`] with the obstacles where they are at `t_s`; contact
+    /// forces count with the internal ones (they are reactions, as the springs' are).
+    pub fn relative_residual_at(&self, x: &[V3], t_s: f64, scratch: (&mut [V3], &mut [V3])) -> f64 {
         let (total, ext) = scratch;
         self.forces.internal_forces(&self.mesh, x, None, total);
+        self.add_contact_forces(x, None, t_s, total);
         let internal_norm = norm(total);
         self.external_forces(x, ext);
         let external_norm = norm(ext);

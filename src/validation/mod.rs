@@ -3,6 +3,7 @@
 
 pub mod calculix;
 pub mod composite;
+pub mod contact;
 pub mod lung_calculix;
 pub mod material_laws;
 pub mod patch;

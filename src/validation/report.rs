@@ -6,6 +6,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::composite::{run_composite, CompositeOptions, CompositeReport};
+use super::contact::{run_contact_study, ContactReport, DropConfig};
 use super::material_laws::{run_material_law_study, MaterialLawReport};
 use super::patch::{run_patch_tests, PatchConfig, PatchReport};
 use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
@@ -37,6 +38,8 @@ pub struct ValidationReport {
     pub material_laws: MaterialLawReport,
     /// Explicit integrator: automatic time step across materials and sizes, overstep caught.
     pub stability: StabilityReport,
+    /// Penalty contact: a block dropped on a plane against Hunt and Crossley's closed form.
+    pub contact: ContactReport,
     /// Composite cases against CalculiX (absent when skipped).
     pub composite: Option<CompositeReport>,
     /// Wall time of the whole suite, seconds.
@@ -63,6 +66,8 @@ pub fn run_validation(
     } else {
         StabilityConfig::full()
     })?;
+    progress("contact (a block dropped on a plane, Hunt–Crossley closed form)");
+    let contact = run_contact_study(&DropConfig::default())?;
     let composite = if options.calculix {
         progress("composite cases against CalculiX (cantilever, L)");
         let opts = if options.quick {
@@ -81,6 +86,7 @@ pub fn run_validation(
         sweep,
         material_laws,
         stability,
+        contact,
         composite,
         wall_time_s: start.elapsed().as_secs_f64(),
     })
@@ -101,6 +107,7 @@ impl ValidationReport {
             self.sweep.to_markdown(),
             self.material_laws.to_markdown(),
             self.stability.to_markdown(),
+            self.contact.to_markdown(),
         ] {
             s.push_str(&section);
             s.push('\n');
