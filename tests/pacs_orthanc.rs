@@ -7,7 +7,6 @@
 mod common;
 mod orthanc_support;
 
-use std::path::Path;
 use std::process::Output;
 
 use common::{absent_temp_dir, bin, sample, write_breaths};
@@ -28,21 +27,7 @@ fn text(o: &Output) -> String {
     )
 }
 
-fn study_uid(dir: &Path) -> String {
-    let first = std::fs::read_dir(dir)
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
-    let obj = open_file(first).unwrap();
-    obj.element(tags::STUDY_INSTANCE_UID)
-        .unwrap()
-        .to_str()
-        .unwrap()
-        .trim_end_matches('\0')
-        .to_string()
-}
+use orthanc_support::study_uid_of as study_uid;
 
 #[test]
 #[cfg_attr(

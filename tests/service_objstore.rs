@@ -557,21 +557,7 @@ fn an_api_process_and_a_worker_share_only_the_database_and_the_bucket() {
 
 /// The bundled DICOM series' StudyInstanceUID.
 fn phantom_study_uid() -> String {
-    use dicom_dictionary_std::tags;
-    let first = std::fs::read_dir(sample("phantom-dicom"))
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
-    dicom_object::open_file(first)
-        .unwrap()
-        .element(tags::STUDY_INSTANCE_UID)
-        .unwrap()
-        .to_str()
-        .unwrap()
-        .trim_end_matches('\0')
-        .to_string()
+    orthanc_support::study_uid_of(&sample("phantom-dicom"))
 }
 
 #[test]

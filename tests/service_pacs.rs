@@ -9,29 +9,15 @@ mod service_support;
 
 use std::time::Duration;
 
-use dicom_dictionary_std::tags;
 use orthanc_support::{free_port, Orthanc};
 use serde_json::{json, Value};
 use service_support::{
     accepted_job_id, assert_problem, breathing_trace, sample, tiny_request, Scratch, ServerProcess,
 };
 
-/// The bundled CT's StudyInstanceUID.
+/// The bundled DICOM series' StudyInstanceUID.
 fn phantom_study_uid() -> String {
-    let first = std::fs::read_dir(sample("phantom-dicom"))
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
-    dicom_object::open_file(first)
-        .unwrap()
-        .element(tags::STUDY_INSTANCE_UID)
-        .unwrap()
-        .to_str()
-        .unwrap()
-        .trim_end_matches('\0')
-        .to_string()
+    orthanc_support::study_uid_of(&sample("phantom-dicom"))
 }
 
 /// A short job on a PACS series: 12 mm elements, two breaths, two phases, the virtual CT

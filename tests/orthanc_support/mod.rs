@@ -161,3 +161,23 @@ impl Drop for Orthanc {
         let _ = std::fs::remove_dir_all(&self.dir);
     }
 }
+
+/// The StudyInstanceUID of the DICOM series in `dir` (read from its first file): what a test
+/// asks the PACS for after storing that series.
+pub fn study_uid_of(dir: &Path) -> String {
+    use dicom_dictionary_std::tags;
+    let first = std::fs::read_dir(dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    dicom_object::open_file(first)
+        .unwrap()
+        .element(tags::STUDY_INSTANCE_UID)
+        .unwrap()
+        .to_str()
+        .unwrap()
+        .trim_end_matches('\0')
+        .to_string()
+}
