@@ -37,10 +37,12 @@
 //! * **Sliding** ([`SlidingMode`]). Bricks must keep their exact rest shape, so surface nodes
 //!   stay on the element staircase, up to about half an element off the smooth wall (reported).
 //!   The solver projects sliding nodes onto their constraint before solving, so a
-//!   [`NodeConstraint::Surface`] on the wall would deform the lung with no load. By default
+//!   constraint on the wall's zero level would deform the lung with no load. By default
 //!   each sliding node therefore slides on the wall's tangent plane through its rest position
 //!   ([`NodeConstraint::Plane`], normal from the wall): exact at rest, smooth normals.
-//!   [`SlidingMode::WallSurface`] gives the literal surface constraint. A wall bent to pass
+//!   [`SlidingMode::WallSurface`] holds it on the curved wall instead, on the level of the
+//!   wall's cubic B-spline through its rest position ([`NodeConstraint::Surface`]), except at
+//!   ridges of the field ([`MIN_SURFACE_GRADIENT`]), where it keeps its plane. A wall bent to pass
 //!   through every staircase node was tried and rejected: between a convex and a concave
 //!   corner one element apart the field must vanish twice along the normal, so its gradient
 //!   collapsed (|∇| down to 0.006 on the CIP case at 8 mm) and Newton failed even at zero load.
