@@ -212,14 +212,6 @@ impl ConstraintSet {
         }
     }
 
-    /// Whether a constraint's free directions change with the node's position (a curved
-    /// surface), so a solver must take its projector where the node is, not at rest.
-    pub fn has_curved_constraints(&self) -> bool {
-        self.entries
-            .iter()
-            .any(|(_, c)| matches!(c, NodeConstraint::Surface { .. }))
-    }
-
     /// Puts every constrained node of `positions` onto its manifold.
     pub fn project_positions(&self, positions: &mut [Vector3<f64>]) {
         for (node, c) in &self.entries {

@@ -112,8 +112,8 @@ pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotio
     let mut moving_nodes = 0;
     // In place: `ConstraintSet::set` would normalise the normal again, and a last-bit change
     // would keep a share of 0 from being the rigid wall exactly.
-    let fields = scene.constraints.fields.clone();
-    for (n, c) in scene.constraints.entries.iter_mut() {
+    let (entries, fields) = (&mut scene.constraints.entries, &scene.constraints.fields);
+    for (n, c) in entries.iter_mut() {
         let n = *n as usize;
         if !is_costal[n] {
             continue;

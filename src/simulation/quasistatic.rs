@@ -476,14 +476,7 @@ impl<'s> QuasiStaticSolver<'s> {
         for attempt in 0..12 {
             self.set_shift(*sigma);
             let (delta, lin, lin_res) = self.linear_solve(
-                increment,
-                *sigma,
-                &base.x,
-                &base.f,
-                &base.b,
-                base.eta,
-                increment.h_scale,
-                report,
+                increment, *sigma, &base.x, &base.f, &base.b, base.eta, report,
             );
             if let Some((alpha, new_res)) =
                 line_search(self.scene, increment, base, *sigma, &delta, x, w)
@@ -626,10 +619,13 @@ impl<'s> QuasiStaticSolver<'s> {
         f_base: &[V3],
         b: &[f64],
         eta: f64,
-        h_scale: f64,
         report: &mut SolveReport,
     ) -> (Vec<f64>, usize, f64) {
-        let (lambda, t_c) = (increment.lambda, increment.contact_time_s);
+        let (lambda, t_c, h_scale) = (
+            increment.lambda,
+            increment.contact_time_s,
+            increment.h_scale,
+        );
         let scene = self.scene;
         let mass = &scene.mesh.node_mass_kg;
         let constrained = &self.constrained;
