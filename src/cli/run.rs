@@ -98,6 +98,11 @@ pub struct RunArgs {
     /// `wall-surface` (on the curved wall itself, at their rest distance from it).
     #[arg(long, value_name = "tangent-plane|wall-surface", value_parser = parse_sliding)]
     sliding: Option<lungmotion::ingest::lung_model::SlidingMode>,
+    /// How the lung's base follows the diaphragm: `cranio-caudal` (each node on a vertical
+    /// line, a piston; the default, or the config's `diaphragm`), `sliding` (on a dome that
+    /// descends and flattens with the breath) or `free`.
+    #[arg(long, value_name = "cranio-caudal|sliding|free", value_parser = parse_diaphragm)]
+    diaphragm: Option<lungmotion::ingest::lung_model::DiaphragmMotion>,
     /// Each spring's law T = λ₂·d + λ₁·d³: `linear` (Baudet), `cubic` (λ₁/λ₂ fitted to
     /// compressible neo-Hookean at the material's ν) or `cubic:<λ₁/λ₂>` (default linear, or the
     /// config's `[material] spring_law`).
@@ -138,6 +143,19 @@ fn parse_sliding(text: &str) -> Result<lungmotion::ingest::lung_model::SlidingMo
         "wall_surface" => Ok(SlidingMode::WallSurface),
         _ => Err(format!(
             "`{text}` is not a sliding mode: tangent-plane or wall-surface"
+        )),
+    }
+}
+
+/// `--diaphragm`: the configuration's names, with `-` or `_`.
+fn parse_diaphragm(text: &str) -> Result<lungmotion::ingest::lung_model::DiaphragmMotion, String> {
+    use lungmotion::ingest::lung_model::DiaphragmMotion;
+    match text.trim().replace('-', "_").as_str() {
+        "cranio_caudal" => Ok(DiaphragmMotion::CranioCaudal),
+        "sliding" => Ok(DiaphragmMotion::Sliding),
+        "free" => Ok(DiaphragmMotion::Free),
+        _ => Err(format!(
+            "`{text}` is not a diaphragm motion: cranio-caudal, sliding or free"
         )),
     }
 }
@@ -266,6 +284,9 @@ impl RunArgs {
         }
         if let Some(mode) = self.sliding {
             config.sliding = mode;
+        }
+        if let Some(motion) = self.diaphragm {
+            config.diaphragm = motion;
         }
         if let Some(n) = self.max_equilibria {
             config.budget.max_equilibria = n;

@@ -55,6 +55,26 @@ impl NodeConstraint {
             rest_level_m: level_m,
         }
     }
+
+    /// Multiplies the displacement this constraint imposes on its node (resting at `rest_m`)
+    /// by `factor`: a moved plane, level or target moves `factor` times as far; a line
+    /// imposes none.
+    pub fn scale_imposed_offset(&mut self, rest_m: Vector3<f64>, factor: f64) {
+        match self {
+            NodeConstraint::Fixed { target_m } => {
+                *target_m = rest_m + (*target_m - rest_m) * factor
+            }
+            NodeConstraint::Plane { point_m, .. } => {
+                *point_m = rest_m + (*point_m - rest_m) * factor
+            }
+            NodeConstraint::Surface {
+                level_m,
+                rest_level_m,
+                ..
+            } => *level_m = *rest_level_m + (*level_m - *rest_level_m) * factor,
+            NodeConstraint::Line { .. } => {}
+        }
+    }
 }
 
 /// All constraints of a model: at most one per node, stored sparsely.

@@ -87,16 +87,7 @@ pub fn check_rib_cage_share(share: f64) -> Result<()> {
 pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotion {
     let rest = &scene.mesh.rest_positions_m;
     let lung = model.node_lung();
-    let costal: Vec<u32> = model
-        .group_nodes(ConstraintGroup::Costal)
-        .into_iter()
-        .filter(|&n| {
-            matches!(
-                scene.constraints.get(n),
-                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
-            )
-        })
-        .collect();
+    let costal = super::diaphragm::sliding_nodes_of(scene, model, ConstraintGroup::Costal);
     // The costal face's height per lung (index 1 right, 2 left).
     let mut extent = [(f64::INFINITY, f64::NEG_INFINITY); 3];
     for &n in &costal {

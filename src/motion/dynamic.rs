@@ -228,6 +228,13 @@ pub fn run_dynamic(
     let t_end = trace.time_s[trace.time_s.len() - 1];
     check_output_times(output_times_s, t_start, t_end)?;
 
+    if scene.walls_make_volume {
+        return Err(Error::settings(
+            "dynamic settings",
+            "the scene's walls make the volume (a sliding diaphragm), but the dynamic bellows \
+             drive the lungs with pressure: use the quasi-static motion, or a piston diaphragm",
+        ));
+    }
     let damped = damped_scene(scene, settings.voigt_damping_ratio)?;
     let rest = &damped.mesh.rest_positions_m;
     let rest_volume_m3 = damped.mesh.enclosed_volume_m3(rest);

@@ -5,7 +5,7 @@
 //! everywhere, and on constrained nodes the wall or the diaphragm takes its blocked part.
 
 use super::REFERENCE_PRESSURE_PA;
-use crate::ingest::lung_model::LungModel;
+use crate::ingest::lung_model::{DiaphragmMotion, LungModel};
 use crate::model::{Loads, SurfacePressure};
 use crate::simulation::Scene;
 use crate::Result;
@@ -26,13 +26,48 @@ pub fn lung_scene(model: &LungModel) -> Result<Scene> {
     Scene::new(mesh, model.constraints.clone(), loads)
 }
 
+/// How a run's walls move with the breath.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WallMotion {
+    /// Share of each breath the rib cage makes ([`super::move_costal_wall`]; 0 a rigid wall).
+    pub rib_cage_share: f64,
+    /// How much less the dome's rim descends than its top, with a sliding diaphragm
+    /// ([`super::diaphragm`]; 0 a translated dome).
+    pub dome_flattening: f64,
+}
+
+impl Default for WallMotion {
+    /// As a run has them by default: the rib cage makes a third of each breath.
+    fn default() -> Self {
+        WallMotion {
+            rib_cage_share: super::PHYSIOLOGICAL_RIB_CAGE_SHARE,
+            dome_flattening: 0.0,
+        }
+    }
+}
+
 /// The scene a breathing run solves: [`lung_scene`], with the costal wall moving
-/// ([`super::move_costal_wall`]) when the rib cage has a share of the breath. A rigid wall
-/// leaves the planes where they are, bit for bit.
-pub fn run_scene(model: &LungModel, rib_cage_share: f64) -> Result<Scene> {
+/// ([`super::move_costal_wall`]) when the rib cage has a share of the breath, and the
+/// diaphragm descending ([`super::diaphragm`]) when the model's base slides on it. A rigid
+/// wall over a piston diaphragm leaves the planes where they are, bit for bit.
+pub fn run_scene(model: &LungModel, walls: &WallMotion) -> Result<Scene> {
     let mut scene = lung_scene(model)?;
-    if rib_cage_share > 0.0 {
+    if walls.rib_cage_share > 0.0 {
         super::move_costal_wall(&mut scene, model);
+    }
+    if model.report.diaphragm_motion == DiaphragmMotion::Sliding {
+        use super::diaphragm::{check_dome_flattening, lower_diaphragm, share_sweep_between_walls};
+        check_dome_flattening(walls.dome_flattening)?;
+        let moved = lower_diaphragm(&mut scene, model, walls.dome_flattening);
+        let descent = share_sweep_between_walls(
+            &mut scene,
+            model,
+            walls.rib_cage_share,
+            walls.dome_flattening,
+            moved,
+        )?;
+        tracing::debug!(?descent, "diaphragm descends with the breath");
+        scene.walls_make_volume = true;
     }
     Ok(scene)
 }

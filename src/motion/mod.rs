@@ -8,11 +8,12 @@
 //! its own node positions and reported beside the target.
 
 pub mod chest_wall;
+pub mod diaphragm;
 pub mod dynamic;
 mod lung_scene;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
-pub use lung_scene::{lung_scene, run_scene};
+pub use lung_scene::{lung_scene, run_scene, WallMotion};
 
 use std::time::Instant;
 
@@ -203,6 +204,12 @@ pub fn run_motion(
     }
     chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
     let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
+    // With a sliding diaphragm the imposed motions are the rib cage's and the diaphragm's.
+    let chest_wall_part = if scene.walls_make_volume {
+        settings.rib_cage_share
+    } else {
+        1.0
+    };
     let rest = scene.mesh.rest_positions_m.clone();
     let keyframes = solve_key_volumes(&mut driver, settings, &targets, volume_tolerance_ml)?;
     let mut solver = FrameSolver {
@@ -242,7 +249,8 @@ pub fn run_motion(
             pressure_pa: solve.pressure_pa,
             chest_wall_volume_ml: solver
                 .driver
-                .imposed_sweep_ml(solve.pressure_pa / REFERENCE_PRESSURE_PA),
+                .imposed_sweep_ml(solve.pressure_pa / REFERENCE_PRESSURE_PA)
+                * chest_wall_part,
             max_displacement_mm: max_d,
             mean_displacement_mm: sum_d / rest.len() as f64,
             interpolated: solve.interpolated,

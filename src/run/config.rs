@@ -6,7 +6,7 @@
 //! element_size_mm = 6.0
 //! series = "number:3"                 # a folder with several DICOM series: which to read
 //!                                      # (uid:<UID>, number:<N>, description:<text>)
-//! diaphragm = "cranio_caudal"          # or "free"
+//! diaphragm = "cranio_caudal"          # or "free", or "sliding" (the base slides on a descending dome)
 //! sliding = "tangent_plane"            # or "wall_surface": sliding nodes stay on the curved wall
 //! [material]
 //! youngs_modulus_pa = 390.0
@@ -24,6 +24,7 @@
 //! interpolation_tolerance_mm = 0.1
 //! solve_every_frame = false
 //! rib_cage_share = 0.333               # share of each breath the chest wall makes (0: rigid)
+//! dome_flattening = 0.0                # diaphragm = "sliding": how much less the rim descends
 //! # [motion.dynamic]                 # optional: bellows law, explicit dynamics (hysteresis)
 //! # resistance_pa_s_per_ml = 0.05
 //! # inertance_pa_s2_per_ml = 0.001
@@ -176,6 +177,9 @@ pub struct MotionConfig {
     /// Share of every volume change the chest wall makes by moving outward (0: a rigid
     /// wall, all of it from the diaphragm).
     pub rib_cage_share: f64,
+    /// With `diaphragm = "sliding"`: how much less the dome's rim descends than its top
+    /// (0: the dome translates).
+    pub dome_flattening: f64,
     /// Dynamic mode (bellows law, explicit integration) instead of quasi-static frames.
     pub dynamic: Option<DynamicConfig>,
 }
@@ -270,6 +274,7 @@ impl Default for MotionConfig {
             volume_tolerance_fraction: m.volume_tolerance_fraction,
             // The run's default is physiological (the library's, for any scene, is rigid).
             rib_cage_share: crate::motion::PHYSIOLOGICAL_RIB_CAGE_SHARE,
+            dome_flattening: 0.0,
             dynamic: None,
         }
     }
@@ -432,6 +437,9 @@ impl RunConfig {
                 ),
             );
         }
+        if let Err(e) = crate::motion::diaphragm::check_dome_flattening(m.dome_flattening) {
+            return bad("motion.dome_flattening", e.to_string());
+        }
         if let DriverKind::Compliance {
             compliance_ml_per_pa: Some(c),
         } = m.driver
@@ -445,6 +453,15 @@ impl RunConfig {
         }
         if let Some(d) = &m.dynamic {
             d.settings().validate()?;
+            if self.diaphragm == DiaphragmMotion::Sliding {
+                return bad(
+                    "diaphragm",
+                    "\"sliding\" works with the quasi-static motion only: the dynamic bellows \
+                     drive the lungs with pressure, and with a sliding diaphragm the walls make \
+                     the volume; use \"cranio_caudal\" or drop [motion.dynamic]"
+                        .to_string(),
+                );
+            }
         }
         if let crate::breathing::VolumeReference::Absolute { scanned_volume_ml } =
             self.trace.reference
@@ -457,6 +474,14 @@ impl RunConfig {
             }
         }
         Ok(())
+    }
+
+    /// How the walls move with the breath.
+    pub fn wall_motion(&self) -> crate::motion::WallMotion {
+        crate::motion::WallMotion {
+            rib_cage_share: self.motion.rib_cage_share,
+            dome_flattening: self.motion.dome_flattening,
+        }
     }
 
     /// The motion settings this configuration asks for.

@@ -597,7 +597,7 @@ fn scene_of_scan<'a>(
                 outcome,
                 &inputs.points,
                 config.outputs.field_grid,
-                config.motion.rib_cage_share,
+                &config.wall_motion(),
             )
             .map(|scene| (scene, seconds(t)))
         },
@@ -675,10 +675,10 @@ fn build_lung_scene(
     outcome: &IngestOutcome,
     tracked: &[TrackedPoint],
     field_grid: crate::outputs::displacement_field::FieldGrid,
-    rib_cage_share: f64,
+    walls: &crate::motion::WallMotion,
 ) -> Result<LungScene> {
     let model = &outcome.model;
-    let scene = crate::motion::run_scene(model, rib_cage_share)?;
+    let scene = crate::motion::run_scene(model, walls)?;
     let mesh = &scene.mesh;
     let field = FieldSampler::new(
         &outcome.segmentation.lungs,

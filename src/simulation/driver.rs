@@ -54,7 +54,7 @@ pub struct ImposedMotionShare {
     /// Share of every volume change asked of the imposed motions.
     pub share: f64,
     /// dV/dλ of the surface pressure alone, imposed motions held at rest, mL (for a rigid
-    /// wall, the driver's first estimate).
+    /// wall, the driver's first estimate; 0, not measured, when the walls make the volume).
     pub pressure_slope_ml: f64,
     /// What the imposed motions add to dV/dλ per unit scale, mL: their sweep less the
     /// tissue's recoil elsewhere.
@@ -181,7 +181,7 @@ impl<'s> BreathingDriver<'s> {
             predicted: Vec::new(),
             progress: None,
             equilibria: 0,
-            sweep_ml_per_unit: Self::imposed_sweep_ml_per_unit(scene),
+            sweep_ml_per_unit: scene.imposed_sweep_ml(|_| true),
             linear_response: None,
         })
     }
@@ -338,6 +338,9 @@ impl<'s> BreathingDriver<'s> {
             });
         }
         let sweep_ml = self.sweep_ml_per_unit;
+        if self.scene.walls_make_volume {
+            return self.let_walls_make_volume(share);
+        }
         if share == 0.0 {
             self.set_imposed_motion_scale(0.0);
             return Ok(ImposedMotionShare {
@@ -391,6 +394,29 @@ impl<'s> BreathingDriver<'s> {
         })
     }
 
+    /// The walls enclose the lung and make every volume change (their split, `share` from
+    /// the rib cage, is in the scene's constraints): scales them to sweep the driver's
+    /// compliance volume at λ = 1, so the pressure reported stays ΔV / C, and the pressure
+    /// only adds what sliding along the walls changes.
+    fn let_walls_make_volume(&mut self, share: f64) -> Result<ImposedMotionShare> {
+        let sweep_ml = self.sweep_ml_per_unit;
+        if !(sweep_ml.is_finite() && sweep_ml > 0.0) {
+            return Err(Error::InvalidModel(format!(
+                "the scene's walls make the volume, but they sweep {sweep_ml} mL per unit of \
+                 motion: they must enlarge the lungs"
+            )));
+        }
+        let scale = self.slope_ml / sweep_ml;
+        self.set_imposed_motion_scale(scale);
+        Ok(ImposedMotionShare {
+            share,
+            pressure_slope_ml: 0.0,
+            motion_slope_ml: sweep_ml,
+            sweep_ml_per_unit: sweep_ml,
+            scale,
+        })
+    }
+
     /// dV/dλ from rest with the imposed motions at `scale`, by one solve of about 5 mL (linear,
     /// yet far above the solver's round-off), and dx/dλ there; leaves the path at rest.
     fn linear_slope_ml(&mut self, scale: f64) -> Result<(f64, Vec<V3>)> {
@@ -407,28 +433,6 @@ impl<'s> BreathingDriver<'s> {
         let response = x.iter().zip(rest).map(|(x, r)| (x - r) / probe).collect();
         self.set_imposed_motion_scale(scale);
         Ok((slope, response))
-    }
-
-    /// Volume the imposed displacements of `scene` sweep at load factor 1 and imposed-motion
-    /// scale 1, mL (central difference of the enclosed volume: first order in the
-    /// displacements).
-    fn imposed_sweep_ml_per_unit(scene: &Scene) -> f64 {
-        let rest = &scene.mesh.rest_positions_m;
-        let moves = crate::model::constraints::imposed_displacements(&scene.constraints, rest);
-        if moves.is_empty() {
-            return 0.0;
-        }
-        let largest = moves.iter().map(|(_, d)| d.norm()).fold(0.0, f64::max);
-        // A step of a micrometre at the largest offset keeps the difference linear.
-        let eps = 1e-6 / largest;
-        let mut x = rest.clone();
-        let mut volume = |t: f64| {
-            for &(n, d) in &moves {
-                x[n as usize] = rest[n as usize] + d * t;
-            }
-            scene.mesh.enclosed_volume_m3(&x)
-        };
-        (volume(eps) - volume(-eps)) / (2.0 * eps) * 1e6
     }
 
     /// Sets the solver's imposed-motion scale; the load path solved so far is forgotten (it

@@ -14,6 +14,10 @@ pub struct Scene {
     pub constraints: ConstraintSet,
     /// External loads.
     pub loads: Loads,
+    /// The imposed motions enclose the lung and make every volume change (a diaphragm the
+    /// base slides on, with the rib cage): the pressure only slides the lung along them, so
+    /// the driver scales them to the breath instead of sharing it with the pressure.
+    pub walls_make_volume: bool,
     /// Rigid obstacles the nodes are kept out of by penalty contact (none by default); set
     /// with [`Scene::with_contact`].
     contact: Contact,
@@ -30,6 +34,7 @@ impl Scene {
             mesh,
             constraints,
             loads,
+            walls_make_volume: false,
             contact: Contact::default(),
             forces,
         })
@@ -76,6 +81,28 @@ impl Scene {
             .at_load_factor(rest, 0.0)
             .project_positions(&mut x);
         x
+    }
+
+    /// Volume the imposed displacements of the nodes `include` accepts sweep at load factor 1,
+    /// mL (central difference of the enclosed volume: first order in the displacements).
+    pub fn imposed_sweep_ml(&self, include: impl Fn(u32) -> bool) -> f64 {
+        let rest = &self.mesh.rest_positions_m;
+        let mut moves = crate::model::constraints::imposed_displacements(&self.constraints, rest);
+        moves.retain(|&(n, _)| include(n));
+        if moves.is_empty() {
+            return 0.0;
+        }
+        let largest = moves.iter().map(|(_, d)| d.norm()).fold(0.0, f64::max);
+        // A step of a micrometre at the largest offset keeps the difference linear.
+        let eps = 1e-6 / largest;
+        let mut x = rest.clone();
+        let mut volume = |t: f64| {
+            for &(n, d) in &moves {
+                x[n as usize] = rest[n as usize] + d * t;
+            }
+            self.mesh.enclosed_volume_m3(&x)
+        };
+        (volume(eps) - volume(-eps)) / (2.0 * eps) * 1e6
     }
 
     /// Internal forces only, into `out`.

@@ -45,7 +45,7 @@ use crate::ingest::scan::load_ct;
 use crate::math::V3;
 use crate::model::Material;
 use crate::motion::{
-    elastic_compliance_ml_per_pa, run_motion, run_scene, MotionReport, MotionSettings,
+    elastic_compliance_ml_per_pa, run_motion, run_scene, MotionReport, MotionSettings, WallMotion,
     PHYSIOLOGICAL_RIB_CAGE_SHARE, REFERENCE_PRESSURE_PA,
 };
 use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
@@ -486,7 +486,7 @@ fn build_case(
     };
     let t = Instant::now();
     // As `lungmotion run` builds it by default: the chest wall makes a third of each breath.
-    let scene = run_scene(&outcome.model, PHYSIOLOGICAL_RIB_CAGE_SHARE)?;
+    let scene = run_scene(&outcome.model, &WallMotion::default())?;
     let scene_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
     // As `lungmotion run` writes them by default.

@@ -29,7 +29,9 @@ use crate::ingest::lung_model::LungModelSettings;
 use crate::ingest::pipeline::{ingest_scan, IngestSettings};
 use crate::ingest::scan::load_ct;
 use crate::math::V3;
-use crate::motion::{run_motion, run_scene, MotionSettings, PHYSIOLOGICAL_RIB_CAGE_SHARE};
+use crate::motion::{
+    run_motion, run_scene, MotionSettings, WallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE,
+};
 use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
 use crate::process::{load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss};
 use crate::validation::lung_calculix::{compare_end_inhale_with_calculix, LungCalculixSettings};
@@ -324,7 +326,7 @@ fn run_size(
     )
     .and_then(|outcome| {
         // As `lungmotion run` builds it by default (the chest wall makes a third of each breath).
-        let scene = run_scene(&outcome.model, PHYSIOLOGICAL_RIB_CAGE_SHARE)?;
+        let scene = run_scene(&outcome.model, &WallMotion::default())?;
         let sampler = FieldSampler::new(
             &outcome.segmentation.lungs,
             &scene.mesh,

@@ -1,6 +1,6 @@
 //! The constraint set the solvers use, from the groups: hilum fixed, sliding nodes on the
-//! wall, the diaphragmatic face as [`DiaphragmMotion`] says; and how far the sliding nodes
-//! sit off the wall at rest.
+//! wall, the diaphragmatic face as [`DiaphragmMotion`] says (on lines, free, or on the wall
+//! like the sliding nodes); and how far the sliding nodes sit off the wall at rest.
 
 use nalgebra::Vector3;
 
@@ -46,6 +46,28 @@ pub(super) fn constrain_nodes(
     };
     let mut sliding = Vec::new();
     let mut on_planes = 0;
+    // A node held on the wall where it rests: its tangent plane, or the wall's level set
+    // through it (the level through the rest position: a staircase node half an element off
+    // the smooth wall stays there, unloaded, and slides along the wall at that distance).
+    let mut on_wall = |n: u32| {
+        let rest = mesh.rest_positions_m[n as usize];
+        let plane = NodeConstraint::Plane {
+            point_m: rest,
+            normal: wall.normal(rest),
+        };
+        match surface_field {
+            None => plane,
+            Some(field) => {
+                let (level_m, gradient) = wall.spline(rest);
+                if gradient.norm() >= MIN_SURFACE_GRADIENT {
+                    NodeConstraint::surface(field, level_m)
+                } else {
+                    on_planes += 1;
+                    plane
+                }
+            }
+        }
+    };
     for &n in surface {
         let Some(group) = ConstraintGroup::from_code(node_group[n as usize]) else {
             continue;
@@ -55,27 +77,7 @@ pub(super) fn constrain_nodes(
                 constraints.fix(n, mesh.rest_positions_m[n as usize])?;
             }
             BoundaryCondition::SlidingOnWall => {
-                let rest = mesh.rest_positions_m[n as usize];
-                let plane = NodeConstraint::Plane {
-                    point_m: rest,
-                    normal: wall.normal(rest),
-                };
-                let constraint = match surface_field {
-                    None => plane,
-                    // The level through the rest position: a staircase node half an
-                    // element off the smooth wall stays there, unloaded, and slides along
-                    // the wall at that distance.
-                    Some(field) => {
-                        let (level_m, gradient) = wall.spline(rest);
-                        if gradient.norm() >= MIN_SURFACE_GRADIENT {
-                            NodeConstraint::surface(field, level_m)
-                        } else {
-                            on_planes += 1;
-                            plane
-                        }
-                    }
-                };
-                constraints.set(n, constraint)?;
+                constraints.set(n, on_wall(n))?;
                 sliding.push(n);
             }
             BoundaryCondition::FollowsDiaphragm => match settings.diaphragm {
@@ -86,6 +88,8 @@ pub(super) fn constrain_nodes(
                         direction: Vector3::z(),
                     },
                 )?,
+                // The diaphragm is the wall here: the run moves it down with the breath.
+                DiaphragmMotion::Sliding => constraints.set(n, on_wall(n))?,
                 DiaphragmMotion::Free => {}
             },
         }

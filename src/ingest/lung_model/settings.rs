@@ -36,6 +36,11 @@ pub enum DiaphragmMotion {
     /// Free in every direction, driven by the pressure alone (the base bulges; large volumes
     /// crush the costophrenic elements).
     Free,
+    /// Sliding on the diaphragm's surface, which descends and flattens with the breath (a
+    /// configuration change rather than a piston, `crate::motion::diaphragm`): each node keeps
+    /// to the wall's tangent plane (or, with [`SlidingMode::WallSurface`], the wall's level
+    /// set) through its rest position, moved down as the dome descends, and slides on it.
+    Sliding,
 }
 
 /// How to build the model.

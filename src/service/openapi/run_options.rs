@@ -135,8 +135,9 @@ fn without_defaults() -> Value {
         "properties": {
             "element_size_mm": {"type": "number", "minimum": 2, "maximum": 16,
                 "description": "Edge of the cubic elements, mm"},
-            "diaphragm": {"type": "string", "enum": ["cranio_caudal", "free"],
-                "description": "How the diaphragmatic face moves: along LPS z only, or free"},
+            "diaphragm": {"type": "string", "enum": ["cranio_caudal", "free", "sliding"],
+                "description": "How the diaphragmatic face moves: along LPS z only, free, or \
+                    sliding on a dome that descends and flattens with the breath"},
             "sliding": {"type": "string", "enum": ["tangent_plane", "wall_surface"],
                 "description": "How the costal, mediastinal and apex nodes follow the wall: \
                     each on the plane tangent to the wall at rest, or on the curved wall \
@@ -182,6 +183,9 @@ fn without_defaults() -> Value {
                     "volume_tolerance_fraction": {"type": "number", "exclusiveMinimum": 0,
                         "maximum": 0.1, "description": "Volume driver tolerance, fraction of \
                             the tidal volume"},
+                    "dome_flattening": {"type": "number", "minimum": 0, "maximum": 0.8,
+                        "description": "With diaphragm = sliding: how much less the dome's \
+                            rim descends than its top (0: the dome translates)"},
                     "rib_cage_share": {"type": "number", "minimum": 0, "maximum": 0.8,
                         "description": "Share of every volume change the chest wall makes by \
                             moving outward (0: a rigid wall; physiological about 1/3)"},
