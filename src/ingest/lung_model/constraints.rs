@@ -49,7 +49,7 @@ pub(super) fn constrain_nodes(
     // A node held on the wall where it rests: its tangent plane, or the wall's level set
     // through it (the level through the rest position: a staircase node half an element off
     // the smooth wall stays there, unloaded, and slides along the wall at that distance).
-    let mut on_wall = |n: u32| {
+    let mut on_wall = |n: u32, surface_field: Option<u32>| {
         let rest = mesh.rest_positions_m[n as usize];
         let plane = NodeConstraint::Plane {
             point_m: rest,
@@ -77,7 +77,7 @@ pub(super) fn constrain_nodes(
                 constraints.fix(n, mesh.rest_positions_m[n as usize])?;
             }
             BoundaryCondition::SlidingOnWall => {
-                constraints.set(n, on_wall(n))?;
+                constraints.set(n, on_wall(n, surface_field))?;
                 sliding.push(n);
             }
             BoundaryCondition::FollowsDiaphragm => match settings.diaphragm {
@@ -88,8 +88,11 @@ pub(super) fn constrain_nodes(
                         direction: Vector3::z(),
                     },
                 )?,
-                // The diaphragm is the wall here: the run moves it down with the breath.
-                DiaphragmMotion::Sliding => constraints.set(n, on_wall(n))?,
+                // The diaphragm is the wall here: the run moves it down with the breath. On
+                // its tangent plane even where the other faces slide on the curved wall: on
+                // the level sets of the dome, whose curvature is tightest in the costophrenic
+                // recess, the POPI cycle at 6 mm took 41 s instead of 13 s.
+                DiaphragmMotion::Sliding => constraints.set(n, on_wall(n, None))?,
                 DiaphragmMotion::Free => {}
             },
         }
