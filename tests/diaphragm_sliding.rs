@@ -1,7 +1,7 @@
 //! The diaphragm the base slides on (issue 14, part 3): with `diaphragm = "sliding"` the
 //! diaphragmatic nodes stay on their descending surfaces and slide along them (the piston's
-//! nodes keep their x and y), the walls sweep the rib-cage share asked, the dome flattens as
-//! asked, and what the mode cannot do is refused by name.
+//! nodes keep their x and y), the rib cage makes the share of the volume asked, the dome
+//! flattens as asked, and what the mode cannot do is refused by name.
 
 use std::path::PathBuf;
 
@@ -101,9 +101,9 @@ fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
         dome_flattening: 0.0,
     };
     let scene = run_scene(&sliding, &walls).unwrap();
-    assert!(scene.walls_make_volume);
+    let costal_part = scene.walls_make_volume.expect("the walls make the volume");
     let piston_scene = run_scene(&piston, &walls).unwrap();
-    assert!(!piston_scene.walls_make_volume);
+    assert!(piston_scene.walls_make_volume.is_none());
 
     let (report, x) = end_inhale(&scene, share);
     let (_, xp) = end_inhale(&piston_scene, share);
@@ -149,14 +149,19 @@ fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
         "the sliding base moved only {slide_mm} mm sideways"
     );
 
-    // The rib cage sweeps the share asked of the walls' sweep; sliding along the staircase
-    // faces adds a little volume neither wall sweeps.
+    // The rib cage makes the share of the volume asked: its sweep was raised above the
+    // share of the walls' sweep, because the lung also slides along the walls and the
+    // pressure swells it, which neither wall sweeps.
+    assert!(
+        costal_part > share && costal_part < share + 0.1,
+        "the costal wall makes {costal_part} of the walls' sweep"
+    );
     for f in report
         .frames
         .iter()
         .filter(|f| f.simulated_volume_ml > 50.0)
     {
-        let walls_ml = f.chest_wall_volume_ml / share;
+        let walls_ml = f.chest_wall_volume_ml / costal_part;
         let reported = f.chest_wall_volume_ml / f.simulated_volume_ml;
         assert!(
             (walls_ml - f.simulated_volume_ml).abs() < 0.15 * f.simulated_volume_ml,
@@ -165,7 +170,7 @@ fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
             f.simulated_volume_ml
         );
         assert!(
-            (reported - share).abs() < 0.05,
+            (reported - share).abs() < 0.02,
             "frame {}: a rib-cage share of {reported:.3}",
             f.index
         );

@@ -228,7 +228,7 @@ pub fn run_dynamic(
     let t_end = trace.time_s[trace.time_s.len() - 1];
     check_output_times(output_times_s, t_start, t_end)?;
 
-    if scene.walls_make_volume {
+    if scene.walls_make_volume.is_some() {
         return Err(Error::settings(
             "dynamic settings",
             "the scene's walls make the volume (a sliding diaphragm), but the dynamic bellows \

@@ -67,7 +67,23 @@ pub fn run_scene(model: &LungModel, walls: &WallMotion) -> Result<Scene> {
             moved,
         )?;
         tracing::debug!(?descent, "diaphragm descends with the breath");
-        scene.walls_make_volume = true;
+        let mut chest_wall_part = walls.rib_cage_share;
+        if walls.rib_cage_share > 0.0 {
+            // The driver's compliance when the run does not give one: the elastic one.
+            let rest_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;
+            let material = scene.mesh.classes.first().map(|c| c.material);
+            let compliance =
+                material.map_or(1.0, |m| super::elastic_compliance_ml_per_pa(rest_ml, &m));
+            let split = super::diaphragm::calibrate_wall_split(
+                &mut scene,
+                model,
+                walls.rib_cage_share,
+                compliance,
+            )?;
+            tracing::debug!(?split, "walls' sweep split for the rib cage's share");
+            chest_wall_part = split.costal_sweep_fraction;
+        }
+        scene.walls_make_volume = Some(chest_wall_part);
     }
     Ok(scene)
 }

@@ -205,11 +205,7 @@ pub fn run_motion(
     chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
     let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     // With a sliding diaphragm the imposed motions are the rib cage's and the diaphragm's.
-    let chest_wall_part = if scene.walls_make_volume {
-        settings.rib_cage_share
-    } else {
-        1.0
-    };
+    let chest_wall_part = scene.walls_make_volume.unwrap_or(1.0);
     let rest = scene.mesh.rest_positions_m.clone();
     let keyframes = solve_key_volumes(&mut driver, settings, &targets, volume_tolerance_ml)?;
     let mut solver = FrameSolver {

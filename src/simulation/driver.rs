@@ -338,7 +338,7 @@ impl<'s> BreathingDriver<'s> {
             });
         }
         let sweep_ml = self.sweep_ml_per_unit;
-        if self.scene.walls_make_volume {
+        if self.scene.walls_make_volume.is_some() {
             return self.let_walls_make_volume(share);
         }
         if share == 0.0 {
@@ -415,6 +415,16 @@ impl<'s> BreathingDriver<'s> {
             sweep_ml_per_unit: sweep_ml,
             scale,
         })
+    }
+
+    /// dV/dλ from rest, in the linear range, with the imposed motions at `scale` (one small
+    /// solve; the load path returns to rest): how much volume the pressure and the moving
+    /// constraints make per unit of load, for callers that split a breath between walls.
+    pub fn linear_volume_slope_ml(&mut self, scale: f64) -> Result<f64> {
+        let kept = self.solver.imposed_motion_scale();
+        let slope = self.linear_slope_ml(scale).map(|(slope, _)| slope);
+        self.set_imposed_motion_scale(kept);
+        slope
     }
 
     /// dV/dλ from rest with the imposed motions at `scale`, by one solve of about 5 mL (linear,

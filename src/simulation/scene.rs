@@ -14,10 +14,11 @@ pub struct Scene {
     pub constraints: ConstraintSet,
     /// External loads.
     pub loads: Loads,
-    /// The imposed motions enclose the lung and make every volume change (a diaphragm the
-    /// base slides on, with the rib cage): the pressure only slides the lung along them, so
-    /// the driver scales them to the breath instead of sharing it with the pressure.
-    pub walls_make_volume: bool,
+    /// `Some(f)`: the imposed motions enclose the lung and make every volume change (a
+    /// diaphragm the base slides on, with the rib cage), so the driver scales them to the
+    /// breath instead of sharing it with the pressure; `f` is the part of their sweep that is
+    /// the chest wall's, which frames report apart.
+    pub walls_make_volume: Option<f64>,
     /// Rigid obstacles the nodes are kept out of by penalty contact (none by default); set
     /// with [`Scene::with_contact`].
     contact: Contact,
@@ -34,7 +35,7 @@ impl Scene {
             mesh,
             constraints,
             loads,
-            walls_make_volume: false,
+            walls_make_volume: None,
             contact: Contact::default(),
             forces,
         })
