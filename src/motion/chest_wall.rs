@@ -34,9 +34,9 @@
 
 use serde::Serialize;
 
+use super::moving_wall::move_wall_under;
 use crate::ingest::lung_model::{ConstraintGroup, LungModel};
 use crate::model::mesh::HEX_EDGES;
-use crate::model::NodeConstraint;
 use crate::simulation::Scene;
 use crate::{Error, Result};
 
@@ -85,67 +85,28 @@ pub fn check_rib_cage_share(share: f64) -> Result<()> {
 /// to its rib-cage share. Costal nodes on the wall surface itself have their level raised
 /// instead: the wall moves out along its normal and they keep sliding on it.
 pub fn move_costal_wall(scene: &mut Scene, model: &LungModel) -> CostalWallMotion {
-    let rest = &scene.mesh.rest_positions_m;
-    let lung = model.node_lung();
-    let costal = super::diaphragm::sliding_nodes_of(scene, model, ConstraintGroup::Costal);
-    // The costal face's height per lung (index 1 right, 2 left).
-    let mut extent = [(f64::INFINITY, f64::NEG_INFINITY); 3];
-    for &n in &costal {
-        let (z, l) = (rest[n as usize].z, lung[n as usize] as usize);
-        if let Some(e) = extent.get_mut(l) {
-            *e = (e.0.min(z), e.1.max(z));
-        }
-    }
-    let mut is_costal = vec![false; rest.len()];
-    costal.iter().for_each(|&n| is_costal[n as usize] = true);
     let taper_edges = (TAPER_MM / model.report.element_size_mm).round().max(2.0) as u32;
     let hops = surface_hops_from_still_faces(scene, model, taper_edges);
-    let mut moving_nodes = 0;
-    // In place: `ConstraintSet::set` would normalise the normal again, and a last-bit change
-    // would keep a share of 0 from being the rigid wall exactly.
-    let (entries, fields) = (&mut scene.constraints.entries, &scene.constraints.fields);
-    for (n, c) in entries.iter_mut() {
-        let n = *n as usize;
-        if !is_costal[n] {
-            continue;
-        }
-        let r = rest[n];
-        let normal = match c {
-            NodeConstraint::Plane { normal, .. } => *normal,
-            NodeConstraint::Surface { field, .. } => fields[*field as usize].spline_normal(r),
-            _ => continue,
-        };
-        let l = lung[n] as usize;
-        let lateral = match l {
-            1 => -normal.x,
-            2 => normal.x,
-            _ => continue,
-        };
-        let (bottom, top) = extent[l];
-        let t = if top > bottom {
-            (top - r.z) / (top - bottom)
-        } else {
-            1.0
-        };
-        let taper = f64::from(hops[n].min(taper_edges)) / f64::from(taper_edges);
-        let g = taper * t * ((-normal.y).max(0.0) + lateral.max(0.0)) * UNIT_OFFSET_M;
-        if g > 0.0 {
-            match c {
-                NodeConstraint::Plane { point_m, .. } => *point_m = r + normal * g,
-                // The wall moved by g along its normal: the node's level rises by g.
-                NodeConstraint::Surface {
-                    level_m,
-                    rest_level_m,
-                    ..
-                } => *level_m = *rest_level_m + g,
-                _ => continue,
-            }
-            moving_nodes += 1;
-        }
-    }
+    let (moving_nodes, costal_nodes) =
+        move_wall_under(scene, model, ConstraintGroup::Costal, |w| {
+            let normal = w.normal;
+            let lateral = match w.lung {
+                1 => -normal.x,
+                2 => normal.x,
+                _ => return 0.0,
+            };
+            let (bottom, top) = w.face_z_m;
+            let t = if top > bottom {
+                (top - w.rest_m.z) / (top - bottom)
+            } else {
+                1.0
+            };
+            let taper = f64::from(hops[w.node].min(taper_edges)) / f64::from(taper_edges);
+            taper * t * ((-normal.y).max(0.0) + lateral.max(0.0)) * UNIT_OFFSET_M
+        });
     CostalWallMotion {
         moving_nodes,
-        costal_nodes: costal.len(),
+        costal_nodes,
     }
 }
 

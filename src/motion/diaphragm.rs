@@ -28,8 +28,8 @@
 
 use serde::Serialize;
 
+use super::moving_wall::move_wall_under;
 use crate::ingest::lung_model::{ConstraintGroup, LungModel};
-use crate::model::NodeConstraint;
 use crate::simulation::Scene;
 use crate::{Error, Result};
 
@@ -74,57 +74,16 @@ pub struct DiaphragmDescent {
 /// [`crate::ingest::lung_model::DiaphragmMotion::Sliding`]) rests on down by the module's
 /// unit descent, the dome flattening by `flattening`; returns how many moved, and of how many.
 pub fn lower_diaphragm(scene: &mut Scene, model: &LungModel, flattening: f64) -> (usize, usize) {
-    let rest = &scene.mesh.rest_positions_m;
-    let lung = model.node_lung();
-    let diaphragm = sliding_nodes_of(scene, model, ConstraintGroup::Diaphragmatic);
-    // The diaphragmatic face's height per lung (index 1 right, 2 left).
-    let mut extent = [(f64::INFINITY, f64::NEG_INFINITY); 3];
-    for &n in &diaphragm {
-        let (z, l) = (rest[n as usize].z, lung[n as usize] as usize);
-        if let Some(e) = extent.get_mut(l) {
-            *e = (e.0.min(z), e.1.max(z));
-        }
-    }
-    let mut is_diaphragm = vec![false; rest.len()];
-    diaphragm
-        .iter()
-        .for_each(|&n| is_diaphragm[n as usize] = true);
-    let mut moving = 0;
-    let (entries, fields) = (&mut scene.constraints.entries, &scene.constraints.fields);
-    for (n, c) in entries.iter_mut() {
-        let n = *n as usize;
-        if !is_diaphragm[n] {
-            continue;
-        }
-        let r = rest[n];
-        let normal = match c {
-            NodeConstraint::Plane { normal, .. } => *normal,
-            NodeConstraint::Surface { field, .. } => fields[*field as usize].spline_normal(r),
-            _ => continue,
-        };
-        let (low, high) = extent.get(lung[n] as usize).copied().unwrap_or((r.z, r.z));
+    move_wall_under(scene, model, ConstraintGroup::Diaphragmatic, |w| {
+        let (low, high) = w.face_z_m;
         let t = if high > low {
-            (r.z - low) / (high - low)
+            (w.rest_m.z - low) / (high - low)
         } else {
             1.0
         };
-        let descent_m = ((1.0 - flattening) + flattening * t) * UNIT_DESCENT_M;
-        let g = -descent_m * normal.z;
-        if g == 0.0 {
-            continue;
-        }
-        match c {
-            NodeConstraint::Plane { point_m, .. } => *point_m = r + normal * g,
-            NodeConstraint::Surface {
-                level_m,
-                rest_level_m,
-                ..
-            } => *level_m = *rest_level_m + g,
-            _ => continue,
-        }
-        moving += 1;
-    }
-    (moving, diaphragm.len())
+        // A surface moved down by δ moves along its outward normal by −δ·n_z.
+        -((1.0 - flattening) + flattening * t) * UNIT_DESCENT_M * w.normal.z
+    })
 }
 
 /// Rescales the imposed motions of `scene` so that one unit sweeps 1 mL, `rib_cage_share` of
@@ -273,22 +232,4 @@ fn scale_group(scene: &mut Scene, model: &LungModel, group: ConstraintGroup, fac
             c.scale_imposed_offset(rest[*n as usize], factor);
         }
     }
-}
-
-/// Nodes of `group` in `model` that `scene` holds on a plane or a surface.
-pub(super) fn sliding_nodes_of(
-    scene: &Scene,
-    model: &LungModel,
-    group: ConstraintGroup,
-) -> Vec<u32> {
-    model
-        .group_nodes(group)
-        .into_iter()
-        .filter(|&n| {
-            matches!(
-                scene.constraints.get(n),
-                Some(NodeConstraint::Plane { .. } | NodeConstraint::Surface { .. })
-            )
-        })
-        .collect()
 }

@@ -11,6 +11,7 @@ pub mod chest_wall;
 pub mod diaphragm;
 pub mod dynamic;
 mod lung_scene;
+mod moving_wall;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
 pub use lung_scene::{lung_scene, run_scene, WallMotion};
