@@ -3,61 +3,16 @@
 //! nodes keep their x and y), the rib cage makes the share of the volume asked, the dome
 //! flattens as asked, and what the mode cannot do is refused by name.
 
-use std::path::PathBuf;
+mod boundary_support;
 
-use lungmotion::breathing::{BreathingTrace, OutputInstants};
+use boundary_support::{breath_in, end_inhale, phantom_model};
 use lungmotion::ingest::lung_model::{ConstraintGroup, LungModel};
-use lungmotion::ingest::pipeline::ingest_scan;
-use lungmotion::ingest::scan::load_ct;
 use lungmotion::math::V3;
-use lungmotion::model::{Material, NodeConstraint};
+use lungmotion::model::NodeConstraint;
 use lungmotion::motion::dynamic::{run_dynamic, DynamicSettings};
-use lungmotion::motion::{run_motion, run_scene, MotionReport, MotionSettings, WallMotion};
+use lungmotion::motion::{run_scene, WallMotion};
 use lungmotion::run::RunConfig;
 use lungmotion::simulation::Scene;
-
-/// The bundled phantom's lungs at 12 mm with the diaphragm motion `diaphragm`.
-fn phantom_model(diaphragm: &str) -> LungModel {
-    let ct = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-ct.nii.gz");
-    let config = RunConfig::from_toml(&format!(
-        "element_size_mm = 12.0\ndiaphragm = \"{diaphragm}\""
-    ))
-    .unwrap();
-    let scan = load_ct(&ct).unwrap();
-    ingest_scan(&scan, &config.ingest_settings()).unwrap().model
-}
-
-/// A 400 mL breath in, sampled every 0.5 s over 2 s.
-fn breath_in() -> BreathingTrace {
-    let times: Vec<f64> = (0..=4).map(|i| i as f64 * 0.5).collect();
-    let volumes = times
-        .iter()
-        .map(|t| 200.0 * (1.0 - (std::f64::consts::PI * t / 2.0).cos()))
-        .collect();
-    BreathingTrace::new(times, volumes).unwrap()
-}
-
-/// The run's report and its end-inhale positions.
-fn end_inhale(scene: &Scene, share: f64) -> (MotionReport, Vec<V3>) {
-    let settings = MotionSettings {
-        instants: OutputInstants::EverySample,
-        rib_cage_share: share,
-        ..MotionSettings::default()
-    };
-    let mut last = Vec::new();
-    let report = run_motion(
-        scene,
-        &Material::LUNG,
-        &breath_in(),
-        &settings,
-        &mut |_, x| {
-            last = x.to_vec();
-            Ok(())
-        },
-    )
-    .unwrap();
-    (report, last)
-}
 
 /// Mean horizontal (LPS x–y) displacement of the diaphragmatic nodes, mm.
 fn mean_horizontal_mm(model: &LungModel, scene: &Scene, x: &[V3]) -> f64 {
@@ -94,8 +49,8 @@ fn plane_descents(model: &LungModel, scene: &Scene) -> Vec<(f64, f64, u8)> {
 #[test]
 fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
     let share = 1.0 / 3.0;
-    let sliding = phantom_model("sliding");
-    let piston = phantom_model("cranio_caudal");
+    let sliding = phantom_model("diaphragm = \"sliding\"");
+    let piston = phantom_model("diaphragm = \"cranio_caudal\"");
     let walls = WallMotion {
         rib_cage_share: share,
         dome_flattening: 0.0,
@@ -179,7 +134,7 @@ fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
 
 #[test]
 fn a_share_of_zero_puts_the_whole_breath_on_the_diaphragm() {
-    let model = phantom_model("sliding");
+    let model = phantom_model("diaphragm = \"sliding\"");
     let walls = WallMotion {
         rib_cage_share: 0.0,
         dome_flattening: 0.0,
@@ -207,7 +162,7 @@ fn a_share_of_zero_puts_the_whole_breath_on_the_diaphragm() {
 
 #[test]
 fn the_dome_flattens_as_asked() {
-    let model = phantom_model("sliding");
+    let model = phantom_model("diaphragm = \"sliding\"");
     for flattening in [0.0, 0.5] {
         let walls = WallMotion {
             rib_cage_share: 1.0 / 3.0,
@@ -270,7 +225,7 @@ fn what_the_sliding_diaphragm_cannot_do_is_refused_by_name() {
     );
 
     // The library refuses the dynamic path on such a scene too, before any work.
-    let model = phantom_model("sliding");
+    let model = phantom_model("diaphragm = \"sliding\"");
     let scene = run_scene(&model, &WallMotion::default()).unwrap();
     let e = run_dynamic(
         &scene,

@@ -2,58 +2,14 @@
 //! mediastinal and apex nodes keep their rest distance to the wall as they slide, on a rigid
 //! wall and on one that moves out with the rib cage's share; tangent planes do not.
 
-use std::path::PathBuf;
+mod boundary_support;
 
-use lungmotion::breathing::{BreathingTrace, OutputInstants};
+use boundary_support::{end_inhale, phantom_model};
 use lungmotion::ingest::lung_model::{ConstraintGroup, LungModel};
-use lungmotion::ingest::pipeline::ingest_scan;
-use lungmotion::ingest::scan::load_ct;
 use lungmotion::math::V3;
-use lungmotion::model::{Material, NodeConstraint};
-use lungmotion::motion::{lung_scene, move_costal_wall, run_motion, MotionSettings};
-use lungmotion::run::RunConfig;
+use lungmotion::model::NodeConstraint;
+use lungmotion::motion::{lung_scene, move_costal_wall};
 use lungmotion::simulation::Scene;
-
-/// The bundled phantom's lungs at 12 mm with the sliding mode `sliding`.
-fn phantom_model(sliding: &str) -> LungModel {
-    let ct = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("sample-volumes/phantom-ct.nii.gz");
-    let config =
-        RunConfig::from_toml(&format!("element_size_mm = 12.0\nsliding = \"{sliding}\"")).unwrap();
-    let scan = load_ct(&ct).unwrap();
-    ingest_scan(&scan, &config.ingest_settings()).unwrap().model
-}
-
-/// A 400 mL breath in, sampled every 0.5 s over 2 s.
-fn breath_in() -> BreathingTrace {
-    let times: Vec<f64> = (0..=4).map(|i| i as f64 * 0.5).collect();
-    let volumes = times
-        .iter()
-        .map(|t| 200.0 * (1.0 - (std::f64::consts::PI * t / 2.0).cos()))
-        .collect();
-    BreathingTrace::new(times, volumes).unwrap()
-}
-
-/// End-inhale positions and the run's report.
-fn end_inhale(scene: &Scene, share: f64) -> (lungmotion::motion::MotionReport, Vec<V3>) {
-    let settings = MotionSettings {
-        instants: OutputInstants::EverySample,
-        rib_cage_share: share,
-        ..MotionSettings::default()
-    };
-    let mut last = Vec::new();
-    let report = run_motion(
-        scene,
-        &Material::LUNG,
-        &breath_in(),
-        &settings,
-        &mut |_, x| {
-            last = x.to_vec();
-            Ok(())
-        },
-    )
-    .unwrap();
-    (report, last)
-}
 
 /// Largest |change of wall distance − the wall's own outward motion| over the costal nodes
 /// held as `held` selects, in mm (`wall_factor`: how far the moving wall has gone).
@@ -81,8 +37,8 @@ fn worst_gap_change_mm(
 
 #[test]
 fn sliding_nodes_keep_their_distance_to_the_curved_wall_and_planes_do_not() {
-    let surface = phantom_model("wall_surface");
-    let planes = phantom_model("tangent_plane");
+    let surface = phantom_model("sliding = \"wall_surface\"");
+    let planes = phantom_model("sliding = \"tangent_plane\"");
     let sliding: usize = ["costal", "mediastinal", "apex"]
         .iter()
         .map(|g| surface.report.group_nodes[*g])
@@ -123,7 +79,7 @@ fn sliding_nodes_keep_their_distance_to_the_curved_wall_and_planes_do_not() {
 
 #[test]
 fn the_curved_wall_moves_out_with_the_rib_cage_and_sweeps_the_share_asked() {
-    let model = phantom_model("wall_surface");
+    let model = phantom_model("sliding = \"wall_surface\"");
     let mut scene = lung_scene(&model).unwrap();
     let wall = move_costal_wall(&mut scene, &model);
     assert!(
