@@ -143,7 +143,7 @@ fn bad_traces_points_and_configurations_are_named() {
     std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,300\n2,0\n").unwrap();
     std::fs::write(dir.join("points.csv"), "name,x_mm,y_mm\ntumour,1,2\n").unwrap();
     std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
-    let cases: [(&[&str], &str); 8] = [
+    let cases: [(&[&str], &str); 10] = [
         (&["--trace", "{dir}/unsorted.csv"], "unsorted.csv"),
         (
             &["--trace", "{dir}/trace.csv", "--trace-window", "5:9"],
@@ -169,6 +169,14 @@ fn bad_traces_points_and_configurations_are_named() {
         (
             &["--trace", "{dir}/trace.csv", "--spring-law", "cubic:-1"],
             "λ₁/λ₂ = -1 is outside",
+        ),
+        (
+            &["--trace", "{dir}/trace.csv", "--diaphragm", "piston"],
+            "`piston` is not a diaphragm motion: cranio-caudal, sliding or free",
+        ),
+        (
+            &["--trace", "{dir}/trace.csv", "--sliding", "curvy"],
+            "`curvy` is not a sliding mode",
         ),
     ];
     for (args, named) in cases {
