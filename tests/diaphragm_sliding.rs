@@ -218,6 +218,13 @@ fn what_the_sliding_diaphragm_cannot_do_is_refused_by_name() {
         dynamic.contains("diaphragm") && dynamic.contains("quasi-static"),
         "{dynamic}"
     );
+    let compliance = err(
+        "diaphragm = \"sliding\"\n[motion]\ndriver = { kind = \"compliance\", compliance_ml_per_pa = 2.0 }",
+    );
+    assert!(
+        compliance.contains("motion.driver") && compliance.contains("walls make the volume"),
+        "{compliance}"
+    );
     let unknown = err("diaphragm = \"trampoline\"");
     assert!(
         unknown.contains("trampoline") && unknown.contains("sliding"),

@@ -204,6 +204,13 @@ pub fn run_motion(
         driver.set_progress(sink.clone());
     }
     chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
+    if scene.walls_make_volume.is_some() && settings.driver != DriverKind::Volume {
+        return Err(Error::settings(
+            "motion settings",
+            "the compliance driver sets the pressure, but with a sliding diaphragm the walls \
+             make the volume: use the volume driver",
+        ));
+    }
     let chest_wall = driver.share_volume_with_imposed_motion(settings.rib_cage_share)?;
     // With a sliding diaphragm the imposed motions are the rib cage's and the diaphragm's.
     let chest_wall_part = scene.walls_make_volume.unwrap_or(1.0);

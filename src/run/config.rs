@@ -437,6 +437,14 @@ impl RunConfig {
                 ),
             );
         }
+        if self.diaphragm == DiaphragmMotion::Sliding && m.driver != DriverKind::Volume {
+            return bad(
+                "motion.driver",
+                "the compliance driver sets the pressure, but with diaphragm = \"sliding\" the \
+                 walls make the volume: use { kind = \"volume\" }"
+                    .to_string(),
+            );
+        }
         if let Err(e) = crate::motion::diaphragm::check_dome_flattening(m.dome_flattening) {
             return bad("motion.dome_flattening", e.to_string());
         }
