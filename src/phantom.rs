@@ -233,6 +233,18 @@ pub struct Phantom {
 
 /// Generates the thorax phantom: one parallel pass over the voxels evaluating analytic shapes.
 pub fn generate_thorax_phantom(settings: &PhantomSettings) -> Result<Phantom> {
+    generate_breathing_phantom(settings, &BreathingMotion::REST)
+}
+
+/// Generates the thorax phantom at the breathing state `motion`: every shape is drawn where
+/// the analytic field moves it (each voxel evaluates the anatomy at its source point
+/// [`BreathingMotion::source_lps_mm`]), and the landmarks are their moved positions. With
+/// [`BreathingMotion::REST`] it is [`generate_thorax_phantom`].
+pub fn generate_breathing_phantom(
+    settings: &PhantomSettings,
+    motion: &BreathingMotion,
+) -> Result<Phantom> {
+    motion.validate()?;
     let geometry = phantom_geometry(settings)?;
     let [nx, ny, nz] = geometry.dims;
     let slice_len = nx * ny;
@@ -255,7 +267,7 @@ pub fn generate_thorax_phantom(settings: &PhantomSettings) -> Result<Phantom> {
                 let y = oy + j as f64 * sy;
                 for i in 0..nx {
                     let x = ox + i as f64 * sx;
-                    let (hu, label) = anatomy.evaluate([x, y, z]);
+                    let (hu, label) = anatomy.evaluate(motion.source_lps_mm([x, y, z]));
                     let index = i + nx * j;
                     let noisy = hu + noise.sample_hu((k * slice_len + index) as u64);
                     ct_slice[index] = noisy.round().clamp(MIN_STORED_HU, MAX_STORED_HU);
@@ -283,7 +295,7 @@ pub fn generate_thorax_phantom(settings: &PhantomSettings) -> Result<Phantom> {
             .collect(),
         right_lung_volume_ml: counts[Tissue::RightLung as usize] as f64 * voxel_ml,
         left_lung_volume_ml: counts[Tissue::LeftLung as usize] as f64 * voxel_ml,
-        landmarks: anatomy.landmarks(),
+        landmarks: anatomy.landmarks().moved(motion),
     };
     Ok(Phantom {
         ct: Volume::from_data(geometry, ct)?,
@@ -935,6 +947,363 @@ pub fn write_phantom_files(settings: &PhantomSettings, out_dir: &Path) -> Result
     Ok(vec![ct_path, dicom_dir, truth_path, json_path])
 }
 
+/// Height of the lung apex above which the breathing field leaves the anatomy still, mm.
+const MOTION_STILL_Z_MM: f64 = 95.0;
+/// Height of the domes, at and below which the diaphragm's full descent applies, mm.
+const MOTION_DOME_Z_MM: f64 = -100.0;
+/// Height of the lower ribs, at and below which the chest wall's full expansion applies, mm.
+const MOTION_LOWER_RIBS_Z_MM: f64 = -60.0;
+/// Largest magnitude of each component of a [`BreathingMotion`], mm: far beyond quiet or deep
+/// breathing, and small enough that the field stays invertible (its slope stays below 1/3).
+pub const MAX_BREATHING_MOTION_MM: f64 = 40.0;
+
+/// A breathing state of the phantom as an analytic displacement field that owes nothing to
+/// the mass–spring model: the diaphragm descends (most at and below the domes, nothing at the
+/// apex), the chest wall widens forward and sideways (most at the lower ribs, nothing at the
+/// spine) and the ribs rise at the wall (nothing on the body axis). Every shape, vessels and
+/// tumour included, moves with the field.
+///
+/// The field `u` is Eulerian: the state's image at `x` is the rest image at `x − u(x)`
+/// ([`BreathingMotion::source_lps_mm`]), so drawing a state costs one field evaluation per
+/// voxel; the tissue at rest point `X` is at the `x` with `x − u(x) = X`
+/// ([`BreathingMotion::moved_lps_mm`], a contraction because the field's slope is small).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BreathingMotion {
+    /// Downward motion of the diaphragm domes and everything below them, mm.
+    pub diaphragm_descent_mm: f64,
+    /// Forward motion of the anterior chest wall at the lower ribs, mm.
+    pub anterior_expansion_mm: f64,
+    /// Outward motion of each lateral chest wall at the lower ribs, mm.
+    pub lateral_expansion_mm: f64,
+    /// Upward motion of the ribs at the chest wall, mm.
+    pub rib_lift_mm: f64,
+}
+
+impl BreathingMotion {
+    /// No motion: the phantom as [`generate_thorax_phantom`] draws it (end-exhale).
+    pub const REST: BreathingMotion = BreathingMotion {
+        diaphragm_descent_mm: 0.0,
+        anterior_expansion_mm: 0.0,
+        lateral_expansion_mm: 0.0,
+        rib_lift_mm: 0.0,
+    };
+
+    /// End-inhale of quiet breathing: superior–inferior motion dominates as in the DIR-Lab
+    /// landmarks (mean |Δz| 3.6–13.5 mm, the other axes 0.6–3.7 mm).
+    pub const END_INHALE: BreathingMotion = BreathingMotion {
+        diaphragm_descent_mm: 16.0,
+        anterior_expansion_mm: 5.0,
+        lateral_expansion_mm: 3.0,
+        rib_lift_mm: 4.0,
+    };
+
+    /// This motion with every component multiplied by `amplitude`.
+    pub fn scaled(&self, amplitude: f64) -> BreathingMotion {
+        BreathingMotion {
+            diaphragm_descent_mm: self.diaphragm_descent_mm * amplitude,
+            anterior_expansion_mm: self.anterior_expansion_mm * amplitude,
+            lateral_expansion_mm: self.lateral_expansion_mm * amplitude,
+            rib_lift_mm: self.rib_lift_mm * amplitude,
+        }
+    }
+
+    /// Refuses components that are not finite or beyond [`MAX_BREATHING_MOTION_MM`].
+    pub fn validate(&self) -> Result<()> {
+        let components = [
+            ("diaphragm_descent_mm", self.diaphragm_descent_mm),
+            ("anterior_expansion_mm", self.anterior_expansion_mm),
+            ("lateral_expansion_mm", self.lateral_expansion_mm),
+            ("rib_lift_mm", self.rib_lift_mm),
+        ];
+        for (key, v) in components {
+            if !v.is_finite() || v.abs() > MAX_BREATHING_MOTION_MM {
+                return Err(Error::Config {
+                    settings: "phantom breathing motion",
+                    file: None,
+                    key: Some(key.to_string()),
+                    reason: format!("{v} mm; it must lie within ±{MAX_BREATHING_MOTION_MM} mm"),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The Eulerian displacement u at LPS point `p`, mm.
+    pub fn displacement_mm(&self, p: [f64; 3]) -> [f64; 3] {
+        let [x, y, z] = p;
+        let descent = smoothstep((MOTION_STILL_Z_MM - z) / (MOTION_STILL_Z_MM - MOTION_DOME_Z_MM));
+        let wall =
+            smoothstep((MOTION_STILL_Z_MM - z) / (MOTION_STILL_Z_MM - MOTION_LOWER_RIBS_Z_MM));
+        let [a, b] = CAVITY_SEMI_AXES_MM;
+        let dy = y - CAVITY_CENTRE_Y_MM;
+        // Squared elliptic radius in the cavity's own ellipse: 0 on the body axis, 1 at the wall.
+        let radius2 = ((x / a).powi(2) + (dy / b).powi(2)).min(1.0);
+        // The spine holds the posterior wall: forward motion grows from it to the sternum.
+        let forward = ((b - dy) / (2.0 * b)).max(0.0);
+        [
+            self.lateral_expansion_mm * (x / a) * wall,
+            -self.anterior_expansion_mm * forward * wall,
+            -self.diaphragm_descent_mm * descent + self.rib_lift_mm * radius2 * wall,
+        ]
+    }
+
+    /// Where the tissue drawn at `moved_lps_mm` in this state sits at rest: `x − u(x)`.
+    pub fn source_lps_mm(&self, moved_lps_mm: [f64; 3]) -> [f64; 3] {
+        if *self == BreathingMotion::REST {
+            return moved_lps_mm;
+        }
+        let u = self.displacement_mm(moved_lps_mm);
+        std::array::from_fn(|a| moved_lps_mm[a] - u[a])
+    }
+
+    /// Where the tissue at rest point `rest_lps_mm` is in this state: the `x` with
+    /// `x − u(x) = rest`, by fixed-point iteration `x ← rest + u(x)` (a contraction: the
+    /// field's slope is below 1/3), to 1e-12 mm.
+    pub fn moved_lps_mm(&self, rest_lps_mm: [f64; 3]) -> [f64; 3] {
+        let mut x = rest_lps_mm;
+        for _ in 0..200 {
+            let u = self.displacement_mm(x);
+            let next: [f64; 3] = std::array::from_fn(|a| rest_lps_mm[a] + u[a]);
+            let change = norm(sub(next, x));
+            x = next;
+            if change < 1e-12 {
+                break;
+            }
+        }
+        x
+    }
+}
+
+/// 0 below 0, 1 above 1, 3t² − 2t³ between: a ramp with no kink at either end.
+#[inline]
+fn smoothstep(t: f64) -> f64 {
+    let t = t.clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+impl PhantomLandmarks {
+    /// The same landmarks carried by `motion` to where that breathing state draws them.
+    pub fn moved(&self, motion: &BreathingMotion) -> PhantomLandmarks {
+        let m = |p: [f64; 3]| motion.moved_lps_mm(p);
+        PhantomLandmarks {
+            carina_lps_mm: m(self.carina_lps_mm),
+            tumour_centre_lps_mm: self.tumour_centre_lps_mm.map(m),
+            right_lung_apex_lps_mm: m(self.right_lung_apex_lps_mm),
+            right_lung_base_lps_mm: m(self.right_lung_base_lps_mm),
+            left_lung_apex_lps_mm: m(self.left_lung_apex_lps_mm),
+            left_lung_base_lps_mm: m(self.left_lung_base_lps_mm),
+        }
+    }
+}
+
+/// Spacing of the lattice of lung landmarks, mm.
+pub const LUNG_LANDMARK_SPACING_MM: f64 = 24.0;
+/// How far inside its lung every lung landmark lies at rest, mm (checked along 26
+/// directions), so that no landmark sits on a boundary the segmentation may place a voxel off.
+pub const LUNG_LANDMARK_DEPTH_MM: f64 = 8.0;
+
+/// Landmarks throughout both lungs at rest, LPS mm: the points of a
+/// [`LUNG_LANDMARK_SPACING_MM`] lattice (through the carina) that lie in a lung at least
+/// [`LUNG_LANDMARK_DEPTH_MM`] from its boundary and inside the field of view, then the
+/// tumour centre when there is a tumour: DIR-Lab-like point pairs whose every breathing state
+/// is known exactly ([`BreathingMotion::moved_lps_mm`]).
+pub fn lung_landmarks_lps_mm(settings: &PhantomSettings) -> Result<Vec<[f64; 3]>> {
+    let geometry = phantom_geometry(settings)?;
+    let anatomy = Anatomy::new(settings.tumour, geometry.voxel_volume_mm3().cbrt());
+    let lo: [f64; 3] = std::array::from_fn(|a| geometry.origin_lps_mm[a]);
+    let hi: [f64; 3] = std::array::from_fn(|a| {
+        geometry.origin_lps_mm[a] + (geometry.dims[a] - 1) as f64 * geometry.spacing_mm[a]
+    });
+    let step = LUNG_LANDMARK_SPACING_MM;
+    let first = |a: usize| CARINA_LPS_MM[a] + ((lo[a] - CARINA_LPS_MM[a]) / step).ceil() * step;
+    let mut points = Vec::new();
+    let mut z = first(2);
+    while z <= hi[2] {
+        let mut y = first(1);
+        while y <= hi[1] {
+            let mut x = first(0);
+            while x <= hi[0] {
+                let p = [x, y, z];
+                let (_, label) = anatomy.evaluate(p);
+                let lung = matches!(label, Tissue::RightLung | Tissue::LeftLung);
+                // Along the 26 directions to the neighbours of a cube, not only the axes: the
+                // domes and the cavity wall are oblique.
+                let deep = lung
+                    && (0..27).filter(|&n| n != 13).all(|n| {
+                        let d = [n % 3, (n / 3) % 3, n / 9].map(|c| c as f64 - 1.0);
+                        let scale = LUNG_LANDMARK_DEPTH_MM / norm(d);
+                        let q = std::array::from_fn(|a| p[a] + d[a] * scale);
+                        anatomy.evaluate(q).1 == label
+                    });
+                if deep {
+                    points.push(p);
+                }
+                x += step;
+            }
+            y += step;
+        }
+        z += step;
+    }
+    if let Some(t) = settings.tumour {
+        points.push(t.centre_lps_mm);
+    }
+    Ok(points)
+}
+
+/// A 4D-CT of the phantom: the same anatomy at several breathing states.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FourDctPhantomSettings {
+    /// Grid, tumour, noise and seed of every phase.
+    pub phantom: PhantomSettings,
+    /// The motion at amplitude 1 (end-inhale).
+    pub end_inhale: BreathingMotion,
+    /// Each phase's amplitude, in phase order: its motion is `end_inhale` scaled by it.
+    pub amplitudes: Vec<f64>,
+}
+
+impl FourDctPhantomSettings {
+    /// `count` phases over one cycle as a scanner bins them: phase k at (1 + cos 2πk/count)/2
+    /// of the end-inhale motion, so phase 0 is end-inhale and phase count/2 end-exhale.
+    pub fn with_phases(phantom: PhantomSettings, count: usize) -> FourDctPhantomSettings {
+        let amplitudes = (0..count)
+            .map(|k| 0.5 * (1.0 + (std::f64::consts::TAU * k as f64 / count as f64).cos()))
+            .collect();
+        FourDctPhantomSettings {
+            phantom,
+            end_inhale: BreathingMotion::END_INHALE,
+            amplitudes,
+        }
+    }
+
+    /// The name of phase `index` of this 4D-CT, DIR-Lab style: `T` and its percent of the
+    /// cycle (`T00` end-inhale, `T50` end-exhale of ten phases).
+    pub fn phase_name(&self, index: usize) -> String {
+        format!("T{:02}", index * 100 / self.amplitudes.len().max(1))
+    }
+}
+
+/// One phase of a written 4D phantom.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FourDctPhantomPhase {
+    /// Its name (also its files' stem).
+    pub name: String,
+    /// Its amplitude (0 rest, 1 end-inhale).
+    pub amplitude: f64,
+    /// The motion it was drawn with.
+    pub motion: BreathingMotion,
+    /// Right lung label volume, mL.
+    pub right_lung_volume_ml: f64,
+    /// Left lung label volume, mL.
+    pub left_lung_volume_ml: f64,
+    /// The named landmarks at this phase.
+    pub landmarks: PhantomLandmarks,
+}
+
+/// What [`write_four_dct_phantom`] wrote.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FourDctPhantomDescription {
+    /// The settings.
+    pub settings: FourDctPhantomSettings,
+    /// The grid shared by every phase.
+    pub geometry: VolumeGeometry,
+    /// The phases in order.
+    pub phases: Vec<FourDctPhantomPhase>,
+    /// The lung landmarks at every phase (`[phase][point]`, LPS mm, exact).
+    pub lung_landmarks_lps_mm: Vec<Vec<[f64; 3]>>,
+}
+
+/// Writes a 4D-CT of the phantom into `out_dir`: `phases/<name>.nii.gz` (the CT of each
+/// phase, HU), `landmarks/<name>.txt` (DIR-Lab style: the lung landmarks of that phase as
+/// 1-based voxel indices `x y z`, one point per line, fractional because the moved points are
+/// exact, not rounded to voxels), `landmarks.csv` (the same points in LPS mm: `phase,point,
+/// x_mm,y_mm,z_mm`) and `phantom-4d.json` (the [`FourDctPhantomDescription`]).
+pub fn write_four_dct_phantom(
+    settings: &FourDctPhantomSettings,
+    out_dir: &Path,
+) -> Result<FourDctPhantomDescription> {
+    use crate::formats::nifti;
+    use std::fmt::Write as _;
+    let bad = |reason: String| Error::Config {
+        settings: "4D phantom settings",
+        file: None,
+        key: Some("amplitudes".to_string()),
+        reason,
+    };
+    if !(2..=100).contains(&settings.amplitudes.len()) {
+        return Err(bad(format!(
+            "{} phases; a 4D-CT has 2 to 100",
+            settings.amplitudes.len()
+        )));
+    }
+    if let Some(a) = settings
+        .amplitudes
+        .iter()
+        .find(|a| !a.is_finite() || a.abs() > 2.0)
+    {
+        return Err(bad(format!("amplitude {a}; it must lie within ±2")));
+    }
+    let geometry = phantom_geometry(&settings.phantom)?;
+    let rest_points = lung_landmarks_lps_mm(&settings.phantom)?;
+    let phases_dir = out_dir.join("phases");
+    let landmarks_dir = out_dir.join("landmarks");
+    for dir in [&phases_dir, &landmarks_dir] {
+        std::fs::create_dir_all(dir).at(IoOp::CreateDir, dir)?;
+    }
+    let mut csv = String::from("phase,point,x_mm,y_mm,z_mm\n");
+    let mut phases = Vec::with_capacity(settings.amplitudes.len());
+    let mut all_points = Vec::with_capacity(settings.amplitudes.len());
+    for (index, &amplitude) in settings.amplitudes.iter().enumerate() {
+        let name = settings.phase_name(index);
+        let motion = settings.end_inhale.scaled(amplitude);
+        let phantom = generate_breathing_phantom(&settings.phantom, &motion)?;
+        nifti::write_nifti_ct(&phases_dir.join(format!("{name}.nii.gz")), &phantom.ct)?;
+        let points: Vec<[f64; 3]> = rest_points
+            .iter()
+            .map(|&p| motion.moved_lps_mm(p))
+            .collect();
+        let mut dirlab = String::new();
+        for (n, p) in points.iter().enumerate() {
+            let v = geometry.lps_mm_to_voxel(nalgebra::Vector3::from(*p));
+            let inside = (0..3).all(|a| v[a] >= 0.0 && v[a] <= (geometry.dims[a] - 1) as f64);
+            if !inside {
+                return Err(bad(format!(
+                    "landmark {} of phase {name} moves to {p:?} mm, outside the field of view",
+                    n + 1
+                )));
+            }
+            // Rust's shortest round-trip formatting: the reader gets the same f64 back.
+            let _ = writeln!(dirlab, "{}\t{}\t{}", v[0] + 1.0, v[1] + 1.0, v[2] + 1.0);
+            let _ = writeln!(csv, "{name},{},{},{},{}", n + 1, p[0], p[1], p[2]);
+        }
+        let txt = landmarks_dir.join(format!("{name}.txt"));
+        crate::durable::write_atomic(&txt, dirlab.as_bytes())?;
+        let d = phantom.description;
+        phases.push(FourDctPhantomPhase {
+            name,
+            amplitude,
+            motion,
+            right_lung_volume_ml: d.right_lung_volume_ml,
+            left_lung_volume_ml: d.left_lung_volume_ml,
+            landmarks: d.landmarks,
+        });
+        all_points.push(points);
+    }
+    crate::durable::write_atomic(&out_dir.join("landmarks.csv"), csv.as_bytes())?;
+    let description = FourDctPhantomDescription {
+        settings: settings.clone(),
+        geometry,
+        phases,
+        lung_landmarks_lps_mm: all_points,
+    };
+    let json_path = out_dir.join("phantom-4d.json");
+    let json = serde_json::to_string_pretty(&description).map_err(|e| Error::Format {
+        path: json_path.clone(),
+        reason: format!("cannot serialise: {e}"),
+    })?;
+    crate::durable::write_atomic(&json_path, json.as_bytes())?;
+    Ok(description)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -966,5 +1335,33 @@ mod tests {
         let var = samples.iter().map(|s| (s - mean).powi(2)).sum::<f64>() / n as f64;
         assert!(mean.abs() < 0.2, "mean {mean}");
         assert!((var.sqrt() - 20.0).abs() < 0.3, "sd {}", var.sqrt());
+    }
+
+    #[test]
+    fn breathing_motion_moves_points_to_where_their_source_is_drawn() {
+        let motion = BreathingMotion::END_INHALE;
+        for rest in [
+            [-95.0, 20.0, -80.0],
+            [60.0, -40.0, -120.0],
+            [0.0, 0.0, 150.0],
+        ] {
+            let moved = motion.moved_lps_mm(rest);
+            let back = motion.source_lps_mm(moved);
+            assert!(
+                norm(sub(back, rest)) < 1e-9,
+                "{rest:?} → {moved:?} → {back:?}"
+            );
+        }
+        // The apex region stays, the base descends by the full descent, the field is SI-dominant.
+        let apex = motion.moved_lps_mm([0.0, 10.0, 100.0]);
+        assert!(norm(sub(apex, [0.0, 10.0, 100.0])) < 1e-9);
+        let base = sub(
+            motion.moved_lps_mm([-65.0, -10.0, -110.0]),
+            [-65.0, -10.0, -110.0],
+        );
+        assert!(
+            base[2] < -12.0 && base[0].abs() < 4.0 && base[1].abs() < 6.0,
+            "{base:?}"
+        );
     }
 }

@@ -2,7 +2,9 @@
 
 use std::path::PathBuf;
 
-use lungmotion::phantom::{write_phantom_files, PhantomSettings};
+use lungmotion::phantom::{
+    write_four_dct_phantom, write_phantom_files, FourDctPhantomSettings, PhantomSettings,
+};
 
 use super::prepare_out;
 
@@ -18,6 +20,17 @@ pub struct PhantomArgs {
     /// Leave the tumour out.
     #[arg(long)]
     no_tumour: bool,
+    /// Instead: a 4D-CT of the phantom, the same anatomy at several breathing states moved
+    /// by an analytic field (not the model): phases/<T..>.nii.gz, DIR-Lab landmark files in
+    /// landmarks/, landmarks.csv (LPS mm) and phantom-4d.json.
+    #[arg(long = "4dct")]
+    four_dct: bool,
+    /// With --4dct: number of phases over one breathing cycle (phase 0 end-inhale).
+    #[arg(long, default_value_t = 10, requires = "four_dct")]
+    phases: usize,
+    /// Voxel spacing in mm (all three axes; default 5).
+    #[arg(long, value_name = "MM")]
+    spacing: Option<f64>,
 }
 
 impl PhantomArgs {
@@ -30,6 +43,28 @@ impl PhantomArgs {
         }
         if self.no_tumour {
             settings.tumour = None;
+        }
+        if let Some(spacing) = self.spacing {
+            settings.spacing_mm = [spacing; 3];
+        }
+        if self.four_dct {
+            let four_dct = FourDctPhantomSettings::with_phases(settings, self.phases);
+            let written = write_four_dct_phantom(&four_dct, &self.out)?;
+            for phase in &written.phases {
+                eprintln!(
+                    "lungmotion: phase {} (amplitude {:.2}): lungs {:.0} mL",
+                    phase.name,
+                    phase.amplitude,
+                    phase.right_lung_volume_ml + phase.left_lung_volume_ml
+                );
+            }
+            eprintln!(
+                "lungmotion: wrote {} phases and {} landmarks per phase into {}",
+                written.phases.len(),
+                written.lung_landmarks_lps_mm[0].len(),
+                self.out.display()
+            );
+            return Ok(());
         }
         for p in write_phantom_files(&settings, &self.out)? {
             eprintln!("lungmotion: wrote {}", p.display());

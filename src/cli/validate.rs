@@ -25,12 +25,37 @@ pub struct ValidateArgs {
     /// writes lung_calculix.json and lung_calculix.md.
     #[arg(long, conflicts_with_all = ["quick", "no_calculix"])]
     lung: bool,
+    /// Instead: the model against a 4D-CT: a folder of phase folders (each a DICOM series),
+    /// a zip of them, or a folder of one NIfTI/NRRD file per phase; writes report.json,
+    /// report.md and overlays/ into --out.
+    #[arg(long = "4dct", value_name = "INPUT", conflicts_with_all = ["quick", "no_calculix", "lung"])]
+    four_dct: Option<PathBuf>,
+    /// With --4dct: the reference phase, by name or 0-based index (default: the phase with
+    /// the smallest lung volume, i.e. end-exhale).
+    #[arg(long, value_name = "NAME|INDEX", requires = "four_dct")]
+    reference_phase: Option<String>,
+    /// With --4dct: landmarks, a folder of DIR-Lab .txt files (one per phase, 1-based voxel
+    /// indices `x y z` per line) or a CSV in LPS mm (phase,point,x_mm,y_mm,z_mm).
+    #[arg(long, value_name = "PATH", requires = "four_dct")]
+    landmarks: Option<PathBuf>,
+    /// With --4dct: a run configuration (TOML, as `lungmotion run --config`): element size,
+    /// material, segmentation, boundary options.
+    #[arg(long, value_name = "TOML", requires = "four_dct")]
+    config: Option<PathBuf>,
+    /// With --4dct: edge of the cubic elements, mm (overrides the configuration's).
+    #[arg(long, value_name = "MM", requires = "four_dct")]
+    element_size: Option<f64>,
+    /// With --4dct: leave out the PNG overlays.
+    #[arg(long, requires = "four_dct")]
+    no_overlays: bool,
 }
 
 impl ValidateArgs {
     /// Runs the chosen study and writes its reports.
     pub fn execute(self) -> anyhow::Result<()> {
-        if self.lung {
+        if let Some(input) = &self.four_dct {
+            validate_four_dct(input, &self)
+        } else if self.lung {
             validate_lung(&self.out)
         } else {
             let options = ValidateOptions {
@@ -73,6 +98,41 @@ fn validate_lung(out: &std::path::Path) -> anyhow::Result<()> {
     eprintln!(
         "lungmotion: wrote {}",
         out.join("lung_calculix.json").display()
+    );
+    Ok(())
+}
+
+/// The model against a 4D-CT: reports written, Markdown printed.
+fn validate_four_dct(input: &std::path::Path, args: &ValidateArgs) -> anyhow::Result<()> {
+    use lungmotion::run::RunConfig;
+    use lungmotion::validation::four_dct::{validate_four_dct, FourDctOptions};
+    use lungmotion::validation::landmarks::LandmarkInput;
+    let mut config = match &args.config {
+        Some(path) => RunConfig::from_toml_file(path)?,
+        None => RunConfig::default(),
+    };
+    if let Some(size) = args.element_size {
+        config.element_size_mm = size;
+    }
+    let options = FourDctOptions {
+        reference_phase: args.reference_phase.clone(),
+        landmarks: args
+            .landmarks
+            .as_deref()
+            .map(LandmarkInput::detect)
+            .transpose()?,
+        config,
+        overlays: !args.no_overlays,
+    };
+    prepare_out(&args.out)?;
+    let report = validate_four_dct(input, &args.out, &options, &mut |step| {
+        eprintln!("lungmotion: {step}")
+    })?;
+    println!("{}", report.to_markdown());
+    eprintln!(
+        "lungmotion: wrote {} and {}",
+        args.out.join("report.json").display(),
+        args.out.join("report.md").display()
     );
     Ok(())
 }

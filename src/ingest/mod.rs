@@ -2,6 +2,7 @@
 //! anatomical constraint groups.
 
 mod cancel;
+pub mod four_dct;
 pub mod lung_model;
 pub mod pipeline;
 pub mod scan;

@@ -4,6 +4,8 @@
 pub mod calculix;
 pub mod composite;
 pub mod contact;
+pub mod four_dct;
+pub mod landmarks;
 pub mod lung_calculix;
 pub mod material_laws;
 pub mod patch;
