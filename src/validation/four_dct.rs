@@ -314,7 +314,7 @@ pub fn validate_four_dct(
     let outcome = ingest_scan(&ref_scan, &ingest_settings)?;
     drop(ref_scan);
     let ref_lungs = &segmented[reference.index].lungs;
-    let scene = crate::motion::run_scene(&outcome.model, config.motion.rib_cage_share)?;
+    let scene = crate::motion::run_scene(&outcome.model, &config.wall_motion())?;
     let layout = CtMotionLayout::new(
         &geometry,
         &scene.mesh,
