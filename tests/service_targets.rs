@@ -281,6 +281,11 @@ fn uploaded_masks_and_rtstructs_are_followed_as_the_cli_follows_them_and_bad_one
         "target-motion.csv service vs CLI"
     );
 
+    // A replacement (the same RTSTRUCT again): 200, one target of that name (with an object
+    // store: the old upload's object gone, checked below).
+    let resp = put_target(&server, &scan, "plan", std::fs::read(&rtstruct).unwrap());
+    assert_eq!(resp.status().as_u16(), 200);
+
     // Bad uploads, each refused by name, the stored target left as it was.
     let before = server.get_json(&format!("/v1/scans/{scan}/targets/plan"));
     let mut shifted = read_nifti_labels(&sample("phantom-truth.nii.gz")).unwrap();

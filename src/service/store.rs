@@ -1130,7 +1130,8 @@ impl Store {
         let dir = format!("scans/{scan}/{SCAN_TARGETS}/{}", record.name);
         let _one_at_a_time = lock(&self.targets);
         let previous = target_object(blobs, scan, &record.name)?;
-        let object = format!("{}/{}", uuid::Uuid::new_v4().simple(), record.file_name);
+        let upload_id = uuid::Uuid::new_v4().simple().to_string();
+        let object = format!("{upload_id}/{}", record.file_name);
         let stored = TargetObject {
             record: record.clone(),
             object: object.clone(),
@@ -1144,12 +1145,15 @@ impl Store {
             .put_file(&file_key, upload)
             .and_then(|_| blobs.put_bytes(&format!("{dir}/{TARGET_RECORD}"), json));
         if let Err(e) = put {
-            let _ = blobs.delete_prefix(&file_key);
+            let _ = blobs.delete_prefix(&format!("{dir}/{upload_id}"));
             return Err(e);
         }
         let _ = std::fs::remove_file(upload);
         if let Some(previous) = &previous {
-            if let Err(e) = blobs.delete_prefix(&format!("{dir}/{}", previous.object)) {
+            // Its upload's directory (a listing prefix is a directory, never one object's key);
+            // `target_object` checked that the key is `<upload id>/<file>`.
+            let upload = previous.object.split('/').next().unwrap_or_default();
+            if let Err(e) = blobs.delete_prefix(&format!("{dir}/{upload}")) {
                 // Left under the scan's prefix: it goes with the scan.
                 tracing::warn!(scan = %scan, "cannot remove the replaced target's file: {e}");
             }
