@@ -922,6 +922,16 @@ fn operational_endpoints_answer_and_every_response_has_a_request_id() {
     assert_eq!(ready["workers"], 1);
     assert_eq!(ready["queued"], 0);
     assert_eq!(ready["running"], 0);
+    // The database and the object store each reported, when the server has them.
+    for (field, configured) in [
+        ("database", postgres_backend()),
+        ("object_store", object_store_backend()),
+    ] {
+        match configured {
+            true => assert_eq!(ready[field], "ok", "{ready}"),
+            false => assert!(ready.get(field).is_none(), "{ready}"),
+        }
+    }
 
     let resp = server
         .client()

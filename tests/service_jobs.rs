@@ -1,6 +1,10 @@
 //! The service's jobs under stress and interruption, over a real socket: a burst of
 //! concurrent simulations against a small queue, a server killed or stopped mid-job and
 //! restarted on the same store, and cancelling or deleting jobs and scans.
+//!
+//! `.ci/run` runs them again with `LUNGMOTION_TEST_OBJECT_STORE=s3`: the uploads and outputs
+//! then live in an S3 server (moto) that a restarted server finds again, the outputs are read
+//! from the bucket, and what a deletion removes is checked there too.
 #![cfg(feature = "cli")]
 
 mod service_support;
@@ -59,10 +63,11 @@ fn assert_store_json_parses(data_dir: &Path) {
     }
 }
 
-/// A done job's outputs are complete: summary, every frame's field, no partial directory.
-fn assert_outputs_complete(data_dir: &Path, job_id: &str, frames: usize) {
-    let job_dir = data_dir.join("jobs").join(job_id);
-    let out = job_dir.join("out");
+/// A done job's outputs are complete (in the data directory, or in the bucket; fetched into
+/// `copy` from there): summary, every frame's field, no partial directory.
+fn assert_outputs_complete(server: &ServerProcess, copy: &Path, job_id: &str, frames: usize) {
+    let job_dir = server.data_dir().join("jobs").join(job_id);
+    let out = job_outputs(server, job_id, copy);
     let summary: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"].as_array().unwrap().len(), frames);
@@ -191,7 +196,7 @@ fn a_job_interrupted_by_kill_9_is_rerun_after_restart() {
     assert_eq!(status["attempts"], 2, "{status}");
     match status["state"].as_str().unwrap() {
         "done" => {
-            assert_outputs_complete(&data, &job_id, LONG_JOB_PHASES);
+            assert_outputs_complete(&server, &scratch.join("out"), &job_id, LONG_JOB_PHASES);
             let frames = server.get_json(&format!("/v1/jobs/{job_id}/frames"));
             assert_eq!(frames["frames"].as_array().unwrap().len(), LONG_JOB_PHASES);
         }
@@ -205,6 +210,10 @@ fn a_job_interrupted_by_kill_9_is_rerun_after_restart() {
     }
     assert_store_json_parses(&data);
     assert_eq!(entries(&data.join("jobs")), vec![job_id.clone()]);
+    if server.objects().is_some() {
+        // The restarted server found the bucket it had: the scan's upload is still there.
+        assert!(!objects_under(&server, &format!("scans/{scan_id}/")).is_empty());
+    }
     assert_eq!(entries(&data.join("scans")), vec![scan_id]);
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
 }
@@ -252,6 +261,10 @@ fn cancelling_and_deleting_jobs_and_scans() {
     assert!(status["finished_at"].as_str().is_some());
     let job_dir = data.join("jobs").join(&long);
     assert!(!job_dir.join("out").exists(), "a cancelled job has outputs");
+    assert_eq!(
+        objects_under(&server, &format!("jobs/{long}/")),
+        Vec::<String>::new()
+    );
     // The stop may finish cleaning after the state changed.
     let deadline = Instant::now() + Duration::from_secs(30);
     while entries(&job_dir).iter().any(|n| n.contains("partial")) && Instant::now() < deadline {
@@ -267,14 +280,16 @@ fn cancelling_and_deleting_jobs_and_scans() {
     // A done job is deleted with its files.
     let done = server.submit(&scan_id, &tiny_request(2));
     server.wait_for_state(&done, &["done"], JOB_TIMEOUT);
-    assert!(data
-        .join("jobs")
-        .join(&done)
-        .join("out/summary.json")
+    assert!(job_outputs(&server, &done, &scratch.join("out"))
+        .join("summary.json")
         .is_file());
     let resp = server.delete(&format!("/v1/jobs/{done}"));
     assert_eq!(resp.status(), 204);
     assert!(!data.join("jobs").join(&done).exists());
+    assert_eq!(
+        objects_under(&server, &format!("jobs/{done}/")),
+        Vec::<String>::new()
+    );
     assert_problem(server.get(&format!("/v1/jobs/{done}")), 404, &[]);
     assert_problem(server.get(&format!("/v1/jobs/{done}/summary")), 404, &[]);
     assert_problem(server.delete(&format!("/v1/jobs/{done}")), 404, &[]);
@@ -292,6 +307,11 @@ fn cancelling_and_deleting_jobs_and_scans() {
     assert_eq!(resp.status(), 204);
     assert_problem(server.get(&format!("/v1/scans/{scan_id}")), 404, &[]);
     assert_eq!(entries(&data.join("scans")), Vec::<String>::new());
+    assert_eq!(
+        objects_under(&server, ""),
+        Vec::<String>::new(),
+        "orphaned objects"
+    );
     assert_problem(server.post_simulation(&scan_id, &tiny_request(2)), 404, &[]);
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
 }
@@ -329,7 +349,7 @@ fn sigterm_requeues_a_running_job_which_completes_after_restart() {
     let server = ServerProcess::start(&data, &args);
     let status = server.wait_for_state(&job_id, &["done"], JOB_TIMEOUT);
     println!("after SIGTERM and restart: {status:#}");
-    assert_outputs_complete(&data, &job_id, LONG_JOB_PHASES);
+    assert_outputs_complete(&server, &scratch.join("out"), &job_id, LONG_JOB_PHASES);
     server.get_json(&format!("/v1/jobs/{job_id}/summary"));
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
 }
@@ -390,5 +410,6 @@ fn a_job_killed_on_every_attempt_fails_and_leaves_no_partial_outputs() {
     let resp = server.delete(&format!("/v1/jobs/{job_id}"));
     assert_eq!(resp.status(), 204);
     assert_eq!(entries(&data.join("jobs")), Vec::<String>::new());
+    assert_eq!(objects_under(&server, "jobs/"), Vec::<String>::new());
     assert_eq!(entries(&data.join("scans")), vec![scan_id]);
 }

@@ -5,8 +5,10 @@
 //! * A journey: upload, a job run by a separate worker, its results, cancellation, deletion,
 //!   the workers in `/metrics`.
 //! * Bad input: a database that cannot be reached at start (named, retried with a doubling
-//!   wait), refused credentials (named at start and in `/readyz` while serving), a schema
-//!   written by a newer lungmotion (refused by name).
+//!   wait), refused credentials (named at start and in `/readyz` while serving), a database
+//!   stopped while serving (named in `/readyz`, ready again once it is back), a schema
+//!   written by a newer lungmotion (refused by name at start, and in `/readyz` by a server
+//!   already serving).
 //! * Slow: two API processes and three workers, 100 jobs, one worker killed with SIGKILL in
 //!   the middle of a job and one API process in the middle of an upload: every job ends `done`
 //!   exactly once (the killed worker's job after its lease ran out), its fields byte-identical
@@ -133,6 +135,7 @@ fn refused_credentials_are_named_at_start_and_in_readyz() {
     let server = api(&data, &db.url(), &[]);
     let (_, body) = wait_ready(&server, |s, _| s == 200);
     assert_eq!(body["status"], "ready");
+    assert_eq!(body["database"], "ok", "{body}");
     // One session: after the ALTER, the test's own password no longer logs in either. The
     // service's pooled connections are ended, so it must log in again.
     db.psql(
@@ -154,12 +157,43 @@ fn refused_credentials_are_named_at_start_and_in_readyz() {
     ] {
         assert!(text.contains(words), "{words:?} missing: {body}");
     }
+    // The readiness body (the problem's detail) reports the database in its own field too.
+    let readiness: Value = serde_json::from_str(body["detail"].as_str().unwrap_or("{}"))
+        .unwrap_or_else(|e| panic!("{e}: {body}"));
+    assert!(
+        readiness["database"]
+            .as_str()
+            .is_some_and(|d| d.contains("password authentication failed")),
+        "{readiness}"
+    );
     // The password back: ready again, without a restart.
     let restore = format!("ALTER ROLE lm PASSWORD '{PG_PASSWORD}'");
     let changed = PgServerPassword(&db, "changed-meanwhile");
     changed.psql(&restore);
     let (_, body) = wait_ready(&server, |s, _| s == 200);
     assert_eq!(body["status"], "ready");
+
+    // The database gone while serving (its server stopped): named in /readyz, field and all;
+    // back, ready again without a restart.
+    db.stop();
+    let (status, body) = wait_ready(&server, |s, _| s == 503);
+    assert_eq!(status, 503);
+    let readiness: Value = serde_json::from_str(body["detail"].as_str().unwrap_or("{}"))
+        .unwrap_or_else(|e| panic!("{e}: {body}"));
+    let said = readiness["status"].as_str().unwrap_or_default();
+    assert!(
+        said.starts_with("database unavailable") && said.contains(server_name.as_str()),
+        "{readiness}"
+    );
+    assert!(
+        readiness["database"]
+            .as_str()
+            .is_some_and(|d| d.contains(server_name.as_str())),
+        "{readiness}"
+    );
+    db.resume();
+    let (_, body) = wait_ready(&server, |s, _| s == 200);
+    assert_eq!(body["database"], "ok", "{body}");
 }
 
 /// `psql` with another password than the test server's own.
@@ -192,10 +226,8 @@ fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
     let scratch = Scratch::new("pg-schema");
     let db = PgServer::start(&scratch.join("postgres"));
     let data = scratch.join("data");
-    {
-        let server = api(&data, &db.url(), &[]);
-        wait_ready(&server, |s, _| s == 200);
-    }
+    let server = api(&data, &db.url(), &[]);
+    wait_ready(&server, |s, _| s == 200);
     let version = db.psql(
         "lungmotion",
         "SELECT version, written_by FROM lungmotion_schema",
@@ -213,6 +245,19 @@ fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
         "lungmotion",
         "UPDATE lungmotion_schema SET version = 99, written_by = '9.9.9'",
     );
+    // A server already serving when a newer lungmotion upgrades the schema: /readyz names it.
+    let (_, body) = wait_ready(&server, |s, _| s == 503);
+    let readiness: Value = serde_json::from_str(body["detail"].as_str().unwrap_or("{}"))
+        .unwrap_or_else(|e| panic!("{e}: {body}"));
+    for words in ["schema is version 99", "written by lungmotion 9.9.9"] {
+        assert!(
+            readiness["database"]
+                .as_str()
+                .is_some_and(|d| d.contains(words)),
+            "{words:?} missing: {readiness}"
+        );
+    }
+    drop(server);
     for command in ["serve", "worker"] {
         let mut args = vec![command, "--data-dir", data.to_str().unwrap()];
         if command == "serve" {

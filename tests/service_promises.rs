@@ -3,6 +3,10 @@
 //! progress that moves during solving with the frame count known from the start, one ingest
 //! per scan and settings, every output file fetchable, and an OpenAPI document that lists
 //! the 401s, the upload formats and the run options.
+//!
+//! `.ci/run` runs them again with `LUNGMOTION_TEST_OBJECT_STORE=s3`: the outputs are then
+//! compared with the objects in the S3 server (moto), and a cancelled job or a deleted scan
+//! must leave none there.
 #![cfg(feature = "cli")]
 
 mod service_support;
@@ -79,6 +83,10 @@ fn cancel_while_solving(server: &ServerProcess, job: &str) -> f64 {
         std::thread::sleep(Duration::from_millis(50));
     }
     assert_eq!(leftovers(), Vec::<String>::new());
+    assert_eq!(
+        objects_under(server, &format!("jobs/{job}/")),
+        Vec::<String>::new()
+    );
     assert_problem(
         server.get(&format!("/v1/jobs/{job}/files")),
         409,
@@ -224,7 +232,7 @@ fn progress_moves_while_solving_and_every_output_file_is_served() {
     let listing = server.get_json(done["links"]["files"].as_str().unwrap());
     let listed: Vec<&Value> = listing["files"].as_array().unwrap().iter().collect();
     let mut on_disk = Vec::new();
-    let out = server.data_dir().join("jobs").join(&job).join("out");
+    let out = job_outputs(&server, &job, &scratch.join("out"));
     files_under(&out, "", &mut on_disk);
     for must in [
         "ingest/lung-mask.nii.gz",
@@ -520,9 +528,10 @@ fn run_coarse_job(server: &ServerProcess, scan: &str) -> (String, Value) {
     (job, summary)
 }
 
-/// The frames' displacement fields of a finished job, by path.
-fn displacement_fields(server: &ServerProcess, job: &str) -> Vec<(String, Vec<u8>)> {
-    let out = server.data_dir().join("jobs").join(job).join("out");
+/// The frames' displacement fields of a finished job, by path (from the bucket with S3,
+/// fetched into `copy`).
+fn displacement_fields(server: &ServerProcess, job: &str, copy: &Path) -> Vec<(String, Vec<u8>)> {
+    let out = job_outputs(server, job, copy);
     let mut paths = Vec::new();
     files_under(&out, "", &mut paths);
     paths.sort();
@@ -568,8 +577,8 @@ fn the_first_job_takes_the_ingest_its_upload_stored_with_the_same_fields() {
         own_summary["timings_s"]["ingest"]
     );
     assert_eq!(
-        displacement_fields(&server, &job),
-        displacement_fields(&server, &own_job)
+        displacement_fields(&server, &job, &scratch.join("stored")),
+        displacement_fields(&server, &own_job, &scratch.join("own"))
     );
     assert_eq!(
         summary["ingest"]["elements"],
@@ -586,9 +595,13 @@ fn the_first_job_takes_the_ingest_its_upload_stored_with_the_same_fields() {
     assert_eq!(metric(&server, "lungmotion_job_ingests_total"), 2.0);
     assert_eq!(metric(&server, "lungmotion_job_ingests_stored_total"), 1.0);
 
-    // Deleting the scan deletes its stored ingest.
+    // Deleting the scan deletes its stored ingest (and with S3 its objects).
     assert_eq!(server.delete(&format!("/v1/scans/{scan}")).status(), 204);
     assert!(!stored.exists());
+    assert_eq!(
+        objects_under(&server, &format!("scans/{scan}/")),
+        Vec::<String>::new()
+    );
 }
 
 #[test]

@@ -281,6 +281,11 @@ fn uploaded_masks_and_rtstructs_are_followed_as_the_cli_follows_them_and_bad_one
         "target-motion.csv service vs CLI"
     );
 
+    // A replacement (the same RTSTRUCT again): 200, one target of that name (with an object
+    // store: the old upload's object gone, checked below).
+    let resp = put_target(&server, &scan, "plan", std::fs::read(&rtstruct).unwrap());
+    assert_eq!(resp.status().as_u16(), 200);
+
     // Bad uploads, each refused by name, the stored target left as it was.
     let before = server.get_json(&format!("/v1/scans/{scan}/targets/plan"));
     let mut shifted = read_nifti_labels(&sample("phantom-truth.nii.gz")).unwrap();
@@ -375,10 +380,27 @@ fn uploaded_masks_and_rtstructs_are_followed_as_the_cli_follows_them_and_bad_one
         "a refused replacement keeps the stored target"
     );
     assert_eq!(stray_tmp_files(&data), Vec::<String>::new());
-    assert_eq!(
-        entries(&data.join("scans").join(&scan).join("targets")),
-        ["plan"]
-    );
+    let local_targets = entries(&data.join("scans").join(&scan).join("targets"));
+    match server.objects() {
+        // With an object store the targets are objects (which every API process and worker
+        // sees), none in the data directory: the stored one's record and file, and nothing
+        // of the deleted mask or the refused replacements.
+        Some(s3) => {
+            assert!(local_targets.is_empty(), "{local_targets:?}");
+            let prefix = format!("lm/scans/{scan}/targets/");
+            let keys = s3.keys(TEST_BUCKET, &prefix);
+            let names: Vec<&str> = keys.iter().map(|k| &k[prefix.len()..]).collect();
+            assert_eq!(names.len(), 2, "{names:?}");
+            assert!(names.contains(&"plan/target.json"), "{names:?}");
+            assert!(
+                names
+                    .iter()
+                    .any(|n| n.starts_with("plan/") && n.ends_with("/plan.dcm")),
+                "{names:?}"
+            );
+        }
+        None => assert_eq!(local_targets, ["plan"]),
+    }
 
     // Bad targets in simulation requests, each refused by name before anything is queued.
     let jobs_before = entries(&data.join("jobs"));
@@ -408,6 +430,21 @@ fn uploaded_masks_and_rtstructs_are_followed_as_the_cli_follows_them_and_bad_one
         println!("refused target {target}: {}", body["detail"]);
     }
     assert_eq!(entries(&data.join("jobs")), jobs_before);
+
+    // Deleting the scan (its jobs first) leaves nothing of its targets, here or in the
+    // object store.
+    for job in [&mask_job, &rtstruct_job] {
+        assert_eq!(server.delete(&format!("/v1/jobs/{job}")).status(), 204);
+    }
+    assert_eq!(server.delete(&format!("/v1/scans/{scan}")).status(), 204);
+    assert!(!data.join("scans").join(&scan).exists());
+    if let Some(s3) = server.objects() {
+        let left = s3.keys(TEST_BUCKET, "lm/");
+        assert!(
+            left.is_empty(),
+            "objects left after the deletions: {left:?}"
+        );
+    }
     let log = server.log();
     assert!(
         !log.contains(MASK),

@@ -5,7 +5,11 @@
 //! Without `object_store_url` nothing here is used: the data directory is the store, as
 //! before. With one, the keys under the prefix mirror the data directory's layout:
 //! `scans/<id>/<upload>` and `scans/<id>/ingest.bin` (put once the upload is received and
-//! ingested), `jobs/<id>/out/<path>` (put when the run succeeds; the run itself writes into
+//! ingested), a scan's uploaded targets as `scans/<id>/targets/<name>/target.json` (the
+//! record, naming its file) and `scans/<id>/targets/<name>/<upload id>/<file>` (no copy in
+//! the data directory, so every API process and worker sees them; they go with the scan),
+//! a job's copy of its target as `jobs/<id>/target/<file>`, and
+//! `jobs/<id>/out/<path>` (put when the run succeeds; the run itself writes into
 //! the local data directory, which then keeps no outputs). A worker on another machine fetches
 //! a scan it lacks into its own data directory before running. Outputs are served by streaming
 //! the object, or by a `307` to a presigned URL (`presigned_get`).
@@ -520,6 +524,32 @@ impl BlobStore {
                 Err(e)
             }
         }
+    }
+
+    /// Puts `bytes` (a small record: a target's `target.json`) at `relative` in one PUT,
+    /// which replaces the object whole: a reader gets the old bytes or the new, never part.
+    pub fn put_bytes(&self, relative: &str, bytes: Vec<u8>) -> Result<()> {
+        let this = self.clone();
+        let relative = relative.to_string();
+        self.run(async move {
+            let mut attributes = Attributes::new();
+            if this.inner.attributes {
+                attributes.insert(
+                    Attribute::ContentType,
+                    super::routes::content_type_of(&relative).into(),
+                );
+            }
+            let opts = PutOptions {
+                attributes,
+                ..PutOptions::default()
+            };
+            this.inner
+                .store
+                .put_opts(&this.key(&relative), PutPayload::from(bytes), opts)
+                .await
+                .map(|_| ())
+                .map_err(|e| this.error(&relative, this.explain(&e)))
+        })
     }
 
     /// Puts every file under the local directory `dir` at `relative/<its path>`, several at

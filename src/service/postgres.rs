@@ -1,7 +1,8 @@
 //! The PostgreSQL store of job and scan records and the queue, shared by `lungmotion serve`
 //! processes (the API, stateless) and `lungmotion worker` processes (the simulations). The
-//! files (uploads, targets, outputs) stay in the data directory, which every process of one
-//! deployment mounts.
+//! files (uploads, targets, outputs) are in the object store when one is configured (see
+//! [`super::blobs`]), else in the data directory, which every process of one deployment then
+//! mounts.
 //!
 //! * Jobs and scans are rows (`lungmotion_jobs`, `lungmotion_scans`), each record as JSONB with
 //!   its state beside it for the queries; the request is a column of the job's row.
@@ -537,10 +538,27 @@ impl Postgres {
     }
 
     /// Whether the database answers now (for `/readyz`): `Err` says why not, naming the server.
+    /// A schema that a newer lungmotion wrote meanwhile (a rolling upgrade that reached the
+    /// database before this process) is refused by name, as at start.
     pub fn probe(&self) -> std::result::Result<(), String> {
         let outcome = self.with_client(|client, server| async move {
-            match tokio::time::timeout(PROBE_TIMEOUT, client.simple_query("SELECT 1")).await {
-                Ok(Ok(_)) => Ok(()),
+            let query = client.query_opt("SELECT version, written_by FROM lungmotion_schema", &[]);
+            match tokio::time::timeout(PROBE_TIMEOUT, query).await {
+                Ok(Ok(row)) => {
+                    let (found, written_by) = row
+                        .map(|r| (r.get::<_, i32>(0), r.get::<_, String>(1)))
+                        .unwrap_or((SCHEMA_VERSION, String::new()));
+                    if found > SCHEMA_VERSION {
+                        return Err(Error::SchemaTooNew {
+                            server,
+                            found,
+                            written_by,
+                            known: SCHEMA_VERSION,
+                            ours: env!("CARGO_PKG_VERSION"),
+                        });
+                    }
+                    Ok(())
+                }
                 Ok(Err(e)) => Err(Error::Database {
                     server,
                     reason: describe(&e),

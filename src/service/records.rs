@@ -1,7 +1,8 @@
 //! Where the service keeps its job and scan records, behind one interface: the data
 //! directory ([`Store`], one JSON file per record) or PostgreSQL (rows; see
-//! [`super::postgres`]). The files themselves (uploads, targets, outputs) stay in the data
-//! directory with either backend; only the records (and with PostgreSQL the queue) move.
+//! [`super::postgres`]). The files themselves (uploads, targets, outputs) are in the data
+//! directory, or in the object store when one is configured ([`super::blobs`]), with either
+//! backend; only the records (and with PostgreSQL the queue) move.
 
 use std::path::Path;
 

@@ -6,7 +6,8 @@
 //! * `scans/<scan_id>/scan.json` ([`ScanRecord`]) and the upload as received
 //!   (`scan.nii.gz`, `scan.nii`, `scan.nrrd` or `scan.zip`), and
 //!   `scans/<scan_id>/targets/<name>/` for each target uploaded to it: `target.json`
-//!   ([`TargetRecord`]) and the file;
+//!   ([`TargetRecord`]) and the file (with an object store, the targets are there instead,
+//!   see [`super::blobs`]);
 //! * `jobs/<job_id>/job.json` ([`JobRecord`]), `request.json` ([`JobRequest`]), `target/`
 //!   (its copy of an uploaded target, when it follows one) and `out/`, the run's output
 //!   directory in the CLI's layout, published whole when the run succeeds;
@@ -331,6 +332,57 @@ impl Drop for FetchedTarget {
             if let Some(job) = dir.parent() {
                 let _ = std::fs::remove_dir(job);
             }
+        }
+    }
+}
+
+/// A scan's target as kept in the object store (`scans/<scan>/targets/<name>/target.json`):
+/// its record and its file's key below the target's, new for every upload, so that
+/// replacing a target is the one PUT of this record.
+#[derive(Debug, Serialize, Deserialize)]
+struct TargetObject {
+    record: TargetRecord,
+    /// `<upload id>/<file name>`.
+    object: String,
+}
+
+/// The target's record kept in the object store, `None` when the scan has no target `name`.
+fn target_object(blobs: &BlobStore, scan: ScanId, name: &str) -> Result<Option<TargetObject>> {
+    let key = format!("scans/{scan}/{SCAN_TARGETS}/{name}/{TARGET_RECORD}");
+    let Some(bytes) = blobs.read(&key)? else {
+        return Ok(None);
+    };
+    let stored: TargetObject = serde_json::from_slice(&bytes).map_err(|e| Error::Store {
+        record: key.clone(),
+        reason: format!("corrupt record: {e}"),
+    })?;
+    // The key of its file stays below the target's (a record naming another would have a
+    // replacement delete that).
+    let plain = |part: &str| !part.is_empty() && part != "." && part != "..";
+    match stored.object.split_once('/') {
+        Some((id, file)) if plain(id) && plain(file) && !file.contains('/') => Ok(Some(stored)),
+        _ => Err(Error::Store {
+            record: key,
+            reason: format!("corrupt record: file key {:?}", stored.object),
+        }),
+    }
+}
+
+/// A scan's target file in the data directory for a job's copy (see
+/// [`Store::target_file_for_job`]); a copy fetched from the object store is removed when
+/// this is dropped.
+#[derive(Debug)]
+pub struct LocalTargetFile {
+    /// The file, named as the target's record names it.
+    pub path: PathBuf,
+    /// The staging directory of a fetched copy.
+    fetched: Option<PathBuf>,
+}
+
+impl Drop for LocalTargetFile {
+    fn drop(&mut self) {
+        if let Some(dir) = self.fetched.take() {
+            let _ = std::fs::remove_dir_all(dir);
         }
     }
 }
@@ -927,7 +979,8 @@ impl Store {
         self.scan_dir(scan).join(SCAN_TARGETS).join(name)
     }
 
-    /// The uploaded file of a scan's target.
+    /// Where the uploaded file of a scan's target is in the data directory (without an object
+    /// store; with one, see [`Store::target_file_for_job`]).
     pub fn target_file(&self, scan: ScanId, record: &TargetRecord) -> PathBuf {
         self.target_dir(scan, &record.name).join(&record.file_name)
     }
@@ -941,6 +994,9 @@ impl Store {
         record: &TargetRecord,
         upload: &Path,
     ) -> Result<TargetStored> {
+        if let Some(blobs) = &self.blobs {
+            return self.put_target_object(blobs, scan, record, upload);
+        }
         let staging = self.tmp_path("target");
         std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
         let staged = (|| {
@@ -1003,11 +1059,30 @@ impl Store {
         if super::targets::check_target_name(name).is_err() {
             return Ok(None);
         }
+        if let Some(blobs) = &self.blobs {
+            return Ok(target_object(blobs, scan, name)?.map(|t| t.record));
+        }
         self.read_record(&self.target_dir(scan, name).join(TARGET_RECORD))
     }
 
     /// A scan's targets by name; unreadable ones are left out and logged.
     pub fn list_targets(&self, scan: ScanId) -> Result<Vec<TargetRecord>> {
+        if let Some(blobs) = &self.blobs {
+            let mut targets = Vec::new();
+            for (path, _) in blobs.list(&format!("scans/{scan}/{SCAN_TARGETS}"))? {
+                let Some(name) = path.strip_suffix(&format!("/{TARGET_RECORD}")) else {
+                    continue;
+                };
+                match self.target(scan, name) {
+                    Ok(Some(record)) => targets.push(record),
+                    // Deleted since the listing.
+                    Ok(None) => {}
+                    Err(e) => tracing::warn!(scan = %scan, "target {name}: {e}"),
+                }
+            }
+            targets.sort_by(|a, b| a.name.cmp(&b.name));
+            return Ok(targets);
+        }
         let dir = self.scan_dir(scan).join(SCAN_TARGETS);
         let entries = match std::fs::read_dir(&dir) {
             Ok(entries) => entries,
@@ -1034,7 +1109,93 @@ impl Store {
             return Ok(false);
         }
         let _one_at_a_time = lock(&self.targets);
-        self.remove_dir(&self.target_dir(scan, name))
+        let local = self.remove_dir(&self.target_dir(scan, name))?;
+        let objects = self.delete_blobs(&format!("scans/{scan}/{SCAN_TARGETS}/{name}"))?;
+        Ok(local || objects)
+    }
+
+    /// [`Store::put_target`] with an object store: the file goes to a key of its own
+    /// (`scans/<scan>/targets/<name>/<upload id>/<file>`), then `target.json` naming it
+    /// replaces the old one in one PUT, then the old file goes. A reader sees the old target
+    /// or the new one whole; a failed upload leaves the old one as it was. A scan deleted
+    /// meanwhile is not noticed here (the store does not hold the scan records with
+    /// PostgreSQL): the caller checks it after, and removes the target when it is gone.
+    fn put_target_object(
+        &self,
+        blobs: &BlobStore,
+        scan: ScanId,
+        record: &TargetRecord,
+        upload: &Path,
+    ) -> Result<TargetStored> {
+        let dir = format!("scans/{scan}/{SCAN_TARGETS}/{}", record.name);
+        let _one_at_a_time = lock(&self.targets);
+        let previous = target_object(blobs, scan, &record.name)?;
+        let upload_id = uuid::Uuid::new_v4().simple().to_string();
+        let object = format!("{upload_id}/{}", record.file_name);
+        let stored = TargetObject {
+            record: record.clone(),
+            object: object.clone(),
+        };
+        let json = serde_json::to_vec_pretty(&stored).map_err(|e| Error::Store {
+            record: format!("{dir}/{TARGET_RECORD}"),
+            reason: format!("cannot serialise: {e}"),
+        })?;
+        let file_key = format!("{dir}/{object}");
+        let put = blobs
+            .put_file(&file_key, upload)
+            .and_then(|_| blobs.put_bytes(&format!("{dir}/{TARGET_RECORD}"), json));
+        if let Err(e) = put {
+            let _ = blobs.delete_prefix(&format!("{dir}/{upload_id}"));
+            return Err(e);
+        }
+        let _ = std::fs::remove_file(upload);
+        if let Some(previous) = &previous {
+            // Its upload's directory (a listing prefix is a directory, never one object's key);
+            // `target_object` checked that the key is `<upload id>/<file>`.
+            let upload = previous.object.split('/').next().unwrap_or_default();
+            if let Err(e) = blobs.delete_prefix(&format!("{dir}/{upload}")) {
+                // Left under the scan's prefix: it goes with the scan.
+                tracing::warn!(scan = %scan, "cannot remove the replaced target's file: {e}");
+            }
+        }
+        Ok(if previous.is_some() {
+            TargetStored::Replaced
+        } else {
+            TargetStored::Created
+        })
+    }
+
+    /// The file of a scan's target `record` in the data directory, for a job's copy: the
+    /// stored file itself, or with an object store a copy fetched into `tmp/` (removed when
+    /// the returned guard is dropped). `None` when the target was replaced or deleted since
+    /// `record` was read (the request was checked against that one).
+    pub fn target_file_for_job(
+        &self,
+        scan: ScanId,
+        record: &TargetRecord,
+    ) -> Result<Option<LocalTargetFile>> {
+        let Some(blobs) = &self.blobs else {
+            return Ok(Some(LocalTargetFile {
+                path: self.target_file(scan, record),
+                fetched: None,
+            }));
+        };
+        let dir = format!("scans/{scan}/{SCAN_TARGETS}/{}", record.name);
+        let Some(stored) =
+            target_object(blobs, scan, &record.name)?.filter(|stored| &stored.record == record)
+        else {
+            return Ok(None);
+        };
+        let staging = self.tmp_path("target-copy");
+        std::fs::create_dir_all(&staging).at(IoOp::CreateDir, &staging)?;
+        let fetched = LocalTargetFile {
+            path: staging.join(&record.file_name),
+            fetched: Some(staging),
+        };
+        if !blobs.fetch_file(&format!("{dir}/{}", stored.object), &fetched.path)? {
+            return Ok(None);
+        }
+        Ok(Some(fetched))
     }
 
     /// Where a job's copy of its uploaded target is.
@@ -1729,6 +1890,107 @@ mod tests {
             .filter(|n| n != "writable")
             .collect();
         assert!(left.is_empty(), "{left:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn targets_with_an_object_store_are_objects_every_process_sees_and_go_with_deletion() {
+        let dir =
+            std::env::temp_dir().join(format!("lm-store-target-objects-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let settings = super::super::blobs::BlobSettings::new(format!(
+            "file://{}",
+            dir.join("blobs").display()
+        ));
+        let blobs = BlobStore::open(&settings).unwrap();
+        // Two machines: the API process the target is uploaded to, and another.
+        let api = Store::open_shared(&dir.join("api"))
+            .unwrap()
+            .with_blobs(Some(blobs.clone()));
+        let other = Store::open_shared(&dir.join("other"))
+            .unwrap()
+            .with_blobs(Some(blobs.clone()));
+        let scan = ScanId::random();
+        let keys = |under: &str| -> Vec<String> {
+            blobs
+                .list(&format!("scans/{scan}/targets/{under}"))
+                .unwrap()
+                .into_iter()
+                .map(|(k, _)| k)
+                .collect()
+        };
+        let put = |store: &Store, bytes: &[u8], record: &TargetRecord| {
+            let file = store.tmp_path("target-upload");
+            std::fs::write(&file, bytes).unwrap();
+            let stored = store.put_target(scan, record, &file);
+            assert!(!file.exists(), "the upload is not left in tmp/");
+            stored
+        };
+        let tumour = target_record("tumour");
+        assert_eq!(put(&api, b"one", &tumour).unwrap(), TargetStored::Created);
+        assert_eq!(other.target(scan, "tumour").unwrap(), Some(tumour.clone()));
+        assert!(
+            !api.scan_dir(scan).join(SCAN_TARGETS).exists(),
+            "no copy in the data directory"
+        );
+        // Replaced from the other machine, as a different format: one record, one file.
+        let mut replacement = target_record("tumour");
+        replacement.file_name = "tumour.nrrd".into();
+        replacement.format = "nrrd".into();
+        assert_eq!(
+            put(&other, b"two", &replacement).unwrap(),
+            TargetStored::Replaced
+        );
+        let left = keys("tumour");
+        assert_eq!(left.len(), 2, "{left:?}");
+        assert!(left.contains(&"target.json".to_string()), "{left:?}");
+        assert!(left.iter().any(|k| k.ends_with("/tumour.nrrd")), "{left:?}");
+        assert_eq!(
+            api.target(scan, "tumour").unwrap(),
+            Some(replacement.clone())
+        );
+        // A replacement that cannot be read leaves the stored one as it was.
+        assert!(api
+            .put_target(scan, &tumour, &api.tmp_path("missing"))
+            .is_err());
+        assert_eq!(keys("tumour"), left);
+        assert_eq!(
+            api.target(scan, "tumour").unwrap(),
+            Some(replacement.clone())
+        );
+        assert_eq!(
+            put(&api, b"x", &target_record("gtv")).unwrap(),
+            TargetStored::Created
+        );
+        let names: Vec<String> = other
+            .list_targets(scan)
+            .unwrap()
+            .into_iter()
+            .map(|t| t.name)
+            .collect();
+        assert_eq!(names, ["gtv", "tumour"]);
+        assert_eq!(other.target(scan, "../x").unwrap(), None);
+        // A job's copy: fetched for the submission, gone with its guard; none for a record
+        // that is no longer the stored one.
+        let copy = other
+            .target_file_for_job(scan, &replacement)
+            .unwrap()
+            .expect("the stored target");
+        assert_eq!(copy.path.file_name().unwrap(), "tumour.nrrd");
+        assert_eq!(std::fs::read(&copy.path).unwrap(), b"two");
+        let fetched = copy.path.clone();
+        drop(copy);
+        assert!(!fetched.exists() && !fetched.parent().unwrap().exists());
+        assert!(other.target_file_for_job(scan, &tumour).unwrap().is_none());
+        // Deleting a target removes its objects, from any machine.
+        assert!(other.delete_target(scan, "gtv").unwrap());
+        assert!(!api.delete_target(scan, "gtv").unwrap());
+        assert!(keys("gtv").is_empty());
+        assert_eq!(api.target(scan, "gtv").unwrap(), None);
+        // Deleting the scan removes the rest.
+        assert!(api.delete_scan(scan).unwrap());
+        assert!(blobs.list(&format!("scans/{scan}")).unwrap().is_empty());
+        assert!(other.list_targets(scan).unwrap().is_empty());
         let _ = std::fs::remove_dir_all(&dir);
     }
 

@@ -11,6 +11,10 @@
 //!
 //! With `LUNGMOTION_TEST_OBJECT_STORE=s3`, each server also gets an S3 server of its own
 //! (moto's, see [`s3`]) and keeps its uploads and outputs there (`[store] object_store_url`).
+//! A server started again on the same data directory (after a kill or a stop) gets the same
+//! S3 server, as a restarted process of a deployment finds its bucket: it lives until the
+//! test's [`Scratch`] is dropped. [`job_outputs`] and [`objects_under`] read a job's outputs
+//! and a store's objects wherever they are.
 
 #![allow(dead_code)]
 
@@ -21,7 +25,7 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::mpsc;
+use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use reqwest::blocking::{Client, Response};
@@ -65,6 +69,8 @@ impl Scratch {
 
 impl Drop for Scratch {
     fn drop(&mut self) {
+        // The S3 servers of its data directories stop (once no server holds them).
+        lock_s3_servers().retain(|(dir, _)| !dir.starts_with(&self.path));
         if !std::thread::panicking() {
             let _ = std::fs::remove_dir_all(&self.path);
         }
@@ -82,8 +88,35 @@ pub struct ServerProcess {
     /// database (dropped in this order, after the server).
     worker: Option<postgres::WorkerProcess>,
     database: Option<postgres::PgServer>,
-    /// With `LUNGMOTION_TEST_OBJECT_STORE=s3`: the S3 server of its blobs.
-    objects: Option<s3::S3Server>,
+    /// With `LUNGMOTION_TEST_OBJECT_STORE=s3`: the S3 server of its blobs (shared with the
+    /// servers started again on its data directory).
+    objects: Option<Arc<s3::S3Server>>,
+}
+
+/// The S3 servers of `LUNGMOTION_TEST_OBJECT_STORE=s3` by the data directory they serve,
+/// until the [`Scratch`] holding that directory is dropped.
+static S3_SERVERS: Mutex<Vec<(PathBuf, Arc<s3::S3Server>)>> = Mutex::new(Vec::new());
+
+fn lock_s3_servers() -> std::sync::MutexGuard<'static, Vec<(PathBuf, Arc<s3::S3Server>)>> {
+    S3_SERVERS.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The S3 server (with the tests' bucket) of the servers on `data_dir`: the one a server on
+/// it started earlier in this test, else a new one.
+fn s3_server_of(data_dir: &Path) -> Arc<s3::S3Server> {
+    let mut servers = lock_s3_servers();
+    if let Some((_, server)) = servers.iter().find(|(dir, _)| dir == data_dir) {
+        return server.clone();
+    }
+    let name = data_dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let s3 = s3::S3Server::start(&data_dir.parent().unwrap().join(format!("moto-{name}")));
+    s3.create_bucket(TEST_BUCKET);
+    let s3 = Arc::new(s3);
+    servers.push((data_dir.to_path_buf(), s3.clone()));
+    s3
 }
 
 /// Whether the tests' servers keep their blobs in an S3 server of their own
@@ -178,11 +211,7 @@ impl ServerProcess {
         if let Some(url) = &url {
             env.push(("LUNGMOTION_POSTGRES_URL", url));
         }
-        let objects = (own_backends && object_store_backend()).then(|| {
-            let s3 = s3::S3Server::start(&data_dir.parent().unwrap().join("moto"));
-            s3.create_bucket(TEST_BUCKET);
-            s3
-        });
+        let objects = (own_backends && object_store_backend()).then(|| s3_server_of(data_dir));
         let objects_env = objects
             .as_ref()
             .map(|s3| s3.service_env(TEST_BUCKET, "lm"))
@@ -295,7 +324,7 @@ impl ServerProcess {
 
     /// The S3 server of its blobs (`LUNGMOTION_TEST_OBJECT_STORE=s3`).
     pub fn objects(&self) -> Option<&s3::S3Server> {
-        self.objects.as_ref()
+        self.objects.as_deref()
     }
 
     /// The object store settings it was started with by `LUNGMOTION_TEST_OBJECT_STORE=s3`
@@ -676,6 +705,34 @@ pub fn entries(dir: &Path) -> Vec<String> {
         .unwrap_or_default();
     names.sort();
     names
+}
+
+/// A done job's output directory as a directory to read: the server's `jobs/<id>/out`, or
+/// with its blobs in S3 (where the data directory keeps no outputs) the objects under
+/// `lm/jobs/<id>/out/` fetched straight from the bucket into `dest` (emptied first).
+pub fn job_outputs(server: &ServerProcess, job: &str, dest: &Path) -> PathBuf {
+    let Some(s3) = server.objects() else {
+        return server.data_dir().join("jobs").join(job).join("out");
+    };
+    let _ = std::fs::remove_dir_all(dest);
+    let prefix = format!("lm/jobs/{job}/out/");
+    let keys = s3.keys(TEST_BUCKET, &prefix);
+    assert!(!keys.is_empty(), "no outputs of job {job} in the bucket");
+    for key in keys {
+        let path = dest.join(&key[prefix.len()..]);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, s3.object(TEST_BUCKET, &key).0).unwrap();
+    }
+    dest.to_path_buf()
+}
+
+/// The keys of the server's objects under `relative` (`jobs/<id>/`, `scans/<id>/`, or `""`
+/// for all) in its bucket; none when its blobs are not in S3.
+pub fn objects_under(server: &ServerProcess, relative: &str) -> Vec<String> {
+    server
+        .objects()
+        .map(|s3| s3.keys(TEST_BUCKET, &format!("lm/{relative}")))
+        .unwrap_or_default()
 }
 
 /// The entries of the store's `tmp/` that are not the server's own writability probe.

@@ -109,13 +109,22 @@ impl PgServer {
                 "--locale=C".as_ref(),
             ],
         );
+        server.resume();
+        server.psql("postgres", &format!("CREATE DATABASE {PG_DATABASE}"));
+        server
+    }
+
+    /// Starts the server (again, after [`PgServer::stop`]) on its port and data, waiting until
+    /// it accepts connections.
+    pub fn resume(&self) {
+        let data = self.dir.join("data");
         let options = format!(
             "-p {} -k {} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=200",
-            server.port,
-            dir.display()
+            self.port,
+            self.dir.display()
         );
-        let log = dir.join("postgres.log");
-        server.tool(
+        let log = self.dir.join("postgres.log");
+        self.tool(
             "pg_ctl",
             &[
                 "-D".as_ref(),
@@ -130,8 +139,23 @@ impl PgServer {
                 "start".as_ref(),
             ],
         );
-        server.psql("postgres", &format!("CREATE DATABASE {PG_DATABASE}"));
-        server
+    }
+
+    /// Stops the server at once (`pg_ctl stop -m immediate`), as a lost database machine
+    /// would go: its clients' connections drop and new ones are refused.
+    pub fn stop(&self) {
+        let data = self.dir.join("data");
+        self.tool(
+            "pg_ctl",
+            &[
+                "-D".as_ref(),
+                data.as_os_str(),
+                "-m".as_ref(),
+                "immediate".as_ref(),
+                "-w".as_ref(),
+                "stop".as_ref(),
+            ],
+        );
     }
 
     /// Runs one of the server's programs (as `postgres` when root); panics with its output

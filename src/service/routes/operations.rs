@@ -25,6 +25,21 @@ pub struct Health {
     /// Jobs running.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub running: Option<usize>,
+    /// With PostgreSQL (`/readyz`): `ok`, or why the database does not answer, naming it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub database: Option<String>,
+    /// With an object store (`/readyz`): `ok`, or why it does not answer, naming the bucket
+    /// and the endpoint (a missing bucket, refused credentials).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub object_store: Option<String>,
+}
+
+/// A probe's outcome as `/readyz` reports it: `ok` or why not.
+fn probed(outcome: &Option<std::result::Result<(), String>>) -> Option<String> {
+    outcome.as_ref().map(|result| match result {
+        Ok(()) => "ok".to_string(),
+        Err(why) => why.clone(),
+    })
 }
 
 /// Liveness: the process answers.
@@ -36,14 +51,17 @@ pub async fn healthz() -> Json<Health> {
         workers: None,
         queued: None,
         running: None,
+        database: None,
+        object_store: None,
     })
 }
 
 /// Readiness: the store is writable (and the database and the object store answer, when
-/// configured) and the server is not shutting down.
+/// configured) and the server is not shutting down. The answer reports the database and the
+/// object store each (`ok` or why not) when they are configured.
 #[utoipa::path(get, path = "/readyz", tag = "operations",
     responses((status = 200, description = "Ready", body = Health),
-              (status = 503, description = "Shutting down or store not writable", body = Health)))]
+              (status = 503, description = "Shutting down, store not writable, or the database or the object store not answering (each named in its field)", body = Health)))]
 pub async fn readyz(State(state): State<SharedState>) -> Response {
     let counts = state.jobs.counts();
     let worker_state = state.clone();
@@ -82,6 +100,8 @@ pub async fn readyz(State(state): State<SharedState>) -> Response {
         workers: Some(state.config.workers),
         queued: Some(counts.queued),
         running: Some(counts.running),
+        database: probed(&database),
+        object_store: probed(&objects),
     };
     (code, Json(body)).into_response()
 }

@@ -17,7 +17,7 @@ use crate::service::ids::ScanId;
 use crate::service::jobs::{CancelOutcome, SubmitRefusal};
 use crate::service::problem::{ApiError, ApiResult, Problem};
 use crate::service::request::{parse_simulation, SimulationRequest};
-use crate::service::store::{JobRecord, JobRequest};
+use crate::service::store::{JobRecord, JobRequest, LocalTargetFile};
 use crate::service::targets::{choose, JobTarget};
 
 /// Links of a job.
@@ -77,6 +77,7 @@ impl From<JobRecord> for JobStatus {
          headers(("location" = String, description = "The job's URL"))),
         (status = 400, description = "Malformed JSON", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such scan (also one removed meanwhile by a client or retention)", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The uploaded target the request follows was replaced or deleted while the request was being submitted (target-changed); submit again", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body over max_request_kib", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Unusable trace or option (invalid-simulation; also a `ct`, which belongs to POST /v1/simulations; a target that is a path, or an uploaded target the scan does not have, a label not in its mask, an ROI missing from its RTSTRUCT or unusable on the CT, each named), a callback_url refused (invalid-callback: scheme, plain http beyond loopback, credentials, length, or no callback secret on the server), or `\"push\": true` on a server without a PACS (no-pacs)", body = Problem, content_type = "application/problem+json"),
@@ -113,7 +114,12 @@ pub async fn create_simulation(
         }
         let mut request = request;
         let target_file = uploaded_target(&worker_state, scan, &mut request)?;
-        submit(&worker_state, scan, &request, target_file.as_deref())
+        submit(
+            &worker_state,
+            scan,
+            &request,
+            target_file.as_ref().map(|f| f.path.as_path()),
+        )
     })
     .await?;
     tracing::info!(job = %record.job_id, scan = %scan, "job queued");
@@ -216,12 +222,13 @@ fn content_type_of(headers: &HeaderMap) -> String {
 }
 
 /// The scan's stored file of the target the request names as an upload, checked against its
-/// record (label or ROI present and usable); the request then names the job's copy.
+/// record (label or ROI present and usable); the request then names the job's copy. With an
+/// object store the file is a copy fetched for the submission, removed when it is dropped.
 fn uploaded_target(
     state: &SharedState,
     scan: ScanId,
     request: &mut JobRequest,
-) -> ApiResult<Option<std::path::PathBuf>> {
+) -> ApiResult<Option<LocalTargetFile>> {
     let Some(JobTarget::Upload(choice)) = &mut request.target else {
         return Ok(None);
     };
@@ -242,7 +249,21 @@ fn uploaded_target(
     choose(choice, record.as_ref(), &uploaded)?;
     let record = record.ok_or_else(|| ApiError::internal("choose let a missing upload through"))?;
     choice.file = Some(record.file_name.clone());
-    Ok(Some(state.store.target_file(scan, &record)))
+    match state
+        .store
+        .target_file_for_job(scan, &record)
+        .map_err(store_error)?
+    {
+        Some(file) => Ok(Some(file)),
+        None => Err(ApiError::conflict(
+            "target-changed",
+            format!(
+                "target {:?} of scan {scan} was replaced or deleted while this simulation was \
+                 being submitted; submit again",
+                record.name
+            ),
+        )),
+    }
 }
 
 /// Checks the callback and queues the job (with its copy of the uploaded target file

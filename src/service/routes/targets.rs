@@ -152,10 +152,25 @@ pub async fn put_target(
             rois: contents.rois,
             notes: contents.notes,
         };
-        let stored = worker_state
+        let mut stored = worker_state
             .store
             .put_target(scan, &record, &named)
             .map_err(store_error)?;
+        // With an object store the store cannot tell a scan deleted meanwhile (its record
+        // may be in PostgreSQL): asked again now, and the target removed with it gone.
+        if stored != TargetStored::ScanMissing
+            && worker_state
+                .records
+                .scan(scan)
+                .map_err(store_error)?
+                .is_none()
+        {
+            worker_state
+                .store
+                .delete_target(scan, &record.name)
+                .map_err(store_error)?;
+            stored = TargetStored::ScanMissing;
+        }
         Ok((record, stored))
     })
     .await?;
@@ -176,6 +191,9 @@ fn scan_ct(
     state: &SharedState,
     scan: &ScanRecord,
 ) -> ApiResult<(VolumeGeometry, Option<DicomStudyContext>)> {
+    // Another API process may have received the upload: fetched (and held) when this one
+    // has no copy.
+    let _copy = state.store.ensure_scan_local(scan).map_err(store_error)?;
     let path = state.store.scan_file(scan);
     let mut options = state.config.run.dicom_read_options();
     options.series = scan.series_or(options.series);
