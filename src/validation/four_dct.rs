@@ -393,8 +393,8 @@ pub fn validate_four_dct(
                 left_volume_ml: own.left_ml,
                 volume_change_ml: frame.target_volume_ml,
                 simulated_volume_change_ml: frame.simulated_volume_ml,
-                dice: binary_dice(&predicted, &own.lungs),
-                no_motion_dice: binary_dice(ref_lungs, &own.lungs),
+                dice: binary_dice(&predicted, &own.lungs)?,
+                no_motion_dice: binary_dice(ref_lungs, &own.lungs)?,
                 lung_base,
                 landmarks: landmark_errors,
                 overlay,
@@ -495,24 +495,8 @@ fn carry_labels(reference: &Volume<u8>, motion: &CtGridMotion) -> Volume<u8> {
 }
 
 /// Dice of the lungs (any non-zero label) of two masks on one grid.
-fn binary_dice(a: &Volume<u8>, b: &Volume<u8>) -> f64 {
-    let (both, na, nb) = a
-        .as_slice()
-        .par_iter()
-        .zip(b.as_slice())
-        .fold(
-            || (0usize, 0usize, 0usize),
-            |(both, na, nb), (&x, &y)| {
-                let (ia, ib) = ((x != 0) as usize, (y != 0) as usize);
-                (both + ia * ib, na + ia, nb + ib)
-            },
-        )
-        .reduce(|| (0, 0, 0), |p, q| (p.0 + q.0, p.1 + q.1, p.2 + q.2));
-    if na + nb == 0 {
-        1.0
-    } else {
-        2.0 * both as f64 / (na + nb) as f64
-    }
+fn binary_dice(a: &Volume<u8>, b: &Volume<u8>) -> Result<f64> {
+    crate::ingest::segmentation::dice_where(a, |x| x != 0, b, |y| y != 0)
 }
 
 /// The (i, j) voxel columns within [`BASE_COLUMN_RADIUS_MM`] of the footprint centroid of

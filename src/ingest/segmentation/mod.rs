@@ -92,6 +92,17 @@ pub const LEFT_LUNG: u8 = 2;
 /// Dice overlap 2|A∩B|/(|A|+|B|) of voxels labelled `label_a` in `a` and `label_b` in `b`
 /// (1 when both are empty); the grids must be the same.
 pub fn dice(a: &Volume<u8>, label_a: u8, b: &Volume<u8>, label_b: u8) -> Result<f64> {
+    dice_where(a, |x| x == label_a, b, |y| y == label_b)
+}
+
+/// Dice overlap 2|A∩B|/(|A|+|B|) of the voxels of `a` that `in_a` accepts and those of `b`
+/// that `in_b` accepts (1 when both are empty); the grids must be the same.
+pub fn dice_where(
+    a: &Volume<u8>,
+    in_a: impl Fn(u8) -> bool + Sync,
+    b: &Volume<u8>,
+    in_b: impl Fn(u8) -> bool + Sync,
+) -> Result<f64> {
     if !a.geometry.same_grid(&b.geometry, 1e-3) || a.as_slice().len() != b.as_slice().len() {
         return Err(Error::argument(
             "Dice masks",
@@ -108,7 +119,7 @@ pub fn dice(a: &Volume<u8>, label_a: u8, b: &Volume<u8>, label_b: u8) -> Result<
         .fold(
             || (0usize, 0usize, 0usize),
             |(both, na, nb), (&x, &y)| {
-                let (ia, ib) = ((x == label_a) as usize, (y == label_b) as usize);
+                let (ia, ib) = (in_a(x) as usize, in_b(y) as usize);
                 (both + ia * ib, na + ia, nb + ib)
             },
         )
