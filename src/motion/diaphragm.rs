@@ -54,22 +54,6 @@ pub fn check_dome_flattening(flattening: f64) -> Result<()> {
 /// Descent of the dome's top per unit of the diaphragm's motion, metres (the run rescales it).
 const UNIT_DESCENT_M: f64 = 1e-3;
 
-/// What lowering the diaphragm did to a scene.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct DiaphragmDescent {
-    /// Diaphragmatic nodes whose surface moves down.
-    pub moving_nodes: usize,
-    /// Diaphragmatic nodes sliding on the wall in all.
-    pub diaphragm_nodes: usize,
-    /// Flattening of the dome: how much less its rim descends than its top, as a fraction.
-    pub flattening: f64,
-    /// Volume the diaphragm sweeps per unit of imposed motion, mL, once the walls' sweep is
-    /// split ([`share_sweep_between_walls`]).
-    pub sweep_ml_per_unit: f64,
-    /// Volume the rib cage sweeps per unit of imposed motion, mL.
-    pub chest_wall_sweep_ml_per_unit: f64,
-}
-
 /// Moves the surface every sliding diaphragmatic node of `scene` (built from `model` with
 /// [`crate::ingest::lung_model::DiaphragmMotion::Sliding`]) rests on down by the module's
 /// unit descent, the dome flattening by `flattening`; returns how many moved, and of how many.
@@ -93,23 +77,14 @@ pub fn share_sweep_between_walls(
     scene: &mut Scene,
     model: &LungModel,
     rib_cage_share: f64,
-    flattening: f64,
-    (moving_nodes, diaphragm_nodes): (usize, usize),
-) -> Result<DiaphragmDescent> {
+) -> Result<()> {
     super::chest_wall::check_rib_cage_share(rib_cage_share)?;
-    let mut group = vec![0u8; scene.node_count()];
-    for g in [ConstraintGroup::Costal, ConstraintGroup::Diaphragmatic] {
-        for n in model.group_nodes(g) {
-            group[n as usize] = g.code();
-        }
-    }
-    let of = |g: ConstraintGroup| {
-        let code = g.code();
-        let group = &group;
-        move |n: u32| group[n as usize] == code
+    let sweep_ml = |scene: &Scene, group: ConstraintGroup| {
+        let code = group.code();
+        scene.imposed_sweep_ml(|n| model.node_group[n as usize] == code)
     };
-    let diaphragm_ml = scene.imposed_sweep_ml(of(ConstraintGroup::Diaphragmatic));
-    let costal_ml = scene.imposed_sweep_ml(of(ConstraintGroup::Costal));
+    let diaphragm_ml = sweep_ml(scene, ConstraintGroup::Diaphragmatic);
+    let costal_ml = sweep_ml(scene, ConstraintGroup::Costal);
     let refuse = |what: &str, ml: f64| {
         Err(Error::InvalidModel(format!(
             "the sliding diaphragm cannot make the breath: the {what} sweeps {ml:.4} mL per \
@@ -137,13 +112,7 @@ pub fn share_sweep_between_walls(
             rib_cage_share / costal_ml,
         );
     }
-    Ok(DiaphragmDescent {
-        moving_nodes,
-        diaphragm_nodes,
-        flattening,
-        sweep_ml_per_unit: scene.imposed_sweep_ml(of(ConstraintGroup::Diaphragmatic)),
-        chest_wall_sweep_ml_per_unit: scene.imposed_sweep_ml(of(ConstraintGroup::Costal)),
-    })
+    Ok(())
 }
 
 /// What the walls make of a breath, measured in the linear range, and the split of their

@@ -58,15 +58,9 @@ pub fn run_scene(model: &LungModel, walls: &WallMotion) -> Result<Scene> {
     if model.report.diaphragm_motion == DiaphragmMotion::Sliding {
         use super::diaphragm::{check_dome_flattening, lower_diaphragm, share_sweep_between_walls};
         check_dome_flattening(walls.dome_flattening)?;
-        let moved = lower_diaphragm(&mut scene, model, walls.dome_flattening);
-        let descent = share_sweep_between_walls(
-            &mut scene,
-            model,
-            walls.rib_cage_share,
-            walls.dome_flattening,
-            moved,
-        )?;
-        tracing::debug!(?descent, "diaphragm descends with the breath");
+        let (moved, face) = lower_diaphragm(&mut scene, model, walls.dome_flattening);
+        tracing::debug!(moved, face, "diaphragm descends with the breath");
+        share_sweep_between_walls(&mut scene, model, walls.rib_cage_share)?;
         let mut chest_wall_part = walls.rib_cage_share;
         if walls.rib_cage_share > 0.0 {
             // The driver's compliance when the run does not give one: the elastic one.
