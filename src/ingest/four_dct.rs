@@ -35,6 +35,26 @@ pub struct PhaseSource {
     pub path: PathBuf,
 }
 
+/// The index of the phase of `phases` named `asked`, else whose 0-based index `asked` is; the
+/// reason, listing the names, when it is neither.
+pub fn find_phase(phases: &[PhaseSource], asked: &str) -> std::result::Result<usize, String> {
+    phases
+        .iter()
+        .position(|p| p.name == asked)
+        .or_else(|| asked.parse::<usize>().ok().filter(|&i| i < phases.len()))
+        .ok_or_else(|| {
+            format!(
+                "{asked:?} is neither a phase name ({}) nor an index below {}",
+                phases
+                    .iter()
+                    .map(|p| p.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                phases.len()
+            )
+        })
+}
+
 /// The phases of a 4D-CT, in breathing order.
 #[derive(Debug)]
 pub struct FourDctPhases {

@@ -431,24 +431,8 @@ fn choose_reference(
     asked: Option<&str>,
 ) -> Result<ReferencePhase> {
     let index = match asked {
-        Some(asked) => phases
-            .iter()
-            .position(|p| p.name == asked)
-            .or_else(|| asked.parse::<usize>().ok().filter(|&i| i < phases.len()))
-            .ok_or_else(|| {
-                Error::argument(
-                    "reference phase",
-                    format!(
-                        "{asked:?} is neither a phase name ({}) nor an index below {}",
-                        phases
-                            .iter()
-                            .map(|p| p.name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", "),
-                        phases.len()
-                    ),
-                )
-            })?,
+        Some(asked) => crate::ingest::four_dct::find_phase(phases, asked)
+            .map_err(|reason| Error::argument("reference phase", reason))?,
         None => segmented
             .iter()
             .enumerate()

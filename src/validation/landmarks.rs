@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use crate::ingest::four_dct::{natural_cmp, PhaseSource};
+use crate::ingest::four_dct::{find_phase, natural_cmp, PhaseSource};
 use crate::volume::VolumeGeometry;
 use crate::{Error, IoContext, IoOp, Result};
 
@@ -275,31 +275,13 @@ pub fn read_landmark_csv(
             ));
         }
         let phase_field = fields[col[0]];
-        let phase = phases
-            .iter()
-            .position(|p| p.name == phase_field)
-            .or_else(|| {
-                phase_field
-                    .parse::<usize>()
-                    .ok()
-                    .filter(|&i| i < phases.len())
-            })
-            .ok_or_else(|| {
-                refuse(
-                    file,
-                    Some(line_no),
-                    format!(
-                        "line {line_no}: phase {phase_field:?} is neither a phase name ({}) nor \
-                         an index below {}",
-                        phases
-                            .iter()
-                            .map(|p| p.name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", "),
-                        phases.len()
-                    ),
-                )
-            })?;
+        let phase = find_phase(phases, phase_field).map_err(|reason| {
+            refuse(
+                file,
+                Some(line_no),
+                format!("line {line_no}: phase {reason}"),
+            )
+        })?;
         let mut p = [0.0; 3];
         for a in 0..3 {
             let f = fields[col[2 + a]];
