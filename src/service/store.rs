@@ -1597,18 +1597,25 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// A blob store in `<dir>/blobs` through the `file://` backend of the object store.
+    fn file_blobs(dir: &Path) -> BlobStore {
+        let url = format!("file://{}", dir.join("blobs").display());
+        BlobStore::open(&super::super::blobs::BlobSettings::new(url)).unwrap()
+    }
+
+    /// A machine's store in `data`, sharing `blobs` with the others.
+    fn shared_store(data: &Path, blobs: &BlobStore) -> Store {
+        Store::open_shared(data)
+            .unwrap()
+            .with_blobs(Some(blobs.clone()))
+    }
+
     #[test]
     fn objects_of_no_record_go_once_old_and_the_rest_stay() {
         let dir = std::env::temp_dir().join(format!("lm-store-orphans-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let settings = super::super::blobs::BlobSettings::new(format!(
-            "file://{}",
-            dir.join("blobs").display()
-        ));
-        let blobs = BlobStore::open(&settings).unwrap();
-        let store = Store::open_shared(&dir.join("data"))
-            .unwrap()
-            .with_blobs(Some(blobs.clone()));
+        let blobs = file_blobs(&dir);
+        let store = shared_store(&dir.join("data"), &blobs);
         let file = dir.join("file");
         std::fs::write(&file, b"bytes").unwrap();
         for key in [
@@ -1648,15 +1655,9 @@ mod tests {
     fn fetched_scan_copies_are_evicted_least_recently_used_first_and_never_in_use() {
         let dir = std::env::temp_dir().join(format!("lm-store-evict-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let settings = super::super::blobs::BlobSettings::new(format!(
-            "file://{}",
-            dir.join("blobs").display()
-        ));
-        let blobs = BlobStore::open(&settings).unwrap();
+        let blobs = file_blobs(&dir);
         // The API's machine: the uploads are its own copies.
-        let api = Store::open_shared(&dir.join("api"))
-            .unwrap()
-            .with_blobs(Some(blobs.clone()));
+        let api = shared_store(&dir.join("api"), &blobs);
         let record = |file_name: &str, format: &str| ScanRecord {
             scan_id: ScanId::random(),
             created_at: now_rfc3339(),
@@ -1690,9 +1691,7 @@ mod tests {
         api.put_scan(&series, &pulled).unwrap();
 
         // A worker on another machine: nothing local, everything fetched.
-        let worker = Store::open_shared(&dir.join("worker"))
-            .unwrap()
-            .with_blobs(Some(blobs.clone()));
+        let worker = shared_store(&dir.join("worker"), &blobs);
         let use_scan = |scan: &ScanRecord| {
             let hold = worker.ensure_scan_local(scan).unwrap();
             assert!(hold.holds(), "a fetched copy is held");
@@ -1898,18 +1897,10 @@ mod tests {
         let dir =
             std::env::temp_dir().join(format!("lm-store-target-objects-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let settings = super::super::blobs::BlobSettings::new(format!(
-            "file://{}",
-            dir.join("blobs").display()
-        ));
-        let blobs = BlobStore::open(&settings).unwrap();
+        let blobs = file_blobs(&dir);
         // Two machines: the API process the target is uploaded to, and another.
-        let api = Store::open_shared(&dir.join("api"))
-            .unwrap()
-            .with_blobs(Some(blobs.clone()));
-        let other = Store::open_shared(&dir.join("other"))
-            .unwrap()
-            .with_blobs(Some(blobs.clone()));
+        let api = shared_store(&dir.join("api"), &blobs);
+        let other = shared_store(&dir.join("other"), &blobs);
         let scan = ScanId::random();
         let keys = |under: &str| -> Vec<String> {
             blobs
