@@ -126,6 +126,16 @@ impl HexMesh {
         self.elements.len()
     }
 
+    /// The material of the class most elements have (the lung's, when tissue varies).
+    pub fn typical_material(&self) -> Option<super::Material> {
+        let mut count = vec![0usize; self.classes.len()];
+        for &c in &self.element_class {
+            count[c as usize] += 1;
+        }
+        let most = (0..count.len()).max_by_key(|&c| count[c])?;
+        Some(self.classes[most].material)
+    }
+
     /// Total mass in kg.
     pub fn total_mass_kg(&self) -> f64 {
         self.node_mass_kg.iter().sum()

@@ -10,6 +10,7 @@ pub mod material;
 pub mod mesh;
 pub mod sdf;
 pub mod spring_law;
+pub mod tissue;
 pub mod volumetric;
 
 pub use constraints::{ConstraintSet, NodeConstraint};

@@ -41,6 +41,10 @@ pub struct DynamicSettings {
     pub inertance_pa_s2_per_ml: f64,
     /// Voigt damper of every spring as a fraction of its critical damping.
     pub voigt_damping_ratio: f64,
+    /// Voigt damper of the springs of elements on the lung's surface, if they differ from
+    /// the interior's (Boux de Casson's heterogeneous viscosity: a lightly damped skin over a
+    /// viscous parenchyma).
+    pub surface_damping_ratio: Option<f64>,
     /// The pressure the scene's surface load is built with (λ = 1), Pa.
     pub reference_pressure_pa: f64,
     /// Fraction of the critical explicit time step used, in (0, 1].
@@ -64,6 +68,7 @@ impl Default for DynamicSettings {
             resistance_pa_s_per_ml: 0.0,
             inertance_pa_s2_per_ml: 0.0,
             voigt_damping_ratio: 0.1,
+            surface_damping_ratio: None,
             reference_pressure_pa: REFERENCE_PRESSURE_PA,
             time_step_safety: 0.9,
             derivative_half_window_s: 0.05,
@@ -88,6 +93,10 @@ impl DynamicSettings {
             ("resistance (Pa·s/mL)", self.resistance_pa_s_per_ml),
             ("inertance (Pa·s²/mL)", self.inertance_pa_s2_per_ml),
             ("Voigt damping ratio", self.voigt_damping_ratio),
+            (
+                "surface damping ratio",
+                self.surface_damping_ratio.unwrap_or(0.0),
+            ),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(format!("{name} {v} must be finite and non-negative"));
@@ -235,14 +244,18 @@ pub fn run_dynamic(
              drive the lungs with pressure: use the quasi-static motion, or a piston diaphragm",
         ));
     }
-    let damped = damped_scene(scene, settings.voigt_damping_ratio)?;
+    let damped = damped_scene(
+        scene,
+        settings.voigt_damping_ratio,
+        settings.surface_damping_ratio,
+    )?;
     let rest = &damped.mesh.rest_positions_m;
     let rest_volume_m3 = damped.mesh.enclosed_volume_m3(rest);
     let p_ref = settings.reference_pressure_pa;
 
     // The free-solid compliance overestimates a constrained lung's: a cautious first step.
-    let seed = damped.mesh.classes.first().map_or(1.0, |c| {
-        elastic_compliance_ml_per_pa(rest_volume_m3 * 1e6, &c.material)
+    let seed = damped.mesh.typical_material().map_or(1.0, |m| {
+        elastic_compliance_ml_per_pa(rest_volume_m3 * 1e6, &m)
     });
     let mut driver = BreathingDriver::new(&damped, p_ref, seed, settings.solver.clone())?;
     super::chest_wall::check_rib_cage_share(settings.rib_cage_share)?;
@@ -300,17 +313,56 @@ pub fn run_dynamic(
     })
 }
 
-/// `scene` with a Voigt damper of `damping_ratio` on every spring. The dampers live in the
-/// element classes the force kernels are packed from: one rebuilt scene for the whole run.
-fn damped_scene(scene: &Scene, damping_ratio: f64) -> Result<Scene> {
+/// `scene` with a Voigt damper of `damping_ratio` on every spring, or of `surface_ratio` on
+/// those of elements with a face on the lung's surface. The dampers live in the element
+/// classes the force kernels are packed from: one rebuilt scene for the whole run, with a
+/// surface copy of every class when the two ratios differ.
+fn damped_scene(scene: &Scene, damping_ratio: f64, surface_ratio: Option<f64>) -> Result<Scene> {
     let mut mesh = scene.mesh.clone();
-    mesh.classes = mesh
+    let interior: Vec<_> = mesh
         .classes
-        .into_iter()
-        .map(|c| c.with_damping_ratio(damping_ratio))
+        .iter()
+        .map(|c| c.clone().with_damping_ratio(damping_ratio))
         .collect();
+    match surface_ratio {
+        Some(surface) if surface != damping_ratio => {
+            let n = mesh.classes.len() as u32;
+            let skin: Vec<_> = mesh
+                .classes
+                .iter()
+                .map(|c| c.clone().with_damping_ratio(surface))
+                .collect();
+            for (e, on_surface) in surface_elements(&mesh).into_iter().enumerate() {
+                if on_surface {
+                    mesh.element_class[e] += n;
+                }
+            }
+            mesh.classes = interior.into_iter().chain(skin).collect();
+        }
+        _ => mesh.classes = interior,
+    }
     Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?
         .with_contact(scene.contact().clone())
+}
+
+/// Whether each element has a face on the mesh's external surface.
+fn surface_elements(mesh: &crate::model::HexMesh) -> Vec<bool> {
+    use crate::model::mesh::HEX_FACES;
+    let key = |f: [u32; 4]| {
+        let mut k = f;
+        k.sort_unstable();
+        k
+    };
+    let external: std::collections::HashSet<[u32; 4]> =
+        mesh.external_faces.iter().map(|&f| key(f)).collect();
+    mesh.elements
+        .iter()
+        .map(|corners| {
+            HEX_FACES
+                .iter()
+                .any(|face| external.contains(&key(face.map(|c| corners[c]))))
+        })
+        .collect()
 }
 
 /// The bellows law's compliance, mL/Pa, and whether it was calibrated: the given one, else
@@ -683,5 +735,29 @@ mod tests {
         assert!(check_output_times(&[1.0, 0.5], 0.0, 2.0).is_err());
         assert!(check_output_times(&[3.0], 0.0, 2.0).is_err());
         assert!(check_output_times(&[], 0.0, 2.0).is_err());
+    }
+
+    #[test]
+    fn surface_elements_get_their_own_damping_and_the_interior_keeps_the_ratio() {
+        use crate::model::{ConstraintSet, Loads, Material, VoxelGrid};
+        let grid = VoxelGrid::filled_box([3, 3, 3], [0.01; 3], V3::zeros());
+        let mesh = grid.to_mesh(Material::LUNG).unwrap().mesh;
+        let on_surface = surface_elements(&mesh);
+        // Of a 3 × 3 × 3 block only the centre has no face outside.
+        assert_eq!(on_surface.iter().filter(|&&s| !s).count(), 1);
+        assert!(!on_surface[13]);
+        let n = mesh.node_count();
+        let scene = Scene::new(mesh, ConstraintSet::new(n), Loads::default()).unwrap();
+        let uniform = damped_scene(&scene, 0.1, None).unwrap();
+        assert_eq!(uniform.mesh.classes.len(), 1);
+        let skin = damped_scene(&scene, 0.1, Some(0.01)).unwrap();
+        assert_eq!(skin.mesh.classes.len(), 2);
+        let damping = |e: usize| {
+            skin.mesh.classes[skin.mesh.element_class[e] as usize].spring_damping_n_s_per_m[0]
+        };
+        let interior = uniform.mesh.classes[0].spring_damping_n_s_per_m[0];
+        assert!(interior > 0.0);
+        assert!((damping(13) - interior).abs() < 1e-15);
+        assert!((damping(0) - 0.1 * interior).abs() < 1e-12 * interior);
     }
 }

@@ -6,7 +6,8 @@
 
 use super::REFERENCE_PRESSURE_PA;
 use crate::ingest::lung_model::{DiaphragmMotion, LungModel};
-use crate::model::{Loads, SurfacePressure};
+use crate::model::tissue::{with_element_tissue, ElementTissue};
+use crate::model::{HexMesh, Loads, SurfacePressure};
 use crate::simulation::Scene;
 use crate::Result;
 
@@ -14,7 +15,11 @@ use crate::Result;
 /// the model was built) and a follower pressure of [`REFERENCE_PRESSURE_PA`] on every
 /// external face.
 pub fn lung_scene(model: &LungModel) -> Result<Scene> {
-    let mesh = model.mesh.mesh.clone();
+    lung_scene_on(model, model.mesh.mesh.clone())
+}
+
+/// [`lung_scene`] on `mesh`, the model's mesh with its own element classes.
+fn lung_scene_on(model: &LungModel, mesh: HexMesh) -> Result<Scene> {
     let loads = Loads {
         pressures: vec![SurfacePressure {
             faces: mesh.external_faces.clone(),
@@ -51,7 +56,25 @@ impl Default for WallMotion {
 /// diaphragm descending ([`super::diaphragm`]) when the model's base slides on it. A rigid
 /// wall over a piston diaphragm leaves the planes where they are, bit for bit.
 pub fn run_scene(model: &LungModel, walls: &WallMotion) -> Result<Scene> {
-    let mut scene = lung_scene(model)?;
+    run_scene_on(model, walls, model.mesh.mesh.clone())
+}
+
+/// [`run_scene`] with each element's modulus and density scaled as `tissue` says (ratios
+/// rounded to steps of `step`, [`crate::model::tissue::with_element_tissue`]). The walls are
+/// calibrated on these elements.
+pub fn run_scene_with_tissue(
+    model: &LungModel,
+    walls: &WallMotion,
+    tissue: &ElementTissue,
+    step: f64,
+) -> Result<Scene> {
+    let mesh = with_element_tissue(&model.mesh.mesh, tissue, step)?;
+    run_scene_on(model, walls, mesh)
+}
+
+/// [`run_scene`] on `mesh`.
+fn run_scene_on(model: &LungModel, walls: &WallMotion, mesh: HexMesh) -> Result<Scene> {
+    let mut scene = lung_scene_on(model, mesh)?;
     if walls.rib_cage_share > 0.0 {
         super::move_costal_wall(&mut scene, model);
     }
@@ -65,7 +88,7 @@ pub fn run_scene(model: &LungModel, walls: &WallMotion) -> Result<Scene> {
         if walls.rib_cage_share > 0.0 {
             // The driver's compliance when the run does not give one: the elastic one.
             let rest_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;
-            let material = scene.mesh.classes.first().map(|c| c.material);
+            let material = scene.mesh.typical_material();
             let compliance =
                 material.map_or(1.0, |m| super::elastic_compliance_ml_per_pa(rest_ml, &m));
             let split = super::diaphragm::calibrate_wall_split(

@@ -14,7 +14,7 @@ mod lung_scene;
 mod moving_wall;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
-pub use lung_scene::{lung_scene, run_scene, WallMotion};
+pub use lung_scene::{lung_scene, run_scene, run_scene_with_tissue, WallMotion};
 
 use std::time::Instant;
 

@@ -15,6 +15,13 @@
 //! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
+//! [tissue]                             # heterogeneous lung (see `model::tissue`)
+//! from_ct = false                      # each element's E and ρ from the CT's Hounsfield units
+//! stiffness_exponent = 2.0             # E ∝ (tissue fraction)ⁿ, the median element at E
+//! max_stiffness_ratio = 10.0           # clamp, either way
+//! stiffness_step = 0.05                # ratios rounded to 5 % steps (one class per step)
+//! target_stiffness_ratio = 1.0         # the run's target this many times E (needs a target)
+//! # hu_to_youngs_modulus_pa = [[-950, 100], [-850, 390], [-500, 3000]]   # instead of the law
 //! [trace]
 //! reference = "change_from_scan"       # or { absolute = { scanned_volume_ml = 2800 } }
 //! # window_s = [10.0, 40.0]            # keep only these seconds (e.g. the tidal breaths)
@@ -29,6 +36,7 @@
 //! # resistance_pa_s_per_ml = 0.05
 //! # inertance_pa_s2_per_ml = 0.001
 //! # voigt_damping_ratio = 0.1
+//! # surface_damping_ratio = 0.01    # springs of surface elements (default: as the interior)
 //! [outputs]
 //! metaimage = false                    # frames/<k>/displacement.mha beside the NIfTI
 //! mesh_vtu = false                     # frames/<k>/mesh.vtu (deformed mesh for ParaView)
@@ -52,6 +60,7 @@ use serde::{Deserialize, Serialize};
 use crate::breathing::{OutputInstants, TraceOptions};
 use crate::formats::dicom::{DicomReadOptions, SeriesChoice};
 use crate::ingest::lung_model::{DiaphragmMotion, SlidingMode, DEFAULT_ELEMENT_SIZE_MM};
+use crate::model::tissue::TissueSettings;
 use crate::model::Material;
 use crate::motion::DriverKind;
 use crate::outputs::displacement_field::FieldGrid;
@@ -79,6 +88,8 @@ pub struct RunConfig {
     pub sliding: SlidingMode,
     /// Lung tissue.
     pub material: Material,
+    /// How the tissue varies from element to element (CT density, a stiffer target).
+    pub tissue: TissueSettings,
     /// How the trace file is read.
     pub trace: TraceOptions,
     /// Driver, output instants and solver accuracy.
@@ -197,6 +208,8 @@ pub struct DynamicConfig {
     pub inertance_pa_s2_per_ml: f64,
     /// Voigt damping of every spring, fraction of critical.
     pub voigt_damping_ratio: f64,
+    /// Voigt damping of the springs of surface elements, if it differs from the interior's.
+    pub surface_damping_ratio: Option<f64>,
 }
 
 impl Default for DynamicConfig {
@@ -206,6 +219,7 @@ impl Default for DynamicConfig {
             resistance_pa_s_per_ml: 0.05,
             inertance_pa_s2_per_ml: 0.001,
             voigt_damping_ratio: 0.1,
+            surface_damping_ratio: None,
         }
     }
 }
@@ -218,6 +232,7 @@ impl DynamicConfig {
             resistance_pa_s_per_ml: self.resistance_pa_s_per_ml,
             inertance_pa_s2_per_ml: self.inertance_pa_s2_per_ml,
             voigt_damping_ratio: self.voigt_damping_ratio,
+            surface_damping_ratio: self.surface_damping_ratio,
             ..crate::motion::dynamic::DynamicSettings::default()
         }
     }
@@ -255,6 +270,7 @@ impl Default for RunConfig {
             diaphragm: DiaphragmMotion::default(),
             sliding: SlidingMode::default(),
             material: Material::LUNG,
+            tissue: TissueSettings::default(),
             trace: TraceOptions::default(),
             motion: MotionConfig::default(),
             outputs: OutputConfig::default(),
@@ -401,6 +417,9 @@ impl RunConfig {
             return bad("budget.max_equilibria", reason);
         }
         self.material.validate()?;
+        if let Some((key, reason)) = self.tissue.problem() {
+            return bad(key, reason);
+        }
         if let Err(e) = crate::outputs::radiotherapy::registration::check_spacing(
             self.outputs.registration_spacing_mm,
         ) {

@@ -48,6 +48,7 @@ use crate::ingest::pipeline::{ingest_scan_cancellable, IngestOutcome};
 use crate::ingest::scan::{load_ct_cancellable, LoadedScan};
 use crate::ingest::stored::{read_stored_ingest, StoredIngest};
 use crate::ingest::Cancel;
+use crate::model::tissue::ElementTissue;
 use crate::motion::dynamic::{run_dynamic, DynamicReport};
 use crate::motion::{run_motion, MotionReport, MotionSettings};
 use crate::outputs::displacement_field::{FieldSampler, PointSampler};
@@ -366,7 +367,38 @@ fn run_within_budget(
             (ScanHold::Owned(Box::new(read.scan)), &own_outcome)
         }
     };
-    let target = open_target(inputs, scan.get(), staging.dir(), &settings, times.len())?;
+    let target_mask = match &inputs.target {
+        Some(spec) => {
+            let scan = scan.get();
+            Some(spec.resolve(&scan.ct.geometry, scan.study.as_ref())?)
+        }
+        None => None,
+    };
+    let t = Instant::now();
+    let tissue = crate::ingest::lung_model::element_tissue(
+        &outcome.model,
+        &scan.get().ct,
+        &outcome.segmentation.lungs,
+        target_mask.as_ref().map(|t| &t.mask),
+        &config.tissue,
+        config.material.youngs_modulus_pa,
+    )?;
+    if let Some((_, report)) = &tissue {
+        timings.insert("element_tissue".to_string(), t.elapsed().as_secs_f64());
+        tracing::info!(
+            reference_hu = report.reference_hu,
+            quantiles = ?report.stiffness_ratio_quantiles,
+            target_elements = report.target_elements,
+            "element tissue mapped"
+        );
+    }
+    let target = open_target(
+        target_mask,
+        scan.get(),
+        staging.dir(),
+        &settings,
+        times.len(),
+    )?;
     let SceneOfScan {
         ct,
         lung,
@@ -376,7 +408,10 @@ fn run_within_budget(
         kept,
     } = scene_of_scan(
         scan,
-        outcome,
+        ScanModel {
+            outcome,
+            tissue: tissue.as_ref().map(|(t, _)| t),
+        },
         inputs,
         config,
         &staging,
@@ -468,6 +503,7 @@ fn run_within_budget(
         timings,
     );
     summary.ct_fingerprint = Some(ct.fingerprint);
+    summary.tissue = tissue.map(|(_, report)| report);
     if let Some(tracker) = written.target.take() {
         summary.target = Some(tracker.finish()?);
     }
@@ -494,19 +530,18 @@ fn run_within_budget(
     Ok(summary)
 }
 
-/// The run's target (`inputs.target`) on the CT's grid, followed into `staging_dir`; refused
-/// here, before the solves, when it does not fit the CT.
+/// The run's target (resolved on the CT's grid), followed into `staging_dir`; refused here,
+/// before the solves, when it does not fit the CT.
 fn open_target(
-    inputs: &RunInputs,
+    mask: Option<crate::outputs::radiotherapy::target::TargetMask>,
     scan: &LoadedScan,
     staging_dir: &Path,
     settings: &MotionSettings,
     frames: usize,
 ) -> Result<Option<TargetTracker>> {
-    let Some(spec) = &inputs.target else {
+    let Some(mask) = mask else {
         return Ok(None);
     };
-    let mask = spec.resolve(&scan.ct.geometry, scan.study.as_ref())?;
     let names = target_motion::frame_names(&settings.instants, frames);
     TargetTracker::new(mask, staging_dir, names, scan.study.clone()).map(Some)
 }
@@ -556,18 +591,25 @@ fn virtual_ct_writer<'a>(
     )
 }
 
+/// What a run's scene is built from: the ingest, and each element's tissue when it varies.
+struct ScanModel<'m> {
+    outcome: &'m IngestOutcome,
+    tissue: Option<&'m ElementTissue>,
+}
+
 /// Identifies the CT (refusing to replace another CT's run), builds the lung scene, writes
 /// the ingest files and cuts out the quick look's backdrop; the CT is let go on return when
 /// the run owns it. Adds `ingest`, `lung_scene` and `ingest_files` to `timings`.
 fn scene_of_scan<'a>(
     scan: ScanHold<'a>,
-    outcome: &IngestOutcome,
+    model: ScanModel<'_>,
     inputs: &RunInputs,
     config: &RunConfig,
     staging: &OutputStaging,
     overwrite: Overwrite,
     timings: &mut BTreeMap<String, f64>,
 ) -> Result<SceneOfScan<'a>> {
+    let ScanModel { outcome, tissue } = model;
     let t = Instant::now();
     let ct = CtIdentity {
         path: inputs.ct_path.display().to_string(),
@@ -598,6 +640,7 @@ fn scene_of_scan<'a>(
                 &inputs.points,
                 config.outputs.field_grid,
                 &config.wall_motion(),
+                tissue.map(|t| (t, config.tissue.stiffness_step)),
             )
             .map(|scene| (scene, seconds(t)))
         },
@@ -652,6 +695,7 @@ fn check_inputs(
     observer: &dyn RunObserver,
 ) -> Result<(MotionSettings, InstantPlan)> {
     config.validate()?;
+    config.tissue.check_target(inputs.target.is_some())?;
     inputs.trace.validate()?;
     let mut settings = config.motion_settings();
     settings.cancel = observer.cancel_flag();
@@ -676,9 +720,13 @@ fn build_lung_scene(
     tracked: &[TrackedPoint],
     field_grid: crate::outputs::displacement_field::FieldGrid,
     walls: &crate::motion::WallMotion,
+    tissue: Option<(&ElementTissue, f64)>,
 ) -> Result<LungScene> {
     let model = &outcome.model;
-    let scene = crate::motion::run_scene(model, walls)?;
+    let scene = match tissue {
+        Some((tissue, step)) => crate::motion::run_scene_with_tissue(model, walls, tissue, step)?,
+        None => crate::motion::run_scene(model, walls)?,
+    };
     let mesh = &scene.mesh;
     let field = FieldSampler::new(
         &outcome.segmentation.lungs,

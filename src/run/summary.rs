@@ -58,6 +58,8 @@ pub struct RunSummary {
     pub points: Vec<PointTrajectory>,
     /// The treatment target through the frames (`--target`), with its ITV; `null` without one.
     pub target: Option<crate::outputs::radiotherapy::target_motion::TargetSummary>,
+    /// How the tissue varied from element to element (`[tissue]`); `null` when homogeneous.
+    pub tissue: Option<crate::model::tissue::TissueReport>,
     /// The virtual 4D-CT: motion grid, decay, inverse residual and files per phase; `null`
     /// when not asked for.
     pub virtual_ct: Option<crate::outputs::radiotherapy::virtual_ct::VirtualCtSummary>,
@@ -550,6 +552,7 @@ impl RunSummary {
             deepest_expiration: extreme(BreathExtreme::DeepestExpiration),
             points,
             target: None,
+            tissue: None,
             virtual_ct: None,
             timings_s,
             peak_memory_mib: None,

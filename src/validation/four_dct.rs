@@ -243,6 +243,7 @@ pub fn validate_four_dct(
     let start = Instant::now();
     let config = &options.config;
     config.validate()?;
+    config.tissue.check_target(false)?;
     let listed = list_four_dct_phases(input, out)?;
     let phases = &listed.phases;
     let dicom_options = config.dicom_read_options();
@@ -312,9 +313,25 @@ pub fn validate_four_dct(
     ));
     let ref_scan = load_ct_with(&phases[reference.index].path, &dicom_options)?;
     let outcome = ingest_scan(&ref_scan, &ingest_settings)?;
+    let tissue = crate::ingest::lung_model::element_tissue(
+        &outcome.model,
+        &ref_scan.ct,
+        &outcome.segmentation.lungs,
+        None,
+        &config.tissue,
+        config.material.youngs_modulus_pa,
+    )?;
     drop(ref_scan);
     let ref_lungs = &segmented[reference.index].lungs;
-    let scene = crate::motion::run_scene(&outcome.model, &config.wall_motion())?;
+    let scene = match &tissue {
+        Some((tissue, _)) => crate::motion::run_scene_with_tissue(
+            &outcome.model,
+            &config.wall_motion(),
+            tissue,
+            config.tissue.stiffness_step,
+        )?,
+        None => crate::motion::run_scene(&outcome.model, &config.wall_motion())?,
+    };
     let layout = CtMotionLayout::new(
         &geometry,
         &scene.mesh,

@@ -81,6 +81,7 @@ mod mesh;
 mod paint;
 mod report;
 mod settings;
+mod tissue;
 mod wall;
 
 pub use build::{build_lung_model, build_lung_model_with, LungModel};
@@ -91,4 +92,5 @@ pub use settings::{
     DiaphragmMotion, LungModelSettings, SlidingMode, DEFAULT_ELEMENT_SIZE_MM, LEFT_LUNG,
     MAX_ELEMENT_SIZE_MM, MIN_ELEMENT_SIZE_MM, RIGHT_LUNG,
 };
+pub use tissue::{element_tissue, sample_element_density};
 pub use wall::PrebuiltWall;

@@ -119,7 +119,44 @@ fn dynamic() -> Value {
                 "Compliance C, mL/Pa; absent: measured on the model at the largest volume"},
             "resistance_pa_s_per_ml": number("Airway resistance R, Pa·s/mL"),
             "inertance_pa_s2_per_ml": number("Inertance I, Pa·s²/mL"),
-            "voigt_damping_ratio": number("Voigt damping of every spring, fraction of critical")
+            "voigt_damping_ratio": number("Voigt damping of every spring, fraction of critical"),
+            "surface_damping_ratio": {"type": ["number", "null"], "minimum": 0, "description":
+                "Voigt damping of the springs of elements on the lung's surface, fraction of \
+                critical; absent: as the interior's (a lightly damped skin over a viscous \
+                parenchyma, Boux de Casson)"}
+        }
+    })
+}
+
+fn tissue() -> Value {
+    json!({
+        "type": "object",
+        "description": "How the lung's tissue varies from element to element: stiffness and \
+            density from the CT's Hounsfield units (E ∝ φⁿ, φ = 1 + HU/1000 the tissue \
+            fraction, the median element at the material's E), and a target stiffer than the \
+            parenchyma",
+        "additionalProperties": false,
+        "properties": {
+            "from_ct": boolean("Each element's Young's modulus and density from the CT"),
+            "stiffness_exponent": {"type": "number", "minimum": 0, "maximum": 4,
+                "description": "n of E ∝ φⁿ (2: open-cell foam, Gibson & Ashby)"},
+            "max_stiffness_ratio": {"type": "number", "minimum": 1, "maximum": 1000,
+                "description": "Clamp of an element's modulus (and density) ratio to the \
+                    material's, either way"},
+            "stiffness_step": {"type": "number", "minimum": 0.001, "maximum": 0.5,
+                "description": "Relative step the ratios are rounded to (one element class \
+                    per step)"},
+            "target_stiffness_ratio": {"type": "number", "exclusiveMinimum": 0, "maximum": 1000,
+                "description": "The request's target this many times the material's modulus \
+                    (needs a target)"},
+            "hu_to_youngs_modulus_pa": {
+                "type": ["array", "null"],
+                "minItems": 2,
+                "items": {"type": "array", "minItems": 2, "maxItems": 2,
+                    "items": {"type": "number"}},
+                "description": "[[hu, pa], …] with HU increasing and E positive: the modulus \
+                    against the element's mean HU instead of the power law (needs from_ct)"
+            }
         }
     })
 }
@@ -168,6 +205,7 @@ fn without_defaults() -> Value {
                     }
                 }
             },
+            "tissue": tissue(),
             "motion": {
                 "type": "object",
                 "description": "Driver, output instants and accuracy",
