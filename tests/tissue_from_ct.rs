@@ -213,7 +213,9 @@ fn bin() -> std::process::Command {
     std::process::Command::new(env!("CARGO_BIN_EXE_lungmotion"))
 }
 
-fn refused(dir: &Path, config: &str, extra: &[&str]) -> String {
+/// The stderr of a run of the phantom with `config`, which must be refused (exit status 2)
+/// without writing its output.
+fn refused(dir: &Path, config: &str) -> String {
     let toml = dir.join("tissue.toml");
     std::fs::write(&toml, config).unwrap();
     let o = bin()
@@ -226,7 +228,6 @@ fn refused(dir: &Path, config: &str, extra: &[&str]) -> String {
         .arg(dir.join("out"))
         .arg("--config")
         .arg(&toml)
-        .args(extra)
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr).to_string();
@@ -269,7 +270,7 @@ fn tissue_settings_no_run_can_use_are_refused_with_the_key_and_the_value() {
         ),
     ];
     for (config, key, value) in cases {
-        let stderr = refused(&dir, config, &[]);
+        let stderr = refused(&dir, config);
         assert!(
             stderr.contains(key) && stderr.contains(value),
             "{config}: {stderr}"
