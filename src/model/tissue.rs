@@ -16,7 +16,8 @@
 //!   (2 by default) and the ratio is clamped to [1/`max_stiffness_ratio`,
 //!   `max_stiffness_ratio`] so one vessel-filled element cannot become a rigid block.
 //! * **Or a table** `hu_to_youngs_modulus_pa`: E in pascals against the element's mean HU,
-//!   piecewise linear, constant beyond its ends; no clamp.
+//!   piecewise linear, constant beyond its ends; no clamp. The mean HU is that of φ, so of
+//!   voxels clamped to −1000…+200 HU.
 //! * **Density** follows φ: ρ = ρ_material · φ_e/φ_ref (same clamp).
 //! * **A target** (the run's tumour mask) is `target_stiffness_ratio` times the material's
 //!   modulus; an element partly in it takes the volume-weighted mean of the two
