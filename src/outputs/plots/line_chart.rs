@@ -15,14 +15,16 @@ pub const LINE_CHART_WIDTH_PX: usize = 1000;
 /// Height of a line chart, pixels.
 pub const LINE_CHART_HEIGHT_PX: usize = 620;
 
-/// Colours of the series, in order (repeated beyond six).
-pub const SERIES_COLOURS: [[u8; 3]; 6] = [
+/// Colours of the series, in order (repeated beyond eight).
+pub const SERIES_COLOURS: [[u8; 3]; 8] = [
     [31, 119, 180],
     [214, 39, 40],
     [44, 160, 44],
     [148, 103, 189],
     [255, 127, 14],
     [90, 90, 90],
+    [23, 190, 207],
+    [140, 86, 75],
 ];
 
 /// One named series of a line chart.
