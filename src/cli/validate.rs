@@ -20,10 +20,14 @@ pub struct ValidateArgs {
     /// Skip the CalculiX comparisons (no `ccx` needed).
     #[arg(long)]
     no_calculix: bool,
+    /// Skip the pressure–volume curves of the CIP lungs (rest to +2 L per material law, 8 mm;
+    /// several minutes; skipped anyway without ../shared/data).
+    #[arg(long)]
+    no_pressure_volume: bool,
     /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm) against
     /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes);
     /// writes lung_calculix.json and lung_calculix.md.
-    #[arg(long, conflicts_with_all = ["quick", "no_calculix"])]
+    #[arg(long, conflicts_with_all = ["quick", "no_calculix", "no_pressure_volume"])]
     lung: bool,
     /// Instead: the model against a 4D-CT: a folder of phase folders (each a DICOM series),
     /// a zip of them, or a folder of one NIfTI/NRRD file per phase; writes report.json,
@@ -61,6 +65,7 @@ impl ValidateArgs {
             let options = ValidateOptions {
                 quick: self.quick,
                 calculix: !self.no_calculix,
+                pressure_volume: !self.no_pressure_volume,
             };
             validate(&self.out, &options)
         }

@@ -8,12 +8,14 @@
 //! its own node positions and reported beside the target.
 
 pub mod chest_wall;
+pub mod compliance;
 pub mod diaphragm;
 pub mod dynamic;
 mod lung_scene;
 mod moving_wall;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
+pub use compliance::PressureVolumeTable;
 pub use lung_scene::{lung_scene, run_scene, run_scene_with_tissue, WallMotion};
 
 use std::time::Instant;
@@ -32,17 +34,63 @@ use crate::{Error, Result};
 pub const REFERENCE_PRESSURE_PA: f64 = -1.0;
 
 /// How the breathing curve becomes surface pressure.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case", tag = "kind")]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
 pub enum DriverKind {
     /// The pressure that makes the simulated volume equal the trace's (default).
     #[default]
     Volume,
-    /// ΔP = ΔV / C, the thesis's driver; C from E, ν and the rest volume when not given.
+    /// ΔP = ΔV / C, the thesis's driver; C from E, ν and the rest volume when not given; or
+    /// the pressure read from a pressure–volume table (a non-linear compliance).
     Compliance {
         /// Lung compliance in mL/Pa (≈ 2 mL/Pa for both lungs in vivo).
         compliance_ml_per_pa: Option<f64>,
+        /// Instead of one C: rows `[pressure Pa, volume mL]` interpolated piecewise-linearly
+        /// ([`compliance`]); not with `compliance_ml_per_pa`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pressure_volume: Option<PressureVolumeTable>,
     },
+}
+
+impl DriverKind {
+    /// The constant compliance driver with compliance `c` mL/Pa (`None`: the elastic one).
+    pub fn compliance(c: Option<f64>) -> Self {
+        DriverKind::Compliance {
+            compliance_ml_per_pa: c,
+            pressure_volume: None,
+        }
+    }
+
+    /// Why this driver cannot run, as (key, reason), if it cannot: a compliance that is not
+    /// positive, a pressure–volume table it refuses, or both given.
+    pub fn problem(&self) -> Option<(&'static str, String)> {
+        let DriverKind::Compliance {
+            compliance_ml_per_pa,
+            pressure_volume,
+        } = self
+        else {
+            return None;
+        };
+        if let Some(c) = *compliance_ml_per_pa {
+            if !(c.is_finite() && c > 0.0) {
+                return Some((
+                    "motion.driver.compliance_ml_per_pa",
+                    format!("{c} mL/Pa must be positive"),
+                ));
+            }
+            if pressure_volume.is_some() {
+                return Some((
+                    "motion.driver.pressure_volume",
+                    format!(
+                        "given with compliance_ml_per_pa = {c}: the pressure comes from one or \
+                         the other, give one"
+                    ),
+                ));
+            }
+        }
+        let reason = pressure_volume.as_ref()?.problem()?;
+        Some(("motion.driver.pressure_volume", reason))
+    }
 }
 
 /// Settings of a breathing simulation.
@@ -185,10 +233,28 @@ pub fn run_motion(
     let tidal = hi - lo;
     let volume_tolerance_ml = (settings.volume_tolerance_fraction * tidal).max(0.01);
     let rest_volume_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;
-    let compliance = match settings.driver {
+    if let Some((key, reason)) = settings.driver.problem() {
+        return Err(Error::Config {
+            settings: "motion settings",
+            file: None,
+            key: Some(key.into()),
+            reason,
+        });
+    }
+    let compliance = match &settings.driver {
         DriverKind::Compliance {
             compliance_ml_per_pa: Some(c),
-        } => c,
+            ..
+        } => *c,
+        DriverKind::Compliance {
+            pressure_volume: Some(table),
+            ..
+        } => {
+            // Every frame's volume must be in the table: refused before any solve.
+            table.pressure_pa(lo)?;
+            table.pressure_pa(hi)?;
+            table.compliance_at_rest_ml_per_pa()
+        }
         _ => elastic_compliance_ml_per_pa(rest_volume_ml, material),
     };
     let mut driver = BreathingDriver::new(
@@ -219,7 +285,7 @@ pub fn run_motion(
     let mut solver = FrameSolver {
         driver,
         keyframes,
-        kind: settings.driver,
+        kind: settings.driver.clone(),
         volume_tolerance_ml,
         compliance_ml_per_pa: compliance,
     };
@@ -296,7 +362,7 @@ fn solve_key_volumes(
     targets_ml: &[f64],
     volume_tolerance_ml: f64,
 ) -> Result<Option<VolumeKeyframes>> {
-    Ok(match settings.driver {
+    Ok(match &settings.driver {
         DriverKind::Volume if !settings.solve_every_frame && targets_ml.len() > 2 => Some(
             VolumeKeyframes::build(
                 driver,
@@ -355,7 +421,7 @@ impl FrameSolver<'_> {
         target: f64,
         positions: &mut [V3],
     ) -> Result<FrameSolve> {
-        match (&self.keyframes, self.kind) {
+        match (&self.keyframes, &self.kind) {
             (Some(keys), _) => {
                 if let Some(from) = keys.direct_start(target) {
                     // Across a jump of the shape: solved, continuing from the key on the
@@ -388,6 +454,14 @@ impl FrameSolver<'_> {
                 let s = match kind {
                     DriverKind::Volume => {
                         self.driver.solve_volume(target, self.volume_tolerance_ml)
+                    }
+                    DriverKind::Compliance {
+                        pressure_volume: Some(table),
+                        ..
+                    } => {
+                        // The table's distending pressure; the surface pressure is its negative.
+                        let p = table.pressure_pa(target)?;
+                        self.driver.solve_pressure(-p)
                     }
                     DriverKind::Compliance { .. } => self
                         .driver
@@ -477,9 +551,7 @@ mod tests {
         assert!((c - v0 / Material::LUNG.bulk_modulus_pa()).abs() < 1e-12 * c);
         let trace = BreathingTrace::new(vec![0.0, 1.0], vec![0.0, 0.01 * v0]).unwrap();
         let settings = MotionSettings {
-            driver: DriverKind::Compliance {
-                compliance_ml_per_pa: None,
-            },
+            driver: DriverKind::compliance(None),
             instants: OutputInstants::EverySample,
             ..MotionSettings::default()
         };
@@ -494,6 +566,153 @@ mod tests {
             (f.simulated_volume_ml - 0.01 * v0).abs() < 0.03 * 0.01 * v0,
             "{f:?}"
         );
+    }
+
+    /// The compliance driver through `table` (or the constant `c`) on a small breath.
+    fn run_compliance(
+        scene: &Scene,
+        trace: &BreathingTrace,
+        c: Option<f64>,
+        table: Option<PressureVolumeTable>,
+    ) -> Result<(MotionReport, Vec<Vec<V3>>)> {
+        let settings = MotionSettings {
+            driver: DriverKind::Compliance {
+                compliance_ml_per_pa: c,
+                pressure_volume: table,
+            },
+            instants: OutputInstants::EverySample,
+            ..MotionSettings::default()
+        };
+        let mut fields = Vec::new();
+        let r = run_motion(scene, &Material::LUNG, trace, &settings, &mut |_, x| {
+            fields.push(x.to_vec());
+            Ok(())
+        })?;
+        Ok((r, fields))
+    }
+
+    fn breath(v0: f64) -> BreathingTrace {
+        let v = [0.0, 0.01, 0.02, 0.03, 0.015, 0.0].map(|f| f * v0);
+        BreathingTrace::new((0..v.len()).map(|i| i as f64).collect(), v.to_vec()).unwrap()
+    }
+
+    #[test]
+    fn a_pressure_volume_table_of_one_compliance_gives_that_compliance_s_fields() {
+        let (scene, v0) = block();
+        let c = elastic_compliance_ml_per_pa(v0, &Material::LUNG);
+        let trace = breath(v0);
+        let (by_c, x_c) = run_compliance(&scene, &trace, Some(c), None).unwrap();
+        // Three collinear rows through [0, 0] with slope C: the same line.
+        let p = 0.05 * v0 / c;
+        let table = PressureVolumeTable(vec![
+            [-p, -c * p],
+            [0.0, 0.0],
+            [0.3 * p, 0.3 * c * p],
+            [p, c * p],
+        ]);
+        let (by_table, x_t) = run_compliance(&scene, &trace, None, Some(table)).unwrap();
+        assert!((by_table.compliance_ml_per_pa - c).abs() < 1e-12 * c);
+        for (a, b) in by_c.frames.iter().zip(&by_table.frames) {
+            // Closed form: ΔP = −ΔV / C, to round-off of the interpolation.
+            assert!((a.pressure_pa + a.target_volume_ml / c).abs() < 1e-12 * p.max(1.0));
+            assert!(
+                (a.pressure_pa - b.pressure_pa).abs() < 1e-9 * p,
+                "{a:?} {b:?}"
+            );
+        }
+        let diff = x_c
+            .iter()
+            .flatten()
+            .zip(x_t.iter().flatten())
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0, f64::max);
+        let moved = x_c
+            .iter()
+            .flat_map(|x| x.iter().zip(&scene.mesh.rest_positions_m))
+            .map(|(a, r)| (a - r).norm())
+            .fold(0.0, f64::max);
+        assert!(
+            moved > 0.0 && diff <= 1e-6 * moved,
+            "{diff:e} m of {moved:e} m"
+        );
+    }
+
+    #[test]
+    fn a_convex_pressure_volume_table_asks_more_pressure_for_the_larger_volumes() {
+        let (scene, v0) = block();
+        let c = elastic_compliance_ml_per_pa(v0, &Material::LUNG);
+        let trace = breath(v0);
+        let (linear, _) = run_compliance(&scene, &trace, Some(c), None).unwrap();
+        // Compliance C up to 1 % of V₀, C/2 to 2 %, C/4 beyond: a lung that stiffens.
+        let v1 = 0.01 * v0;
+        let (p1, p2) = (v1 / c, v1 / c + 2.0 * v1 / c);
+        let table = PressureVolumeTable(vec![
+            [0.0, 0.0],
+            [p1, v1],
+            [p2, 2.0 * v1],
+            [p2 + 4.0 * v1 / c, 3.0 * v1],
+        ]);
+        let (stiff, _) = run_compliance(&scene, &trace, None, Some(table)).unwrap();
+        for (a, b) in linear.frames.iter().zip(&stiff.frames) {
+            let v = a.target_volume_ml / v1;
+            // Expected: ΔV/C up to 1 %, then 2/C and 4/C per unit above each knee.
+            let expected = if v <= 1.0 {
+                v
+            } else if v <= 2.0 {
+                1.0 + 2.0 * (v - 1.0)
+            } else {
+                3.0 + 4.0 * (v - 2.0)
+            } * v1
+                / c;
+            assert!(
+                (b.pressure_pa + expected).abs() < 1e-9 * p2,
+                "{b:?} vs {expected}"
+            );
+            if v > 1.0 + 1e-9 {
+                // Measurably more suction than the linear driver, and more volume for it.
+                assert!(
+                    b.pressure_pa < a.pressure_pa - 0.2 * a.pressure_pa.abs(),
+                    "{a:?} {b:?}"
+                );
+                assert!(
+                    b.simulated_volume_ml > a.simulated_volume_ml + 0.1 * v1,
+                    "{a:?} {b:?}"
+                );
+            } else {
+                assert!((a.pressure_pa - b.pressure_pa).abs() < 1e-9 * p1);
+            }
+        }
+    }
+
+    #[test]
+    fn the_compliance_driver_refuses_a_bad_table_or_a_trace_beyond_it_before_solving() {
+        let (scene, v0) = block();
+        let trace = breath(v0);
+        let key = |r: Result<(MotionReport, Vec<Vec<V3>>)>| match r {
+            Err(Error::Config { key, reason, .. }) => (key.unwrap_or_default(), reason),
+            other => panic!(
+                "expected a refused setting, got {:?}",
+                other.map(|r| r.0.frames.len())
+            ),
+        };
+        let short = PressureVolumeTable(vec![[0.0, 0.0], [10.0, 0.02 * v0]]);
+        let (k, why) = key(run_compliance(&scene, &trace, None, Some(short)));
+        assert_eq!(k, "motion.driver.pressure_volume");
+        assert!(
+            why.contains("outside the table") && why.contains("extend it"),
+            "{why}"
+        );
+        let falling = PressureVolumeTable(vec![[0.0, 0.0], [10.0, 5.0], [20.0, 4.0]]);
+        let (k, why) = key(run_compliance(&scene, &trace, None, Some(falling)));
+        assert_eq!(k, "motion.driver.pressure_volume");
+        assert!(why.contains("volume must rise with pressure"), "{why}");
+        let both = PressureVolumeTable(vec![[0.0, 0.0], [10.0, 0.05 * v0]]);
+        let (k, why) = key(run_compliance(&scene, &trace, Some(2.0), Some(both)));
+        assert_eq!(k, "motion.driver.pressure_volume");
+        assert!(why.contains("give one"), "{why}");
+        let (k, why) = key(run_compliance(&scene, &trace, Some(-2.0), None));
+        assert_eq!(k, "motion.driver.compliance_ml_per_pa");
+        assert!(why.contains("-2 mL/Pa"), "{why}");
     }
 
     #[test]

@@ -27,6 +27,10 @@
 //! # window_s = [10.0, 40.0]            # keep only these seconds (e.g. the tidal breaths)
 //! [motion]
 //! driver = { kind = "volume" }         # or { kind = "compliance", compliance_ml_per_pa = 2.0 }
+//! # driver = { kind = "compliance", pressure_volume = [[0, 0], [500, 900], [1000, 1500]] }
+//!                                      # a non-linear compliance: rows [pressure Pa, volume mL],
+//!                                      # distending pressure and volume change from the scan,
+//!                                      # both rising, through [0, 0], interpolated linearly
 //! instants = { kind = "phases", count = 10 }   # every_sample | every_kth k | frame_rate hz
 //! interpolation_tolerance_mm = 0.1
 //! solve_every_frame = false
@@ -467,16 +471,8 @@ impl RunConfig {
         if let Err(e) = crate::motion::diaphragm::check_dome_flattening(m.dome_flattening) {
             return bad("motion.dome_flattening", e.to_string());
         }
-        if let DriverKind::Compliance {
-            compliance_ml_per_pa: Some(c),
-        } = m.driver
-        {
-            if !(c.is_finite() && c > 0.0) {
-                return bad(
-                    "motion.driver.compliance_ml_per_pa",
-                    format!("{c} mL/Pa must be positive"),
-                );
-            }
+        if let Some((key, reason)) = m.driver.problem() {
+            return bad(key, reason);
         }
         if let Some(d) = &m.dynamic {
             d.settings().validate()?;
@@ -515,7 +511,7 @@ impl RunConfig {
     pub fn motion_settings(&self) -> crate::motion::MotionSettings {
         let m = &self.motion;
         crate::motion::MotionSettings {
-            driver: m.driver,
+            driver: m.driver.clone(),
             instants: m.instants,
             interpolation_tolerance_mm: m.interpolation_tolerance_mm,
             solve_every_frame: m.solve_every_frame,
@@ -554,7 +550,8 @@ mod tests {
         assert!(matches!(
             c.motion.driver,
             DriverKind::Compliance {
-                compliance_ml_per_pa: Some(_)
+                compliance_ml_per_pa: Some(_),
+                pressure_volume: None,
             }
         ));
         let c = RunConfig::from_toml(
@@ -571,6 +568,68 @@ mod tests {
             c.material.spring_law,
             crate::model::SpringLaw::CubicNeoHookean
         );
+    }
+
+    #[test]
+    fn a_pressure_volume_table_is_read_and_bad_tables_are_refused_with_key_value_and_reason() {
+        let c = RunConfig::from_toml(
+            "[motion]\ndriver = { kind = \"compliance\", pressure_volume = [[-50, -100], [0, 0], \
+             [500, 900.5], [1000, 1500]] }",
+        )
+        .unwrap();
+        let DriverKind::Compliance {
+            compliance_ml_per_pa: None,
+            pressure_volume: Some(table),
+        } = &c.motion.driver
+        else {
+            panic!("{:?}", c.motion.driver);
+        };
+        assert_eq!(table.0[2], [500.0, 900.5]);
+        assert_eq!(c.motion_settings().driver, c.motion.driver);
+        let err = |t: &str| {
+            RunConfig::from_toml(&format!(
+                "[motion]\ndriver = {{ kind = \"compliance\", {t} }}"
+            ))
+            .unwrap_err()
+            .to_string()
+        };
+        let key = "motion.driver.pressure_volume";
+        for (table, value, reason) in [
+            (
+                "[[0, 0], [100, 300], [200, 250]]",
+                "row 3 [200, 250]",
+                "volume must rise",
+            ),
+            (
+                "[[0, 0], [200, 300], [100, 400]]",
+                "row 3 [100, 400]",
+                "rows go by rising",
+            ),
+            ("[[0, 0], [100, nan]]", "row 2 [100, NaN]", "finite"),
+            ("[[0, 0], [inf, 100]]", "row 2 [inf, 100]", "finite"),
+            ("[[0, 0]]", "1 row(s)", "at least 2"),
+            ("[]", "0 row(s)", "at least 2"),
+            ("[[10, 0], [100, 300]]", "gives 10 Pa", "[0, 0]"),
+            ("[[0, 0], [30000, 300]]", "30000 Pa", "unit mistake"),
+        ] {
+            let e = err(&format!("pressure_volume = {table}"));
+            assert!(
+                e.contains(key) && e.contains(value) && e.contains(reason),
+                "{table}: {e}"
+            );
+        }
+        let both = err("compliance_ml_per_pa = 2.0, pressure_volume = [[0, 0], [1, 2]]");
+        assert!(
+            both.contains(key) && both.contains("= 2") && both.contains("give one"),
+            "{both}"
+        );
+        let shape = err("pressure_volume = [[0, 0, 1], [1, 2, 3]]");
+        assert!(
+            shape.contains("pressure_volume row 1 [0.0, 0.0, 1.0] has 3 value(s)"),
+            "{shape}"
+        );
+        let typo = err("pressure_volum = [[0, 0], [1, 2]]");
+        assert!(typo.contains("pressure_volum"), "{typo}");
     }
 
     #[test]

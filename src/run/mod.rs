@@ -770,7 +770,10 @@ fn write_ingest_files(
 
 /// Adds the anatomical groups of the named element's nodes to a [`Error::VolumeUnreachable`],
 /// which the solver, knowing only the mesh, leaves out.
-fn name_element_groups(error: Error, model: &crate::ingest::lung_model::LungModel) -> Error {
+pub(crate) fn name_element_groups(
+    error: Error,
+    model: &crate::ingest::lung_model::LungModel,
+) -> Error {
     let Error::VolumeUnreachable(mut unreachable) = error else {
         return error;
     };

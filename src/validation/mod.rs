@@ -9,6 +9,7 @@ pub mod landmarks;
 pub mod lung_calculix;
 pub mod material_laws;
 pub mod patch;
+pub mod pressure_volume;
 pub mod report;
 pub mod stability;
 pub mod sweep;

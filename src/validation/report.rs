@@ -9,6 +9,9 @@ use super::composite::{run_composite, CompositeOptions, CompositeReport};
 use super::contact::{run_contact_study, ContactReport, DropConfig};
 use super::material_laws::{run_material_law_study, MaterialLawReport};
 use super::patch::{run_patch_tests, PatchConfig, PatchReport};
+use super::pressure_volume::{
+    run_pressure_volume_study, PressureVolumeConfig, PressureVolumeReport,
+};
 use super::stability::{run_stability_study, StabilityConfig, StabilityReport};
 use super::sweep::{run_strain_sweeps, SweepConfig, SweepReport};
 use crate::durable::write_atomic;
@@ -21,6 +24,8 @@ pub struct ValidateOptions {
     pub quick: bool,
     /// Run the CalculiX comparisons (needs `ccx`).
     pub calculix: bool,
+    /// Run the pressure–volume study on the CIP lungs (needs the shared data; minutes).
+    pub pressure_volume: bool,
 }
 
 /// Every study's result.
@@ -42,6 +47,11 @@ pub struct ValidationReport {
     pub contact: ContactReport,
     /// Composite cases against CalculiX (absent when skipped).
     pub composite: Option<CompositeReport>,
+    /// The model's pressure–volume curves on the CIP lungs (absent when skipped).
+    pub pressure_volume: Option<PressureVolumeReport>,
+    /// Why the pressure–volume study was skipped, when it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pressure_volume_skipped: Option<String>,
     /// Wall time of the whole suite, seconds.
     pub wall_time_s: f64,
 }
@@ -79,6 +89,24 @@ pub fn run_validation(
     } else {
         None
     };
+    let (pressure_volume, pressure_volume_skipped) = if !options.pressure_volume {
+        (
+            None,
+            Some("not asked for (--no-pressure-volume)".to_string()),
+        )
+    } else if crate::datasets::cip_chest_ct64().is_none() {
+        (
+            None,
+            Some(format!(
+                "the CIP chest CT is absent (set {} to the shared data directory)",
+                crate::datasets::SHARED_DATA_ENV
+            )),
+        )
+    } else {
+        progress("pressure–volume curves (CIP lungs, 8 mm, rest to +2 L, per material law)");
+        let config = PressureVolumeConfig::standard();
+        (Some(run_pressure_volume_study(&config)?), None)
+    };
     Ok(ValidationReport {
         version: env!("CARGO_PKG_VERSION"),
         options: options.clone(),
@@ -88,6 +116,8 @@ pub fn run_validation(
         stability,
         contact,
         composite,
+        pressure_volume,
+        pressure_volume_skipped,
         wall_time_s: start.elapsed().as_secs_f64(),
     })
 }
@@ -116,16 +146,25 @@ impl ValidationReport {
             s.push_str(&c.to_markdown());
             s.push('\n');
         }
+        if let Some(pv) = &self.pressure_volume {
+            s.push_str(&pv.to_markdown());
+            s.push('\n');
+        } else if let Some(why) = &self.pressure_volume_skipped {
+            s.push_str(&format!("## Pressure–volume curve\n\nSkipped: {why}.\n\n"));
+        }
         s
     }
 
-    /// Writes `validation.json` and `validation.md` into `dir` (created if needed), each via a
+    /// Writes `validation.json`, `validation.md` and, with the P–V study, its PNG into `dir` (created if needed), each via a
     /// temporary file and a rename so a reader never sees half a report.
     pub fn write(&self, dir: &Path) -> Result<()> {
         std::fs::create_dir_all(dir).at(IoOp::CreateDir, dir)?;
         let json = serde_json::to_string_pretty(self)
             .map_err(|e| crate::Error::External(format!("serialising the report: {e}")))?;
         write_atomic(&dir.join("validation.json"), json.as_bytes())?;
+        if let Some(pv) = &self.pressure_volume {
+            pv.write_png(dir)?;
+        }
         write_atomic(&dir.join("validation.md"), self.to_markdown().as_bytes())?;
         Ok(())
     }

@@ -26,6 +26,7 @@
 mod breathing_curve;
 mod displacement_look;
 mod draw;
+mod line_chart;
 mod scale;
 mod slice_look;
 mod trade_off;
@@ -37,6 +38,10 @@ pub use breathing_curve::{
 pub use displacement_look::{
     lung_centroid_lps_mm, render_displacement_look, viridis, Arrow, DisplacementLook,
     DisplacementLookInput, SlicePanel,
+};
+pub use line_chart::{
+    render_line_chart, ChartAxes, LineSeries, LINE_CHART_HEIGHT_PX, LINE_CHART_WIDTH_PX,
+    SERIES_COLOURS,
 };
 pub use slice_look::{
     render_labelled_slice, LabelledSlice, LabelledSliceInput, LegendEntry, PixelRect,

@@ -55,7 +55,12 @@ fn variant(kind: &str, description: &str, fields: Value) -> Value {
     if let (Some(all), Some(own)) = (properties.as_object_mut(), fields.as_object()) {
         for (name, field) in own {
             all.insert(name.clone(), field.clone());
-            if field.get("type") != Some(&json!(["number", "null"])) {
+            // A field that may be null may be left out.
+            let nullable = field
+                .get("type")
+                .and_then(Value::as_array)
+                .is_some_and(|t| t.contains(&json!("null")));
+            if !nullable {
                 required.push(json!(name));
             }
         }
@@ -99,10 +104,21 @@ fn driver() -> Value {
         "oneOf": [
             variant("volume", "The pressure that makes the simulated volume equal the \
                 trace's (default)", json!({})),
-            variant("compliance", "ΔP = ΔV / C, the thesis's driver", json!({
+            variant("compliance", "ΔP = ΔV / C, the thesis's driver, or the pressure read \
+                from a pressure–volume table (a non-linear compliance)", json!({
                 "compliance_ml_per_pa": {"type": ["number", "null"], "exclusiveMinimum": 0,
-                    "description": "Lung compliance, mL/Pa; absent: from E, ν and the rest \
-                        volume"}
+                    "description": "Lung compliance, mL/Pa; absent (and no pressure_volume): \
+                        from E, ν and the rest volume"},
+                "pressure_volume": {"type": ["array", "null"],
+                    "minItems": crate::motion::compliance::MIN_PRESSURE_VOLUME_ROWS,
+                    "maxItems": crate::motion::compliance::MAX_PRESSURE_VOLUME_ROWS,
+                    "items": {"type": "array", "minItems": 2, "maxItems": 2,
+                              "items": {"type": "number"}},
+                    "description": "Instead of compliance_ml_per_pa: rows [pressure Pa, \
+                        volume mL], the distending (transpulmonary) pressure change from the \
+                        scan and the lung volume change it gives, both strictly rising, \
+                        through [0, 0], interpolated piecewise-linearly; every frame's volume \
+                        must lie within the table (not extrapolated)"}
             })),
         ]
     })
@@ -367,8 +383,13 @@ mod tests {
         let driver = &schema["properties"]["motion"]["properties"]["driver"]["oneOf"];
         for choice in [
             crate::motion::DriverKind::Volume,
+            crate::motion::DriverKind::compliance(Some(2.0)),
             crate::motion::DriverKind::Compliance {
-                compliance_ml_per_pa: Some(2.0),
+                compliance_ml_per_pa: None,
+                pressure_volume: Some(crate::motion::PressureVolumeTable(vec![
+                    [0.0, 0.0],
+                    [500.0, 900.0],
+                ])),
             },
         ] {
             let value = serde_json::to_value(choice).unwrap();
@@ -377,7 +398,12 @@ mod tests {
                     .as_array()
                     .unwrap()
                     .iter()
-                    .any(|v| v["properties"]["kind"]["const"] == value["kind"]),
+                    .any(|v| v["properties"]["kind"]["const"] == value["kind"]
+                        && value
+                            .as_object()
+                            .unwrap()
+                            .keys()
+                            .all(|k| v["properties"].get(k).is_some())),
                 "{value}"
             );
         }
