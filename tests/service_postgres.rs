@@ -900,16 +900,20 @@ fn api_processes_need_no_shared_directory_their_upload_copies_are_a_bounded_cach
     );
 
     // The job deleted through B, the scan through A (which holds a copy from its target
-    // check, removed with it): the objects go, and no process has a copy left. (A copy in
-    // another API process's directory would stay until its eviction, unused: the record is
-    // gone.)
+    // check, removed with it): the objects go, and no API process has a copy left. The
+    // worker's copy, fetched for the job, stays until its next fetch evicts it (unused: the
+    // record is gone), as a copy in another API process's directory would.
     assert_eq!(b.delete(&format!("/v1/jobs/{job}")).status(), 204);
     assert_eq!(a.delete(&format!("/v1/scans/{scan}")).status(), 204);
     assert!(s3
         .keys(TEST_BUCKET, &format!("lm/scans/{scan}/"))
         .is_empty());
     assert_eq!(b.get(&format!("/v1/scans/{scan}")).status(), 404);
-    for dir in &dirs {
+    for dir in &dirs[..2] {
         assert!(!upload_copy(dir, &scan), "{}", dir.display());
     }
+    assert!(
+        upload_copy(&dirs[2], &scan),
+        "the worker fetched the scan for the job"
+    );
 }

@@ -15,6 +15,9 @@
 //!   as an attempt), failed once `max_attempts` runs have started, or cancelled when a client
 //!   had asked. Every write of a worker names its lease, so a worker that lost its lease
 //!   changes nothing any more.
+//! * A job that ends with a completion callback waiting has its row's `callback_due` set;
+//!   the API processes claim due callbacks ([`Postgres::claim_callback`]), POST them and write
+//!   the outcome with the next due time ([`Postgres::record_callback`]).
 //! * Idle workers sleep on `LISTEN lungmotion_queue`, which submissions and re-queues
 //!   `NOTIFY`, and look at the queue every [`POLL_INTERVAL`] as well.
 //! * The schema is created and upgraded by the service (`lungmotion_schema` holds its version
