@@ -2,6 +2,7 @@
 //! thresholds: the machine is shared).
 #![cfg(feature = "bench")]
 
+use lungmotion::bench::service::queue::{QUICK_QUEUE_JOBS, QUICK_SHORT_JOBS, WORKER_COUNTS};
 use lungmotion::bench::service::{
     run_service_bench, ServiceBenchOptions, LOAD_CONCURRENCY, QUICK_SLICE_PIXELS, UPLOAD_SLICES,
 };
@@ -101,12 +102,42 @@ fn quick_service_bench_measures_upload_overhead_and_load() {
     assert!(report.peak_rss_bytes.is_some_and(|b| b > 0));
     assert!(report.socket_buffer_max_bytes.is_some_and(|b| b > 0));
 
+    // The PostgreSQL queue (.ci/run installs PostgreSQL): every call timed, every job done.
+    let Outcome::Measured(q) = &report.queue.overhead else {
+        panic!("queue calls not measured: {:?}", report.queue.overhead);
+    };
+    assert_eq!(q.jobs, QUICK_QUEUE_JOBS);
+    for t in [&q.submit, &q.claim, &q.heartbeat, &q.complete] {
+        assert_eq!(t.runs, QUICK_QUEUE_JOBS, "{q:?}");
+        assert!(t.median_s > 0.0 && t.median_s < 5.0, "{q:?}");
+    }
+    assert!(q.per_job_s > 0.0, "{q:?}");
+    let threads: Vec<usize> = q
+        .queue_only_jobs_per_min
+        .iter()
+        .map(|r| r.threads)
+        .collect();
+    assert_eq!(threads, WORKER_COUNTS, "{q:?}");
+    for r in &q.queue_only_jobs_per_min {
+        assert_eq!(r.jobs, QUICK_QUEUE_JOBS, "every job taken once: {r:?}");
+    }
+    let Outcome::Measured(rows) = &report.queue.workers else {
+        panic!("workers not measured: {:?}", report.queue.workers);
+    };
+    let workers: Vec<usize> = rows.iter().map(|r| r.workers).collect();
+    assert_eq!(workers, WORKER_COUNTS);
+    for r in rows {
+        assert_eq!(r.jobs, QUICK_SHORT_JOBS, "{r:?}");
+        assert!(r.jobs_per_min > 0.0 && r.jobs_per_min.is_finite(), "{r:?}");
+    }
+
     let md = report.to_markdown();
     println!("{md}");
     for section in [
         "## Upload of a 300-slice DICOM zip",
         "## Service against the CLI",
         "## Load over loopback",
+        "## The PostgreSQL queue",
         "share the",
     ] {
         assert!(md.contains(section), "missing {section}:\n{md}");

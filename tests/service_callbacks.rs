@@ -3,6 +3,10 @@
 //! attempts when it answers 500 twice then 200 and one when it answers 410; the job's record
 //! shows the delivery; bad callback URLs, and any callback on a server without a secret, are
 //! refused with 422 naming why.
+//!
+//! Both backends: with `LUNGMOTION_TEST_BACKEND=postgres` the jobs run in a worker process and
+//! the API process delivers the callbacks it finds due in the database (`.ci/run` runs this
+//! file so, with the blobs in S3).
 #![cfg(feature = "cli")]
 
 mod service_support;

@@ -2,6 +2,10 @@
 //! their headers a byte at a time or stop half-way, bodies shorter than they announced,
 //! request ids carrying markup or raw bytes, and an upload whose DICOM file nests sequences
 //! 200 000 deep. Also the run's `trace` options over HTTP, against the CLI.
+//!
+//! Both backends: with `LUNGMOTION_TEST_BACKEND=postgres` (and `LUNGMOTION_TEST_OBJECT_STORE=s3`)
+//! each server gets a database, a worker process and an S3 server of its own (`.ci/run` runs
+//! this file so).
 #![cfg(feature = "cli")]
 
 mod service_support;

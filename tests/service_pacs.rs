@@ -3,6 +3,10 @@
 //! series, REGs and RTSTRUCT back, nothing twice when the job is submitted again; a series
 //! the server does not hold fails the job with the server's answer; a PACS that is down
 //! fails the job naming it; a server without a PACS refuses PACS requests.
+//!
+//! Both backends: with `LUNGMOTION_TEST_BACKEND=postgres` (and `LUNGMOTION_TEST_OBJECT_STORE=s3`)
+//! each server gets a database, a worker process (which pulls and pushes) and an S3 server of
+//! its own (`.ci/run` runs this file so).
 
 mod orthanc_support;
 mod service_support;

@@ -234,7 +234,11 @@ fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
     );
     assert_eq!(
         version.trim(),
-        format!("1|{}", env!("CARGO_PKG_VERSION")),
+        format!(
+            "{}|{}",
+            lungmotion::service::postgres::SCHEMA_VERSION,
+            env!("CARGO_PKG_VERSION")
+        ),
         "{version}"
     );
     for table in ["lungmotion_jobs", "lungmotion_scans", "lungmotion_workers"] {
@@ -269,7 +273,10 @@ fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
         for words in [
             "schema is version 99",
             "written by lungmotion 9.9.9",
-            "knows versions up to 1",
+            &format!(
+                "knows versions up to {}",
+                lungmotion::service::postgres::SCHEMA_VERSION
+            ),
             &format!("lm@127.0.0.1:{}/lungmotion", db.port),
         ] {
             assert!(
@@ -365,13 +372,15 @@ fn a_journey_through_an_api_process_and_a_separate_worker() {
         std::thread::sleep(Duration::from_millis(200));
     }
 
-    // A callback would never be sent across processes yet: refused, not dropped.
+    // This API process has no callback secret: a callback is refused as on the directory
+    // store (deliveries on PostgreSQL: tests/service_callbacks.rs with
+    // LUNGMOTION_TEST_BACKEND=postgres).
     let mut with_callback = tiny_request(2);
     with_callback["callback_url"] = "http://127.0.0.1:9/hook".into();
     assert_problem(
         server.post_simulation(&scan, &with_callback),
         422,
-        &["callbacks", "PostgreSQL"],
+        &["callback secret"],
     );
 
     // Cancelling a running job reaches the worker's run; the job ends cancelled, its partial
@@ -786,5 +795,125 @@ fn every_job_ends_done_once_when_a_worker_and_an_api_are_killed() {
         partial,
         swept_after.as_secs_f64(),
         longest_gap.as_secs_f64(),
+    );
+}
+
+/// Whether `data` holds a copy of the scan's upload (`scans/<id>/<file>`, any name but the
+/// mark and the stored ingest).
+fn upload_copy(data: &std::path::Path, scan: &str) -> bool {
+    entries(&data.join("scans").join(scan))
+        .iter()
+        .any(|n| n.ends_with(".nii.gz"))
+}
+
+#[test]
+fn api_processes_need_no_shared_directory_their_upload_copies_are_a_bounded_cache() {
+    // Two API processes and a worker, each with a data directory of its own, on one database
+    // and one S3 server (moto): the uploads' copies in an API's data directory are a cache of
+    // the objects, bounded by fetched_scans_mib (0 here: only copies in use are kept), so
+    // they are evicted after the upload and fetched again when a target is checked against
+    // the CT, by the process that received the upload or by another.
+    let scratch = Scratch::new("pg-api-cache");
+    let db = PgServer::start(&scratch.join("postgres"));
+    let s3 = S3Server::start(&scratch.join("moto"));
+    s3.create_bucket(TEST_BUCKET);
+    let url = db.url();
+    let mut owned_env = s3.service_env(TEST_BUCKET, "lm");
+    owned_env.extend(
+        [
+            ("LUNGMOTION_POSTGRES_URL", url.as_str()),
+            ("LUNGMOTION_FETCHED_SCANS_MIB", "0"),
+        ]
+        .map(|(k, v)| (k.to_string(), v.to_string())),
+    );
+    let env: Vec<(&str, &str)> = owned_env
+        .iter()
+        .map(|(k, v)| (k.as_str(), v.as_str()))
+        .collect();
+    let dirs = ["api-a", "api-b", "worker"].map(|d| {
+        let dir = scratch.join(d);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join("data")
+    });
+    let a = ServerProcess::start_sharing(&dirs[0], &[], &env);
+    let b = ServerProcess::start_sharing(&dirs[1], &[], &env);
+    let worker = WorkerProcess::start(
+        &dirs[2],
+        &scratch.join("worker").join("worker.log"),
+        &["--workers", "1"],
+        &env,
+    );
+
+    // Received by A, put in the bucket, then its copy evicted (nothing holds it).
+    let scan = a.upload_scan(&sample("phantom-ct.nii.gz"));
+    assert!(!s3
+        .keys(TEST_BUCKET, &format!("lm/scans/{scan}/"))
+        .is_empty());
+    assert!(
+        !upload_copy(&dirs[0], &scan),
+        "the upload's copy stayed: {:?}\n{}",
+        entries(&dirs[0].join("scans").join(&scan)),
+        tail(&a.log(), 20)
+    );
+    assert!(!dirs[1].join("scans").join(&scan).exists());
+
+    // B never saw the upload: checking a target against the CT fetches it from the bucket.
+    let truth = std::fs::read(sample("phantom-truth.nii.gz")).unwrap();
+    let put_target = |server: &ServerProcess| {
+        server
+            .client()
+            .put(server.url(&format!("/v1/scans/{scan}/targets/gtv")))
+            .header("content-type", "application/octet-stream")
+            .body(truth.clone())
+            .send()
+            .unwrap()
+    };
+    let resp = put_target(&b);
+    assert!(resp.status().is_success(), "{:?}", resp.text());
+    assert!(
+        b.log().contains("scan fetched from the object store"),
+        "{}",
+        tail(&b.log(), 20)
+    );
+    // A fetches its evicted copy again the same way.
+    let resp = put_target(&a);
+    assert!(resp.status().is_success(), "{:?}", resp.text());
+    assert!(
+        a.log().contains("scan fetched from the object store"),
+        "{}",
+        tail(&a.log(), 20)
+    );
+    // Once no request holds them, the next upload's eviction takes both older copies.
+    let second = b.upload_scan(&sample("phantom-ct.nii.gz"));
+    assert!(!upload_copy(&dirs[1], &scan) && !upload_copy(&dirs[1], &second));
+
+    // A job submitted through A on the target, run by the worker from its own directory.
+    let mut request = tiny_request(2);
+    request["target"] = serde_json::json!({"upload": "gtv", "label": 8});
+    let job = a.submit(&scan, &request);
+    let status = b.wait_for_state(&job, &["done", "failed"], JOB_TIMEOUT);
+    assert_eq!(status["state"], "done", "{status}\n{}", worker.log());
+    assert_eq!(
+        b.get(&format!("/v1/jobs/{job}/frames/1/displacement"))
+            .status(),
+        200
+    );
+
+    // The job deleted through B, the scan through A (which holds a copy from its target
+    // check, removed with it): the objects go, and no API process has a copy left. The
+    // worker's copy, fetched for the job, stays until its next fetch evicts it (unused: the
+    // record is gone), as a copy in another API process's directory would.
+    assert_eq!(b.delete(&format!("/v1/jobs/{job}")).status(), 204);
+    assert_eq!(a.delete(&format!("/v1/scans/{scan}")).status(), 204);
+    assert!(s3
+        .keys(TEST_BUCKET, &format!("lm/scans/{scan}/"))
+        .is_empty());
+    assert_eq!(b.get(&format!("/v1/scans/{scan}")).status(), 404);
+    for dir in &dirs[..2] {
+        assert!(!upload_copy(dir, &scan), "{}", dir.display());
+    }
+    assert!(
+        upload_copy(&dirs[2], &scan),
+        "the worker fetched the scan for the job"
     );
 }

@@ -89,6 +89,8 @@ impl Jobs {
                     record.state = JobState::Cancelled;
                     record.error = Some("cancelled by a client before it ran".into());
                     record.finished_at = Some(super::store::now_rfc3339());
+                    // Written with the record: its row's callback is due from now.
+                    super::jobs::begin_callback(record);
                     (true, CancelOutcome::Cancelled)
                 }
                 JobState::Running => {
@@ -157,6 +159,21 @@ impl Jobs {
                     None => (false, false),
                 })?
                 .unwrap_or(false)),
+        }
+    }
+
+    /// Records a POST of a job's callback: `change` to its record, and with PostgreSQL when
+    /// the next POST is due (`retry_in`; `None`: no more), so that any API process makes it,
+    /// even after this one stopped. `false` when the job (or its callback) is gone.
+    pub fn record_callback(
+        &self,
+        id: JobId,
+        change: impl FnOnce(&mut CallbackDelivery) + Send + 'static,
+        retry_in: Option<Duration>,
+    ) -> Result<bool> {
+        match self {
+            Jobs::Embedded(m) => m.update_callback(id, change),
+            Jobs::Postgres(p) => p.pg.record_callback(id, change, retry_in),
         }
     }
 

@@ -79,8 +79,9 @@ pub struct BlobSettings {
     pub presigned_ttl_s: f64,
     /// Part size of multipart uploads, and the size above which a file is sent in parts, MiB.
     pub multipart_part_mib: u64,
-    /// Bound of the copies of scans fetched from the store into the data directory, MiB;
-    /// beyond it the least recently used ones not in use are removed (0: only those in use).
+    /// Bound of the local copies of scans in the data directory (uploads received, scans
+    /// fetched), MiB; beyond it the least recently used ones not in use are removed (0: only
+    /// those in use).
     pub fetched_scans_mib: u64,
 }
 

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 use sha2::Sha256;
 use utoipa::ToSchema;
 
+use super::backend::Jobs;
 use super::config::CallbackSettings;
 use super::ids::JobId;
 use super::routes::{JobLinks, JobStatus, SharedState};
@@ -193,24 +194,39 @@ pub fn retry_wait(base_s: f64, attempt: u32) -> Duration {
     Duration::from_secs_f64(base_s * factor).min(MAX_RETRY_WAIT)
 }
 
+/// How often an API process on PostgreSQL looks for a callback that is due.
+const DUE_POLL_INTERVAL: Duration = Duration::from_millis(250);
+
+/// The HTTP client that POSTs callbacks: no redirects, `callback_timeout_s`.
+fn callback_client(settings: &CallbackSettings) -> Option<reqwest::Client> {
+    let client = reqwest::Client::builder()
+        // A redirect would re-send the signed body somewhere the request did not name.
+        .redirect(reqwest::redirect::Policy::none())
+        .timeout(Duration::from_secs_f64(settings.timeout_s))
+        .user_agent(concat!("lungmotion/", env!("CARGO_PKG_VERSION")))
+        .build();
+    match client {
+        Ok(c) => Some(c),
+        Err(e) => {
+            tracing::error!("completion callbacks disabled: cannot build the HTTP client: {e}");
+            None
+        }
+    }
+}
+
 /// Delivers the callback of every job id received, each on its own task, at most
-/// [`MAX_CONCURRENT_DELIVERIES`] at once; ends when the job manager is dropped.
+/// [`MAX_CONCURRENT_DELIVERIES`] at once; ends when the job manager is dropped. With the
+/// jobs in PostgreSQL the ids come from the database instead (see [`spawn_due_deliveries`]).
 pub fn spawn_deliveries(
     state: SharedState,
     mut finished: tokio::sync::mpsc::UnboundedReceiver<JobId>,
 ) {
-    let client = reqwest::Client::builder()
-        // A redirect would re-send the signed body somewhere the request did not name.
-        .redirect(reqwest::redirect::Policy::none())
-        .timeout(Duration::from_secs_f64(state.config.callbacks.timeout_s))
-        .user_agent(concat!("lungmotion/", env!("CARGO_PKG_VERSION")))
-        .build();
-    let client = match client {
-        Ok(c) => c,
-        Err(e) => {
-            tracing::error!("completion callbacks disabled: cannot build the HTTP client: {e}");
-            return;
-        }
+    if state.jobs.is_postgres() {
+        spawn_due_deliveries(state);
+        return;
+    }
+    let Some(client) = callback_client(&state.config.callbacks) else {
+        return;
     };
     tokio::spawn(async move {
         let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONCURRENT_DELIVERIES));
@@ -220,7 +236,66 @@ pub fn spawn_deliveries(
             };
             let (state, client) = (state.clone(), client.clone());
             tokio::spawn(async move {
-                deliver(&state, &client, id).await;
+                while let Some(wait) = deliver_once(&state, &client, id).await {
+                    tokio::time::sleep(wait).await;
+                }
+                drop(slot);
+            });
+        }
+    });
+}
+
+/// With the jobs in PostgreSQL: takes the callbacks that are due from the database (a job
+/// that ended on any worker, a retry whose wait is over, one whose API process died while
+/// POSTing it) and makes one POST of each, recording when the next is due; every API process
+/// does so, and a claim keeps two from POSTing one callback at once. Without a callback
+/// secret nothing can be signed, so nothing is taken (another API process may have one).
+fn spawn_due_deliveries(state: SharedState) {
+    let Jobs::Postgres(pg) = &state.jobs else {
+        return;
+    };
+    if state.config.callbacks.secret.is_none() {
+        return;
+    }
+    let Some(client) = callback_client(&state.config.callbacks) else {
+        return;
+    };
+    let pg = pg.pg.clone();
+    // Longer than one POST may take, so a claim outlives the POST it is held for.
+    let hold = Duration::from_secs_f64(state.config.callbacks.timeout_s) + Duration::from_secs(30);
+    tokio::spawn(async move {
+        let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONCURRENT_DELIVERIES));
+        loop {
+            if state.jobs.shutting_down() {
+                return;
+            }
+            let Ok(slot) = slots.clone().acquire_owned().await else {
+                return;
+            };
+            let claimer = pg.clone();
+            let claimed = tokio::task::spawn_blocking(move || claimer.claim_callback(hold)).await;
+            let id = match claimed {
+                Ok(Ok(Some(id))) => id,
+                Ok(Ok(None)) => {
+                    drop(slot);
+                    tokio::time::sleep(DUE_POLL_INTERVAL).await;
+                    continue;
+                }
+                Ok(Err(e)) => {
+                    tracing::warn!("looking for due completion callbacks: {e}");
+                    drop(slot);
+                    tokio::time::sleep(DUE_POLL_INTERVAL * 4).await;
+                    continue;
+                }
+                Err(e) => {
+                    tracing::error!("completion callback claim task failed: {e}");
+                    return;
+                }
+            };
+            let (state, client) = (state.clone(), client.clone());
+            tokio::spawn(async move {
+                // The next POST, if any, is due in the job's row; whoever claims it makes it.
+                let _ = deliver_once(&state, &client, id).await;
                 drop(slot);
             });
         }
@@ -235,19 +310,41 @@ struct Attempt {
     retry: bool,
 }
 
-/// POSTs one job's callback until it is delivered, refused, given up, or the job deleted.
-async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
+/// Makes one POST of a job's callback and records it; the wait before the next POST when
+/// one is due (`None`: delivered, refused, given up, or the job deleted).
+async fn deliver_once(
+    state: &SharedState,
+    client: &reqwest::Client,
+    id: JobId,
+) -> Option<Duration> {
     let settings = &state.config.callbacks;
-    let Ok(Some(record)) = state.jobs.status(id) else {
-        return;
-    };
-    let Some(delivery) = record.callback.clone() else {
-        return;
-    };
+    let jobs = state.jobs.clone();
+    let record = tokio::task::spawn_blocking(move || jobs.status(id))
+        .await
+        .ok()?
+        .ok()??;
+    let delivery = record.callback.clone()?;
+    if delivery.state != CallbackState::Pending {
+        // Delivered or given up meanwhile (by another process): nothing is due any more.
+        update(state, id, |_| {}, None).await;
+        return None;
+    }
     let Some(secret) = settings.secret.clone() else {
         finish(state, id, "this server has no callback secret any more").await;
-        return;
+        return None;
     };
+    if delivery.attempts >= settings.max_attempts {
+        finish(
+            state,
+            id,
+            &format!(
+                "{} POSTs made, callback_max_attempts is {}",
+                delivery.attempts, settings.max_attempts
+            ),
+        )
+        .await;
+        return None;
+    }
     let records = state.records.clone();
     let url = tokio::task::spawn_blocking(move || records.job_request(id))
         .await
@@ -256,41 +353,46 @@ async fn deliver(state: &SharedState, client: &reqwest::Client, id: JobId) {
         .and_then(|request| request.callback_url);
     let Some(url) = url else {
         finish(state, id, "the job's request.json holds no callback_url").await;
-        return;
+        return None;
     };
     let body = match serde_json::to_vec(&CallbackBody::from(record)) {
         Ok(b) => b,
         Err(e) => {
             finish(state, id, &format!("cannot serialise the body: {e}")).await;
-            return;
+            return None;
         }
     };
-    let mut attempts = delivery.attempts;
-    while attempts < settings.max_attempts {
-        attempts += 1;
-        let outcome = post_once(client, &url, secret.as_bytes(), &body).await;
-        let delivered = outcome.error.is_none();
-        let give_up = !delivered && (!outcome.retry || attempts >= settings.max_attempts);
-        let next = match (delivered, give_up) {
-            (true, _) => CallbackState::Delivered,
-            (false, true) => CallbackState::Failed,
-            (false, false) => CallbackState::Pending,
-        };
-        tracing::info!(job = %id, attempt = attempts, status = ?outcome.status,
-            error = outcome.error.as_deref().unwrap_or(""), state = ?next, "completion callback");
-        state.metrics.observe_callback_attempt(delivered);
-        let still_there = update(state, id, move |c| {
+    let attempts = delivery.attempts + 1;
+    let outcome = post_once(client, &url, secret.as_bytes(), &body).await;
+    let delivered = outcome.error.is_none();
+    let give_up = !delivered && (!outcome.retry || attempts >= settings.max_attempts);
+    let next = match (delivered, give_up) {
+        (true, _) => CallbackState::Delivered,
+        (false, true) => CallbackState::Failed,
+        (false, false) => CallbackState::Pending,
+    };
+    tracing::info!(job = %id, attempt = attempts, status = ?outcome.status,
+        error = outcome.error.as_deref().unwrap_or(""), state = ?next, "completion callback");
+    state.metrics.observe_callback_attempt(delivered);
+    let wait =
+        (next == CallbackState::Pending).then(|| retry_wait(settings.retry_base_s, attempts));
+    let still_there = update(
+        state,
+        id,
+        move |c| {
             c.state = next;
             c.attempts = attempts;
             c.last_status = outcome.status;
             c.last_error = outcome.error;
             c.last_attempt_at = Some(now_rfc3339());
-        })
-        .await;
-        if !still_there || next != CallbackState::Pending {
-            return;
-        }
-        tokio::time::sleep(retry_wait(settings.retry_base_s, attempts)).await;
+        },
+        wait,
+    )
+    .await;
+    if still_there {
+        wait
+    } else {
+        None
     }
 }
 
@@ -362,14 +464,16 @@ fn describe_send_error(e: reqwest::Error) -> String {
     text
 }
 
-/// Applies `change` to the job's callback record (on disk too); `false` when the job is gone.
+/// Applies `change` to the job's callback record (on disk or in its row too), with when the
+/// next POST is due (`retry_in`); `false` when the job is gone.
 async fn update(
     state: &SharedState,
     id: JobId,
     change: impl FnOnce(&mut CallbackDelivery) + Send + 'static,
+    retry_in: Option<Duration>,
 ) -> bool {
     let jobs = state.jobs.clone();
-    match tokio::task::spawn_blocking(move || jobs.update_callback(id, change)).await {
+    match tokio::task::spawn_blocking(move || jobs.record_callback(id, change, retry_in)).await {
         Ok(Ok(still_there)) => still_there,
         Ok(Err(e)) => {
             tracing::error!(job = %id, "cannot record the callback's delivery: {e}");
@@ -386,10 +490,15 @@ async fn update(
 async fn finish(state: &SharedState, id: JobId, reason: &str) {
     tracing::warn!(job = %id, "completion callback not sent: {reason}");
     let reason = reason.to_string();
-    update(state, id, move |c| {
-        c.state = CallbackState::Failed;
-        c.last_error = Some(reason);
-    })
+    update(
+        state,
+        id,
+        move |c| {
+            c.state = CallbackState::Failed;
+            c.last_error = Some(reason);
+        },
+        None,
+    )
     .await;
 }
 

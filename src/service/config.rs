@@ -43,7 +43,7 @@
 //! presigned_get = false       # outputs answered with 307 to a presigned URL
 //! presigned_ttl_s = 300
 //! object_store_multipart_part_mib = 16
-//! fetched_scans_mib = 10240   # a worker's copies of scans fetched from the store, LRU
+//! fetched_scans_mib = 10240   # local copies of scans (uploads, fetches), LRU
 //! ```
 
 use std::net::SocketAddr;

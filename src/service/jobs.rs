@@ -139,14 +139,19 @@ pub(super) struct Shared {
     queue_capacity: usize,
     workers: usize,
     ingests: Arc<IngestCache>,
-    finished: FinishedJobs,
+    /// Where ended jobs with a callback are announced; none in a PostgreSQL worker.
+    finished: Option<FinishedJobs>,
     pacs: Option<PacsAccess>,
 }
 
 impl Shared {
     /// Hands a job whose callback became pending to the deliveries (after its record is saved).
     fn announce_finished(&self, id: JobId) {
-        if self.finished.send(id).is_err() {
+        let Some(finished) = &self.finished else {
+            // A PostgreSQL worker: the job's row says the callback is due.
+            return;
+        };
+        if finished.send(id).is_err() {
             tracing::warn!(job = %id, "no callback delivery running; the callback is sent after the next start");
         }
     }
@@ -154,7 +159,7 @@ impl Shared {
 
 /// Moves a job's callback from `waiting` to `pending` as the job ends; whether it did (the
 /// caller then announces it once the record is saved).
-fn begin_callback(record: &mut JobRecord) -> bool {
+pub(super) fn begin_callback(record: &mut JobRecord) -> bool {
     match &mut record.callback {
         Some(c) if c.state == CallbackState::Waiting && record.state.is_terminal() => {
             c.state = CallbackState::Pending;
@@ -252,7 +257,7 @@ impl JobManager {
             queue_capacity,
             workers,
             ingests,
-            finished,
+            finished: Some(finished),
             pacs,
         });
         let threads = (0..workers)
@@ -972,9 +977,10 @@ pub(super) fn leased_shared(
     ingests: Arc<IngestCache>,
     pacs: Option<PacsAccess>,
 ) -> Arc<Shared> {
-    // Callbacks are not delivered with PostgreSQL (submissions with one are refused), so
-    // nothing listens here.
-    let (finished, _) = tokio::sync::mpsc::unbounded_channel();
+    // With PostgreSQL a job's end makes its callback due in its row (see
+    // [`super::postgres::Postgres::claim_callback`]); the API processes deliver it, so
+    // nothing is announced here.
+    let finished = None;
     Arc::new(Shared {
         store,
         records,

@@ -113,7 +113,8 @@ impl PacsAccess {
             return Err(e);
         }
         adopt_stored_ingest(store, scan_id, &stored_ingest);
-        store.mark_fetched_copy(&record);
+        // Marked evictable as it was stored (see `Store::put_scan_files`); evicted by the next
+        // fetch or upload beyond the bound, once this job no longer needs it.
         Ok(series_uid)
     }
 

@@ -15,6 +15,9 @@
 //!   as an attempt), failed once `max_attempts` runs have started, or cancelled when a client
 //!   had asked. Every write of a worker names its lease, so a worker that lost its lease
 //!   changes nothing any more.
+//! * A job that ends with a completion callback waiting has its row's `callback_due` set;
+//!   the API processes claim due callbacks ([`Postgres::claim_callback`]), POST them and write
+//!   the outcome with the next due time ([`Postgres::record_callback`]).
 //! * Idle workers sleep on `LISTEN lungmotion_queue`, which submissions and re-queues
 //!   `NOTIFY`, and look at the queue every [`POLL_INTERVAL`] as well.
 //! * The schema is created and upgraded by the service (`lungmotion_schema` holds its version
@@ -45,10 +48,11 @@ use crate::{Error, Result};
 
 /// The schema version this lungmotion writes; [`MIGRATIONS`]`[v]` upgrades version `v` to
 /// `v + 1`.
-pub const SCHEMA_VERSION: i32 = 1;
+pub const SCHEMA_VERSION: i32 = 2;
 
 /// The statements that bring a schema from each version to the next (index 0: from none).
-const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [r#"
+const MIGRATIONS: [&str; SCHEMA_VERSION as usize] = [
+    r#"
 CREATE TABLE lungmotion_scans (
     scan_id text PRIMARY KEY,
     created_at text NOT NULL,
@@ -81,7 +85,24 @@ CREATE TABLE lungmotion_workers (
     jobs_failed bigint NOT NULL DEFAULT 0,
     jobs_cancelled bigint NOT NULL DEFAULT 0
 );
-"#];
+"#,
+    r#"
+ALTER TABLE lungmotion_jobs ADD COLUMN callback_due timestamptz;
+CREATE INDEX lungmotion_jobs_callbacks ON lungmotion_jobs (callback_due)
+    WHERE callback_due IS NOT NULL;
+"#,
+];
+
+/// The `callback_due` of a job row whose record is written as `$json` (a SQL expression of
+/// that parameter): due now (or when it already was) while the record's callback is
+/// `pending`, none otherwise. Every write of a record goes through it, so a job that ends
+/// with a callback waiting is delivered by whichever API process claims it next.
+fn callback_due_of(json: &str) -> String {
+    format!(
+        "CASE WHEN ({json}::jsonb)->'callback'->>'state' = 'pending' \
+         THEN COALESCE(callback_due, now()) ELSE NULL END"
+    )
+}
 
 /// Key of the advisory lock held while the schema is created or upgraded.
 const SCHEMA_LOCK: i64 = 0x6c75_6e67_6d6f_7401;
@@ -728,9 +749,13 @@ impl Postgres {
                 let releases =
                     record.state != JobState::Running && record.state != JobState::Cancelling;
                 tx.execute(
-                    "UPDATE lungmotion_jobs SET state = $2, record = $3,
-                         lease_owner = CASE WHEN $4 THEN NULL ELSE lease_owner END
-                     WHERE job_id = $1",
+                    &format!(
+                        "UPDATE lungmotion_jobs SET state = $2, record = $3,
+                             lease_owner = CASE WHEN $4 THEN NULL ELSE lease_owner END,
+                             callback_due = {}
+                         WHERE job_id = $1",
+                        callback_due_of("$3")
+                    ),
                     &[&id, &record.state.name(), &json, &releases],
                 )
                 .await
@@ -939,15 +964,19 @@ impl Postgres {
             let fail = database_error(&server);
             let n = client
                 .execute(
-                    "UPDATE lungmotion_jobs SET
-                         state = CASE WHEN state = 'cancelling' AND $3::text = 'running'
-                                      THEN 'cancelling' ELSE $3::text END,
-                         record = jsonb_set($2::jsonb, '{state}', to_jsonb(
-                                      CASE WHEN state = 'cancelling' AND $3::text = 'running'
-                                      THEN 'cancelling'::text ELSE $3::text END)),
-                         lease_owner = CASE WHEN $3::text IN ('running', 'cancelling')
-                                       THEN lease_owner ELSE NULL END
-                     WHERE job_id = $1 AND lease_owner = $4::text",
+                    &format!(
+                        "UPDATE lungmotion_jobs SET
+                             state = CASE WHEN state = 'cancelling' AND $3::text = 'running'
+                                          THEN 'cancelling' ELSE $3::text END,
+                             record = jsonb_set($2::jsonb, '{{state}}', to_jsonb(
+                                          CASE WHEN state = 'cancelling' AND $3::text = 'running'
+                                          THEN 'cancelling'::text ELSE $3::text END)),
+                             lease_owner = CASE WHEN $3::text IN ('running', 'cancelling')
+                                           THEN lease_owner ELSE NULL END,
+                             callback_due = {}
+                         WHERE job_id = $1 AND lease_owner = $4::text",
+                        callback_due_of("$2")
+                    ),
                     &[&id, &json, &state, &worker],
                 )
                 .await
@@ -986,11 +1015,15 @@ impl Postgres {
                     owner.as_deref().unwrap_or("(unknown)")
                 );
                 super::jobs::recover(&mut record, max_attempts, &why);
+                super::jobs::begin_callback(&mut record);
                 let json = to_json(&record)?;
                 tx.execute(
-                    "UPDATE lungmotion_jobs SET state = $2, record = $3, lease_owner = NULL,
-                         lease_until = NULL
-                     WHERE job_id = $1",
+                    &format!(
+                        "UPDATE lungmotion_jobs SET state = $2, record = $3, lease_owner = NULL,
+                             lease_until = NULL, callback_due = {}
+                         WHERE job_id = $1",
+                        callback_due_of("$3")
+                    ),
                     &[&record.job_id.to_string(), &record.state.name(), &json],
                 )
                 .await
@@ -1012,6 +1045,66 @@ impl Postgres {
             }
         }
         Ok(taken.len())
+    }
+
+    /// Takes the completion callback that has waited longest past its due time for this
+    /// process to POST, holding it for `hold` (no other process takes it meanwhile; one that
+    /// died with it is taken over once `hold` has passed). `None` when none is due.
+    pub fn claim_callback(&self, hold: Duration) -> Result<Option<JobId>> {
+        let hold = hold.as_secs_f64();
+        let id = self.with_client(move |client, server| async move {
+            let row = client
+                .query_opt(
+                    "UPDATE lungmotion_jobs SET callback_due = now() + make_interval(secs => $1)
+                     WHERE job_id = (SELECT job_id FROM lungmotion_jobs
+                                     WHERE callback_due <= now()
+                                     ORDER BY callback_due LIMIT 1 FOR UPDATE SKIP LOCKED)
+                     RETURNING job_id",
+                    &[&hold],
+                )
+                .await
+                .map_err(database_error(&server))?;
+            Ok(row.map(|r| r.get::<_, String>(0)))
+        })?;
+        Ok(id.and_then(|id| JobId::parse(&id)))
+    }
+
+    /// Changes a job's callback record after a POST (see [`Postgres::claim_callback`]) and
+    /// when the next one is due: `retry_in` from now, or never (`None`: delivered or given
+    /// up). `false` when the job (or its callback) is gone.
+    pub fn record_callback(
+        &self,
+        id: JobId,
+        change: impl FnOnce(&mut super::callbacks::CallbackDelivery) + Send + 'static,
+        retry_in: Option<Duration>,
+    ) -> Result<bool> {
+        let key = id.to_string();
+        let retry_s = retry_in.map(|d| d.as_secs_f64());
+        self.with_client(move |mut client, server| async move {
+            let fail = database_error(&server);
+            let tx = client.transaction().await.map_err(fail)?;
+            let Some(row) = locked_job_row(&tx, &key).await.map_err(fail)? else {
+                return Ok(false);
+            };
+            let mut record = job_record(&row)?;
+            let Some(callback) = record.callback.as_mut() else {
+                return Ok(false);
+            };
+            change(callback);
+            let json = to_json(&record)?;
+            tx.execute(
+                "UPDATE lungmotion_jobs SET record = jsonb_set($2::jsonb, '{state}',
+                         to_jsonb(state)),
+                     callback_due = CASE WHEN $3::float8 IS NULL THEN NULL
+                                    ELSE now() + make_interval(secs => $3::float8) END
+                 WHERE job_id = $1",
+                &[&key, &json, &retry_s],
+            )
+            .await
+            .map_err(fail)?;
+            tx.commit().await.map_err(fail)?;
+            Ok(true)
+        })
     }
 
     /// Records that worker `status.worker_id` is alive, with its counts.
@@ -1156,7 +1249,7 @@ impl Records for Postgres {
         for (id, value) in rows {
             match serde_json::from_value::<ScanRecord>(value) {
                 Ok(record) => {
-                    let bytes = self.inner.store.scan_bytes(record.scan_id);
+                    let bytes = self.inner.store.local_scan_bytes(record.scan_id);
                     scans.push((record, bytes));
                 }
                 Err(e) => problems.push(format!("lungmotion_scans {id}: corrupt record: {e}")),

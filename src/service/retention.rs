@@ -105,7 +105,9 @@ pub fn sweep(
     if let Err(e) = store.sweep_orphan_blobs(&scan_ids, &job_ids, now) {
         tracing::warn!("cannot sweep the object store for objects of no record: {e}");
     }
-    for (scan, bytes) in scans {
+    for (scan, _) in scans {
+        // With an object store, its objects (the local copy is a cache).
+        let bytes = store.scan_bytes(scan.scan_id);
         stored_bytes += bytes;
         if live_scans.contains(&scan.scan_id) {
             continue;

@@ -704,19 +704,6 @@ impl Store {
         Ok(hold)
     }
 
-    /// Marks the scan's local files as a copy of its objects, which eviction may remove like
-    /// a fetched one (a series this worker pulled from the PACS and put in the object store);
-    /// nothing without an object store. A failure is logged: the copy then stays.
-    pub fn mark_fetched_copy(&self, record: &ScanRecord) {
-        if self.blobs.is_none() {
-            return;
-        }
-        let mark = self.scan_dir(record.scan_id).join(FETCHED_MARK);
-        if let Err(e) = write_durable(&mark, record.file_name.as_bytes()) {
-            tracing::warn!(scan = %record.scan_id, "cannot mark the pulled series as evictable: {e}");
-        }
-    }
-
     /// Fetches a scan's upload (a file, or the tree of a pulled series) and stored ingest
     /// into `staging`, then moves them into the scan's directory; the bytes fetched.
     fn fetch_scan_into(
@@ -954,12 +941,46 @@ impl Store {
         if with_record {
             write_json(&staging.join(SCAN_RECORD), record)?;
         }
+        if self.blobs.is_some() {
+            // With an object store the objects are the scan; this copy is a cache of them
+            // from the start, bounded and evicted like a fetched one (see
+            // [`Store::evict_fetched_scans`]), so no process needs another's data directory.
+            write_durable(&staging.join(FETCHED_MARK), record.file_name.as_bytes())?;
+        }
         publish_dir(&staging, &self.scan_dir(record.scan_id))
     }
 
-    /// Bytes held by a scan's directory (upload, stored ingest, targets).
-    pub fn scan_bytes(&self, id: ScanId) -> u64 {
+    /// After this process stored a scan (an upload): removes the cached copies of scans beyond
+    /// `fetched_scans_mib` that no job holds, least recently used first, as after a fetch;
+    /// nothing without an object store. A failure is logged: the copies then stay.
+    pub fn evict_after_store(&self) {
+        let Some(blobs) = &self.blobs else {
+            return;
+        };
+        let _one_at_a_time = lock(&self.fetches);
+        if let Err(e) = self.evict_fetched_scans(blobs.fetched_scans_bytes()) {
+            tracing::warn!("evicting cached scan copies: {e}");
+        }
+    }
+
+    /// Bytes of a scan's directory in this data directory (no object store asked).
+    pub fn local_scan_bytes(&self, id: ScanId) -> u64 {
         directory_bytes(&self.scan_dir(id))
+    }
+
+    /// Bytes a scan holds, as retention counts them: its directory (upload, stored ingest, targets); with an object
+    /// store its objects and its record beside them, the local copy of the objects being a
+    /// cache that comes and goes (see [`Store::evict_fetched_scans`]).
+    pub fn scan_bytes(&self, id: ScanId) -> u64 {
+        let dir = self.scan_dir(id);
+        let Some(blobs) = &self.blobs else {
+            return directory_bytes(&dir);
+        };
+        let objects: u64 = blobs
+            .list(&format!("scans/{id}"))
+            .map(|listed| listed.iter().map(|(_, bytes)| bytes).sum())
+            .unwrap_or(0);
+        objects + entry_bytes(&dir.join(SCAN_RECORD))
     }
 
     /// A scan's record, `None` when there is no such scan.
@@ -1731,10 +1752,30 @@ mod tests {
             std::fs::read(worker.scan_file(&scans[0])).unwrap(),
             vec![0u8; 1000]
         );
-        // The uploads' own copies on the API's machine are not copies to evict.
-        assert!(!api.ensure_scan_local(&scans[1]).unwrap().holds());
-        assert_eq!(api.evict_fetched_scans(0).unwrap(), 0);
-        assert!(api.scan_file(&scans[1]).exists());
+        // The uploads' own copies on the API's machine are a cache of the objects too: held
+        // while used, evicted least recently used first, fetched again on the next use.
+        let held = api.ensure_scan_local(&scans[1]).unwrap();
+        assert!(held.holds(), "the API's copy is held like a fetched one");
+        // (The API keeps no stored ingest here: 1 000 + 1 000 + 800 bytes.)
+        assert_eq!(api.evict_fetched_scans(0).unwrap(), 1000 + 1000 + 800);
+        assert!(api.scan_file(&scans[1]).exists() && !api.scan_file(&scans[0]).exists());
+        drop(held);
+        assert_eq!(api.evict_fetched_scans(0).unwrap(), 1000);
+        assert!(!api.scan_file(&scans[1]).exists());
+        assert!(api.ensure_scan_local(&scans[1]).unwrap().holds());
+        assert_eq!(
+            std::fs::read(api.scan_file(&scans[1])).unwrap(),
+            vec![1u8; 1000]
+        );
+        // Without an object store the data directory is the store: nothing is a copy.
+        let plain = Store::open_shared(&dir.join("plain")).unwrap();
+        let kept = record("scan.nii.gz", "nifti");
+        let upload = plain.tmp_path("upload");
+        std::fs::write(&upload, vec![3u8; 100]).unwrap();
+        plain.put_scan(&kept, &upload).unwrap();
+        assert_eq!(plain.evict_fetched_scans(0).unwrap(), 0);
+        assert!(!plain.ensure_scan_local(&kept).unwrap().holds());
+        assert!(plain.scan_file(&kept).exists());
         // Deleting a scan removes its objects, a pulled series' tree among them.
         assert!(api.delete_scan(series.scan_id).unwrap());
         assert!(blobs

@@ -45,10 +45,38 @@ fn report(pg: &Postgres, stats: &LeasedStats, id: &str, threads: usize) {
     }
 }
 
-/// Runs a worker process until SIGTERM or Ctrl-C: connects (see [`Postgres::connect`]),
-/// starts `workers` simulation threads and a reaper that takes back jobs whose lease expired,
-/// then, when told to stop, gives running jobs `shutdown_grace_s` before re-queueing them.
-pub fn work_blocking(config: ServiceConfig) -> Result<()> {
+/// A worker taking jobs: its simulation threads and its reaper, until [`RunningWorker::stop`].
+pub struct RunningWorker {
+    id: String,
+    shared: Arc<super::jobs::Shared>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+    stop_reaper: std::sync::mpsc::Sender<()>,
+    reaper: std::thread::JoinHandle<()>,
+    grace: Duration,
+}
+
+impl RunningWorker {
+    /// Its worker id, the lease owner of the jobs it runs (`host-pid-random`).
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    /// Stops taking jobs, gives running ones `shutdown_grace_s`, then puts them back in the
+    /// queue without using an attempt, and waits for its threads.
+    pub fn stop(self) {
+        stop_leased_workers(&self.shared, self.grace);
+        for t in self.threads {
+            let _ = t.join();
+        }
+        drop(self.stop_reaper);
+        let _ = self.reaper.join();
+    }
+}
+
+/// Starts a worker in this process: connects (see [`Postgres::connect`]), starts `workers`
+/// simulation threads and a reaper that takes back jobs whose lease expired. `lungmotion
+/// worker` runs one until a signal; the queue benchmark runs several side by side.
+pub fn start_worker(config: &ServiceConfig) -> Result<RunningWorker> {
     config.validate()?;
     let settings = config.postgres.clone().ok_or_else(|| {
         Error::settings(
@@ -58,11 +86,11 @@ pub fn work_blocking(config: ServiceConfig) -> Result<()> {
         )
     })?;
     let store =
-        Store::open_shared(&config.data_dir)?.with_blobs(super::server::open_blobs(&config)?);
+        Store::open_shared(&config.data_dir)?.with_blobs(super::server::open_blobs(config)?);
     let pg = Postgres::connect(&settings, store.clone())?;
     let id = worker_id();
     let ingests = Arc::new(IngestCache::new(config.ingest_cache_mib));
-    let pacs = PacsAccess::of_service(&config);
+    let pacs = PacsAccess::of_service(config);
     let records = Arc::new(LeasedRecords {
         pg: pg.clone(),
         worker: id.clone(),
@@ -104,10 +132,29 @@ pub fn work_blocking(config: ServiceConfig) -> Result<()> {
             .at(IoOp::Spawn, "the thread lungmotion-reaper")?
     };
     tracing::info!(worker = %id, server = %pg.server(), threads = config.workers, lease_s = pg.lease().as_secs_f64(), "taking jobs");
+    Ok(RunningWorker {
+        id,
+        shared,
+        threads,
+        stop_reaper: stop_tx,
+        reaper,
+        grace: Duration::from_secs_f64(config.shutdown_grace_s),
+    })
+}
+
+/// Runs a worker process until SIGTERM or Ctrl-C (see [`start_worker`]), then gives running
+/// jobs `shutdown_grace_s` before re-queueing them.
+pub fn work_blocking(config: ServiceConfig) -> Result<()> {
+    let worker = start_worker(&config)?;
     {
         use std::io::Write;
+        let server = config
+            .postgres
+            .as_ref()
+            .map(|p| p.server())
+            .unwrap_or_default();
         let mut out = std::io::stdout().lock();
-        let _ = writeln!(out, "{READY_PREFIX}{id} from {}", pg.server());
+        let _ = writeln!(out, "{READY_PREFIX}{} from {server}", worker.id());
         let _ = out.flush();
     }
     let runtime = tokio::runtime::Builder::new_current_thread()
@@ -116,12 +163,7 @@ pub fn work_blocking(config: ServiceConfig) -> Result<()> {
         .at(IoOp::Spawn, "the signal handler's runtime")?;
     runtime.block_on(super::server::termination());
     tracing::info!("shutting down: no new jobs");
-    stop_leased_workers(&shared, Duration::from_secs_f64(config.shutdown_grace_s));
-    for t in threads {
-        let _ = t.join();
-    }
-    drop(stop_tx);
-    let _ = reaper.join();
+    worker.stop();
     tracing::info!("stopped");
     Ok(())
 }

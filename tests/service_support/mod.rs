@@ -71,6 +71,8 @@ impl Drop for Scratch {
     fn drop(&mut self) {
         // The S3 servers of its data directories stop (once no server holds them).
         lock_s3_servers().retain(|(dir, _)| !dir.starts_with(&self.path));
+        // And its PostgreSQL servers.
+        lock_pg_servers().retain(|(dir, _)| !dir.starts_with(&self.path));
         if !std::thread::panicking() {
             let _ = std::fs::remove_dir_all(&self.path);
         }
@@ -87,7 +89,7 @@ pub struct ServerProcess {
     /// With `LUNGMOTION_TEST_BACKEND=postgres`: the worker that runs the jobs, then the
     /// database (dropped in this order, after the server).
     worker: Option<postgres::WorkerProcess>,
-    database: Option<postgres::PgServer>,
+    database: Option<Arc<postgres::PgServer>>,
     /// With `LUNGMOTION_TEST_OBJECT_STORE=s3`: the S3 server of its blobs (shared with the
     /// servers started again on its data directory).
     objects: Option<Arc<s3::S3Server>>,
@@ -117,6 +119,34 @@ fn s3_server_of(data_dir: &Path) -> Arc<s3::S3Server> {
     let s3 = Arc::new(s3);
     servers.push((data_dir.to_path_buf(), s3.clone()));
     s3
+}
+
+/// The PostgreSQL servers of `LUNGMOTION_TEST_BACKEND=postgres` by the data directory they
+/// serve, until the [`Scratch`] holding that directory is dropped: a server started again on
+/// its data directory (a restart) finds its records, as a restarted process of a deployment
+/// finds its database.
+static PG_SERVERS: Mutex<Vec<(PathBuf, Arc<postgres::PgServer>)>> = Mutex::new(Vec::new());
+
+fn lock_pg_servers() -> std::sync::MutexGuard<'static, Vec<(PathBuf, Arc<postgres::PgServer>)>> {
+    PG_SERVERS.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The PostgreSQL server of the servers on `data_dir`: the one a server on it started earlier
+/// in this test, else a new one beside it (`postgres-<data dir's name>`).
+fn pg_server_of(data_dir: &Path) -> Arc<postgres::PgServer> {
+    let mut servers = lock_pg_servers();
+    if let Some((_, server)) = servers.iter().find(|(dir, _)| dir == data_dir) {
+        return server.clone();
+    }
+    let name = data_dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let db = Arc::new(postgres::PgServer::start(
+        &data_dir.parent().unwrap().join(format!("postgres-{name}")),
+    ));
+    servers.push((data_dir.to_path_buf(), db.clone()));
+    db
 }
 
 /// Whether the tests' servers keep their blobs in an S3 server of their own
@@ -202,10 +232,7 @@ impl ServerProcess {
             .unwrap();
         let mut args = vec!["--listen", "127.0.0.1:0"];
         args.extend_from_slice(extra_args);
-        let database = (own_backends && postgres_backend()).then(|| {
-            let dir = data_dir.parent().unwrap().join("postgres");
-            postgres::PgServer::start(&dir)
-        });
+        let database = (own_backends && postgres_backend()).then(|| pg_server_of(data_dir));
         let url = database.as_ref().map(|d| d.url());
         let mut env: Vec<(&str, &str)> = env.to_vec();
         if let Some(url) = &url {

@@ -151,6 +151,25 @@ impl S3Server {
         keys
     }
 
+    /// The keys under `prefix` in `bucket` with their sizes, bytes (while credentials are not
+    /// checked; one page of a listing, 1 000 keys, is enough for one scan or job).
+    pub fn key_sizes(&self, bucket: &str, prefix: &str) -> Vec<(String, u64)> {
+        let text = self
+            .http
+            .get(format!("{}/{bucket}", self.endpoint()))
+            .header("authorization", routed_to("s3"))
+            .query(&[("list-type", "2"), ("prefix", prefix)])
+            .send()
+            .unwrap()
+            .text()
+            .unwrap();
+        tag_values(&text, "Key")
+            .into_iter()
+            .zip(tag_values(&text, "Size"))
+            .map(|(k, n)| (k, n.parse().unwrap()))
+            .collect()
+    }
+
     /// The object `key` of `bucket` and its ETag, fetched without a signature (while
     /// credentials are not checked).
     pub fn object(&self, bucket: &str, key: &str) -> (Vec<u8>, String) {

@@ -28,10 +28,15 @@
 //!   latency percentiles, MiB/s, errors. When `wrk` is on PATH it is run on the same URLs
 //!   (2 threads, 16 connections) and reported beside ours.
 //!
+//! * **Queue** (issue 17): the PostgreSQL queue's own calls per job (claim, heartbeat,
+//!   completion; medians) and jobs per minute with 1, 2 and 4 workers on short jobs, side by
+//!   side in one run, on a PostgreSQL server of the benchmark's own (see [`queue`]).
+//!
 //! Nothing here asserts a speed; failures of one part are recorded and the others still run.
 
 mod load;
 mod overhead;
+pub mod queue;
 mod report;
 mod upload;
 
@@ -245,6 +250,8 @@ pub struct ServiceBenchReport {
     pub load: Vec<Outcome<LoadResult>>,
     /// wrk on the same endpoints (skipped when absent).
     pub wrk: Vec<Outcome<LoadResult>>,
+    /// The PostgreSQL queue: its calls per job, and jobs per minute with 1, 2 and 4 workers.
+    pub queue: queue::QueueBenchReport,
     /// Peak resident memory of the process (client + server) at the end, bytes.
     pub peak_rss_bytes: Option<u64>,
 }
@@ -352,9 +359,10 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         Ok((o, _)) => Outcome::Measured(o),
         Err(e) => Outcome::Failed(e.to_string()),
     };
-    let peak_rss_bytes = peak_rss_bytes();
     drop(bench);
     server.shutdown()?;
+    let queue = queue::run_queue_bench(&work.0, options.quick);
+    let peak_rss_bytes = peak_rss_bytes();
     drop(work);
     Ok(ServiceBenchReport {
         options: options.clone(),
@@ -369,6 +377,7 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         overhead,
         load,
         wrk,
+        queue,
         peak_rss_bytes,
     })
 }

@@ -40,6 +40,7 @@ impl ServiceBenchReport {
         self.write_uploads(&mut s);
         self.write_overhead(&mut s);
         self.write_load(&mut s);
+        self.write_queue(&mut s);
         if let Some(p) = self.peak_rss_bytes {
             let _ = writeln!(
                 s,
@@ -228,5 +229,96 @@ impl ServiceBenchReport {
             }
         }
         table.write_to(s);
+    }
+
+    fn write_queue(&self, s: &mut String) {
+        let q = &self.queue;
+        let _ = writeln!(s, "\n## The PostgreSQL queue\n");
+        if !q.postgres.is_empty() {
+            let _ = writeln!(s, "{}.\n", q.postgres);
+        }
+        let ms = |t: &TimeStats| {
+            format!(
+                "{:.2} [{:.2} – {:.2}]",
+                t.median_s * 1e3,
+                t.min_s * 1e3,
+                t.max_s * 1e3
+            )
+        };
+        match &q.overhead {
+            Outcome::Measured(o) => {
+                let _ = writeln!(
+                    s,
+                    "The queue's own calls per job, from the worker's side, on {} no-op jobs \
+                     taken one after the other; median [min – max], ms. Per job (claim + one \
+                     heartbeat + completion): **{:.2} ms**; a run adds one heartbeat per \
+                     renewal interval (a third of the lease, at most 1 s).\n",
+                    o.jobs,
+                    o.per_job_s * 1e3
+                );
+                let mut table = Table::new(["Call", "ms"]);
+                for (name, t) in [
+                    ("submit (API)", &o.submit),
+                    ("claim", &o.claim),
+                    ("heartbeat", &o.heartbeat),
+                    ("complete", &o.complete),
+                ] {
+                    table.row([name.to_string(), ms(t)]);
+                }
+                table.write_to(s);
+                let _ = writeln!(
+                    s,
+                    "\nThe queue alone: no-op jobs claimed, renewed once and completed by \
+                     threads at once.\n"
+                );
+                let mut table = Table::new(["Threads", "Jobs", "s", "Jobs/min"]);
+                for r in &o.queue_only_jobs_per_min {
+                    table.row([
+                        r.threads.to_string(),
+                        r.jobs.to_string(),
+                        format!("{:.2}", r.wall_s),
+                        format!("{:.0}", r.jobs_per_min),
+                    ]);
+                }
+                table.write_to(s);
+            }
+            Outcome::Failed(e) | Outcome::Skipped(e) => {
+                let _ = writeln!(s, "Queue calls not measured: {}", one_line(e));
+            }
+        }
+        match &q.workers {
+            Outcome::Measured(rows) => {
+                let _ = writeln!(
+                    s,
+                    "\nShort jobs (the phantom at {} mm, {} phases, no quick looks) submitted \
+                     at once to an API server, run by 1, 2 and 4 workers of one simulation \
+                     thread each, all in this process on its cores; from the first submission \
+                     to the last `done`. Rounds interleave the worker counts; median round.\n",
+                    super::queue::SHORT_JOB_ELEMENT_SIZE_MM,
+                    super::queue::SHORT_JOB_PHASES
+                );
+                let mut table = Table::new(["Workers", "Jobs", "s", "Jobs/min", "Rounds jobs/min"]);
+                for r in rows {
+                    table.row([
+                        r.workers.to_string(),
+                        r.jobs.to_string(),
+                        format!(
+                            "{:.1} [{:.1} – {:.1}]",
+                            r.wall.median_s, r.wall.min_s, r.wall.max_s
+                        ),
+                        format!("{:.1}", r.jobs_per_min),
+                        r.rounds_jobs_per_min
+                            .iter()
+                            .map(|j| format!("{j:.1}"))
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                    ]);
+                }
+                table.write_to(s);
+            }
+            Outcome::Failed(e) | Outcome::Skipped(e) => {
+                let _ = writeln!(s, "\nWorkers not measured: {}", one_line(e));
+            }
+        }
     }
 }

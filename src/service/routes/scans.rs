@@ -158,6 +158,8 @@ pub async fn upload_scan(
             return Err(store_error(e));
         }
         adopt_stored_ingest(&worker_state.store, record.scan_id, &stored_ingest);
+        // With an object store this copy is a cache: keep the data directory's copies bounded.
+        worker_state.store.evict_after_store();
         Ok(record)
     })
     .await?;

@@ -275,16 +275,6 @@ fn submit(
     target: Option<&std::path::Path>,
 ) -> ApiResult<JobRecord> {
     if let Some(url) = &request.callback_url {
-        if state.jobs.is_postgres() {
-            // Deliveries are made by the process that ran the job in the embedded server;
-            // across processes they are not built yet, and a callback never sent is worse
-            // than one refused.
-            return Err(ApiError::unprocessable(
-                "invalid-callback",
-                "completion callbacks are not delivered when the jobs are in PostgreSQL \
-                 ([store] postgres_url); poll GET /v1/jobs/{id} instead",
-            ));
-        }
         check_callback_url(url, &state.config.callbacks)
             .map_err(|m| ApiError::unprocessable("invalid-callback", m))?;
     }
