@@ -331,34 +331,26 @@ fn inflate(model: &LungModel, m: &PvMaterial, config: &PressureVolumeConfig) -> 
 /// The failure on the way to `target_ml`, with the element the solver names.
 fn describe_failure(e: Error, target_ml: f64, points: &[PvPoint], model: &LungModel) -> PvFailure {
     let reached_ml = points.last().map_or(0.0, |p| p.volume_ml);
+    let unnamed = |cause: String| PvFailure {
+        target_ml,
+        reached_ml,
+        element: None,
+        centre_lps_mm: None,
+        volume_ratio: None,
+        groups: None,
+        cause,
+    };
     match crate::run::name_element_groups(e, model) {
         Error::VolumeUnreachable(u) => PvFailure {
-            target_ml,
-            reached_ml,
             element: Some(u.element),
             centre_lps_mm: Some(u.centre_lps_mm),
             volume_ratio: Some(u.volume_ratio),
             groups: u.group.clone(),
             cause: u.cause.clone(),
+            ..unnamed(String::new())
         },
-        Error::Cancelled(_) => PvFailure {
-            target_ml,
-            reached_ml,
-            element: None,
-            centre_lps_mm: None,
-            volume_ratio: None,
-            groups: None,
-            cause: "stopped by the study's time budget".into(),
-        },
-        other => PvFailure {
-            target_ml,
-            reached_ml,
-            element: None,
-            centre_lps_mm: None,
-            volume_ratio: None,
-            groups: None,
-            cause: other.to_string(),
-        },
+        Error::Cancelled(_) => unnamed("stopped by the study's time budget".into()),
+        other => unnamed(other.to_string()),
     }
 }
 
