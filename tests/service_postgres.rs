@@ -222,7 +222,7 @@ impl PgServerPassword<'_> {
     not(postgres_binaries),
     ignore = "needs PostgreSQL's server programs (apt-get install postgresql; .ci/run installs them)"
 )]
-fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
+fn the_schema_is_made_by_the_service_an_older_one_upgraded_and_a_newer_one_refused_by_name() {
     let scratch = Scratch::new("pg-schema");
     let db = PgServer::start(&scratch.join("postgres"));
     let data = scratch.join("data");
@@ -245,6 +245,31 @@ fn the_schema_is_made_by_the_service_and_a_newer_one_is_refused_by_name() {
         let n = db.psql("lungmotion", &format!("SELECT count(*) FROM {table}"));
         assert_eq!(n.trim(), "0", "{table}");
     }
+    // A database of version 1 (before completion callbacks were due in the database) is
+    // upgraded in place by the next process that opens it.
+    drop(server);
+    db.psql(
+        "lungmotion",
+        "DROP INDEX lungmotion_jobs_callbacks; \
+         ALTER TABLE lungmotion_jobs DROP COLUMN callback_due; \
+         UPDATE lungmotion_schema SET version = 1, written_by = '0.1.0'",
+    );
+    let server = api(&data, &db.url(), &[]);
+    wait_ready(&server, |s, _| s == 200);
+    let version = db.psql("lungmotion", "SELECT version FROM lungmotion_schema");
+    assert_eq!(
+        version.trim(),
+        lungmotion::service::postgres::SCHEMA_VERSION.to_string()
+    );
+    let upgraded = db.psql(
+        "lungmotion",
+        "SELECT count(*) FROM pg_indexes WHERE indexname = 'lungmotion_jobs_callbacks'",
+    );
+    assert_eq!(
+        upgraded.trim(),
+        "1",
+        "the version 2 index after the upgrade"
+    );
     db.psql(
         "lungmotion",
         "UPDATE lungmotion_schema SET version = 99, written_by = '9.9.9'",
