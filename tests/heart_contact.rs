@@ -96,3 +96,43 @@ fn the_mediastinal_face_never_enters_the_heart_and_is_never_pulled_by_it() {
         );
     }
 }
+
+#[test]
+fn in_the_dynamic_path_the_face_stays_out_of_the_heart_at_every_frame() {
+    use lungmotion::motion::dynamic::{run_dynamic, DynamicSettings};
+    let model = phantom_model("");
+    let scene = run_scene(
+        &model,
+        &WallMotion {
+            mediastinum: MediastinumContact::Contact,
+            rib_cage_share: 0.0,
+            ..WallMotion::default()
+        },
+    )
+    .unwrap();
+    let trace = boundary_support::breath_in();
+    let times: Vec<f64> = trace.time_s.clone();
+    let planes = &scene.one_sided;
+    let (mut deepest, mut farthest) = (0.0f64, 0.0f64);
+    run_dynamic(
+        &scene,
+        &trace,
+        &DynamicSettings::default(),
+        &times,
+        &mut |_, x| {
+            let s = planes.state(x, 1e-4);
+            deepest = deepest.max(s.max_penetration_m);
+            farthest = farthest.max(s.max_separation_m);
+            Ok(())
+        },
+    )
+    .unwrap();
+    println!(
+        "dynamic, 400 mL: deepest {:.2e} mm, farthest {:.3} mm",
+        deepest * 1e3,
+        farthest * 1e3
+    );
+    // Projected on every step: nothing inside but round-off.
+    assert!(deepest < 1e-9, "{deepest} m inside the heart");
+    assert!(farthest > 1e-4, "no node left the heart ({farthest} m)");
+}

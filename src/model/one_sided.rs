@@ -53,6 +53,8 @@ pub struct OneSidedState {
     pub touching: usize,
     /// Largest distance a node has left its plane by, m.
     pub max_separation_m: f64,
+    /// The node that has left its plane farthest (none when every node touches).
+    pub farthest_node: Option<u32>,
     /// Largest distance a node is across its plane (into the obstacle), m.
     pub max_penetration_m: f64,
 }
@@ -199,7 +201,10 @@ impl OneSidedPlanes {
             if d > -touch_m {
                 s.touching += 1;
             }
-            s.max_separation_m = s.max_separation_m.max(-d);
+            if -d > s.max_separation_m {
+                s.max_separation_m = -d;
+                s.farthest_node = Some(self.nodes[i]);
+            }
             s.max_penetration_m = s.max_penetration_m.max(d);
         }
         s

@@ -307,6 +307,9 @@ pub struct HeartContactSummary {
     pub touching: usize,
     /// Largest distance a node has left the heart by, mm.
     pub max_separation_mm: f64,
+    /// Rest position of that node, LPS mm (absent when every node touches).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_separation_at_lps_mm: Option<[f64; 3]>,
     /// Largest distance a node is inside the heart, mm (the solver's tolerance: 0 up to a
     /// thousandth of the shortest element edge).
     pub max_penetration_mm: f64,
@@ -440,6 +443,7 @@ pub(super) fn extreme_summary(
                 nodes: s.nodes,
                 touching: s.touching,
                 max_separation_mm: s.max_separation_m * 1e3,
+                max_separation_at_lps_mm: s.farthest_node.map(|n| (rest[n as usize] * 1e3).into()),
                 max_penetration_mm: s.max_penetration_m * 1e3,
             }
         }),
