@@ -54,6 +54,7 @@ fn the_base_slides_on_the_descending_dome_and_the_piston_does_not() {
     let walls = WallMotion {
         rib_cage_share: share,
         dome_flattening: 0.0,
+        ..WallMotion::default()
     };
     let scene = run_scene(&sliding, &walls).unwrap();
     let costal_part = scene.walls_make_volume.expect("the walls make the volume");
@@ -138,6 +139,7 @@ fn a_share_of_zero_puts_the_whole_breath_on_the_diaphragm() {
     let walls = WallMotion {
         rib_cage_share: 0.0,
         dome_flattening: 0.0,
+        ..WallMotion::default()
     };
     let scene = run_scene(&model, &walls).unwrap();
     let costal = model.group_nodes(ConstraintGroup::Costal);
@@ -167,6 +169,7 @@ fn the_dome_flattens_as_asked() {
         let walls = WallMotion {
             rib_cage_share: 1.0 / 3.0,
             dome_flattening: flattening,
+            ..WallMotion::default()
         };
         let scene = run_scene(&model, &walls).unwrap();
         for lung in [1u8, 2] {
@@ -250,6 +253,7 @@ fn what_the_sliding_diaphragm_cannot_do_is_refused_by_name() {
         &WallMotion {
             rib_cage_share: 0.3,
             dome_flattening: 1.5,
+            ..WallMotion::default()
         },
     )
     .unwrap_err()

@@ -103,6 +103,11 @@ pub struct RunArgs {
     /// descends and flattens with the breath) or `free`.
     #[arg(long, value_name = "cranio-caudal|sliding|free", value_parser = parse_diaphragm)]
     diaphragm: Option<lungmotion::ingest::lung_model::DiaphragmMotion>,
+    /// How the lungs' mediastinal face meets the heart: `sliding` (held on the wall; the
+    /// default, or the config's `[motion] mediastinum`) or `contact` (one-sided: it may slide
+    /// along the heart or leave it, never enter it).
+    #[arg(long, value_name = "sliding|contact", value_parser = parse_mediastinum)]
+    mediastinum: Option<lungmotion::motion::MediastinumContact>,
     /// Each spring's law T = λ₂·d + λ₁·d³: `linear` (Baudet), `cubic` (λ₁/λ₂ fitted to
     /// compressible neo-Hookean at the material's ν) or `cubic:<λ₁/λ₂>` (default linear, or the
     /// config's `[material] spring_law`).
@@ -143,6 +148,18 @@ fn parse_sliding(text: &str) -> Result<lungmotion::ingest::lung_model::SlidingMo
         "wall_surface" => Ok(SlidingMode::WallSurface),
         _ => Err(format!(
             "`{text}` is not a sliding mode: tangent-plane or wall-surface"
+        )),
+    }
+}
+
+/// `--mediastinum`: the configuration's names.
+fn parse_mediastinum(text: &str) -> Result<lungmotion::motion::MediastinumContact, String> {
+    use lungmotion::motion::MediastinumContact;
+    match text.trim() {
+        "sliding" => Ok(MediastinumContact::Sliding),
+        "contact" => Ok(MediastinumContact::Contact),
+        _ => Err(format!(
+            "`{text}` is not a way for the mediastinal face to meet the heart: sliding or contact"
         )),
     }
 }
@@ -287,6 +304,9 @@ impl RunArgs {
         }
         if let Some(motion) = self.diaphragm {
             config.diaphragm = motion;
+        }
+        if let Some(m) = self.mediastinum {
+            config.motion.mediastinum = m;
         }
         if let Some(n) = self.max_equilibria {
             config.budget.max_equilibria = n;

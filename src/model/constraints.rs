@@ -158,6 +158,20 @@ impl ConstraintSet {
         Ok(())
     }
 
+    /// Removes the constraints of the nodes `take` accepts and returns them in insertion
+    /// order (the rest keep theirs, in their order).
+    pub fn take_where(&mut self, mut take: impl FnMut(u32) -> bool) -> Vec<(u32, NodeConstraint)> {
+        let (taken, kept): (Vec<_>, Vec<_>) = std::mem::take(&mut self.entries)
+            .into_iter()
+            .partition(|(n, _)| take(*n));
+        self.entries = kept;
+        self.slot.iter_mut().for_each(|s| *s = FREE);
+        for (i, (n, _)) in self.entries.iter().enumerate() {
+            self.slot[*n as usize] = i as u32;
+        }
+        taken
+    }
+
     /// Fixes `node` at `target_m`.
     pub fn fix(&mut self, node: u32, target_m: Vector3<f64>) -> Result<()> {
         self.set(node, NodeConstraint::Fixed { target_m })

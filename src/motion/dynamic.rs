@@ -341,8 +341,10 @@ fn damped_scene(scene: &Scene, damping_ratio: f64, surface_ratio: Option<f64>) -
         }
         _ => mesh.classes = interior,
     }
-    Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?
-        .with_contact(scene.contact().clone())
+    let mut damped = Scene::new(mesh, scene.constraints.clone(), scene.loads.clone())?
+        .with_contact(scene.contact().clone())?;
+    damped.one_sided = scene.one_sided.clone();
+    Ok(damped)
 }
 
 /// Whether each element has a face on the mesh's external surface.
@@ -517,6 +519,7 @@ impl<'s> ExplicitState<'s> {
                 None => constraints.project_positions(&mut self.x),
             }
             constraints.project_field(&self.x, &mut self.v);
+            self.scene.one_sided.enforce(&mut self.x, &mut self.v);
             self.update_accelerations(load_factor(self.t_s));
             for (vi, ai) in self.v.iter_mut().zip(&self.a) {
                 *vi += ai * (0.5 * h);

@@ -39,6 +39,8 @@ pub struct WallMotion {
     /// How much less the dome's rim descends than its top, with a sliding diaphragm
     /// ([`super::diaphragm`]; 0 a translated dome).
     pub dome_flattening: f64,
+    /// How the mediastinal face meets the heart ([`super::heart_contact`]).
+    pub mediastinum: super::MediastinumContact,
 }
 
 impl Default for WallMotion {
@@ -47,6 +49,7 @@ impl Default for WallMotion {
         WallMotion {
             rib_cage_share: super::PHYSIOLOGICAL_RIB_CAGE_SHARE,
             dome_flattening: 0.0,
+            mediastinum: super::MediastinumContact::Sliding,
         }
     }
 }
@@ -75,6 +78,11 @@ pub fn run_scene_with_tissue(
 /// [`run_scene`] on `mesh`.
 fn run_scene_on(model: &LungModel, walls: &WallMotion, mesh: HexMesh) -> Result<Scene> {
     let mut scene = lung_scene_on(model, mesh)?;
+    if walls.mediastinum == super::MediastinumContact::Contact {
+        // First: the walls' calibration below solves the scene as the run will.
+        let held = super::hold_mediastinum_by_contact(&mut scene, model)?;
+        tracing::debug!(held, "mediastinal face in one-sided contact with the heart");
+    }
     if walls.rib_cage_share > 0.0 {
         super::move_costal_wall(&mut scene, model);
     }

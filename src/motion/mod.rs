@@ -11,11 +11,13 @@ pub mod chest_wall;
 pub mod compliance;
 pub mod diaphragm;
 pub mod dynamic;
+pub mod heart_contact;
 mod lung_scene;
 mod moving_wall;
 
 pub use chest_wall::{move_costal_wall, CostalWallMotion, PHYSIOLOGICAL_RIB_CAGE_SHARE};
 pub use compliance::PressureVolumeTable;
+pub use heart_contact::{hold_mediastinum_by_contact, MediastinumContact};
 pub use lung_scene::{lung_scene, run_scene, run_scene_with_tissue, WallMotion};
 
 use std::time::Instant;

@@ -36,6 +36,7 @@
 //! solve_every_frame = false
 //! rib_cage_share = 0.333               # share of each breath the chest wall makes (0: rigid)
 //! dome_flattening = 0.0                # diaphragm = "sliding": how much less the rim descends
+//! mediastinum = "sliding"              # or "contact": the mediastinal face may leave the heart
 //! # [motion.dynamic]                 # optional: bellows law, explicit dynamics (hysteresis)
 //! # resistance_pa_s_per_ml = 0.05
 //! # inertance_pa_s2_per_ml = 0.001
@@ -195,6 +196,8 @@ pub struct MotionConfig {
     /// With `diaphragm = "sliding"`: how much less the dome's rim descends than its top
     /// (0: the dome translates).
     pub dome_flattening: f64,
+    /// How the mediastinal face meets the heart: held on the wall, or one-sided contact.
+    pub mediastinum: crate::motion::MediastinumContact,
     /// Dynamic mode (bellows law, explicit integration) instead of quasi-static frames.
     pub dynamic: Option<DynamicConfig>,
 }
@@ -295,6 +298,7 @@ impl Default for MotionConfig {
             // The run's default is physiological (the library's, for any scene, is rigid).
             rib_cage_share: crate::motion::PHYSIOLOGICAL_RIB_CAGE_SHARE,
             dome_flattening: 0.0,
+            mediastinum: crate::motion::MediastinumContact::Sliding,
             dynamic: None,
         }
     }
@@ -504,6 +508,7 @@ impl RunConfig {
         crate::motion::WallMotion {
             rib_cage_share: self.motion.rib_cage_share,
             dome_flattening: self.motion.dome_flattening,
+            mediastinum: self.motion.mediastinum,
         }
     }
 

@@ -293,7 +293,30 @@ pub struct BreathExtremeSummary {
     pub mean_abs_displacement_lps_mm: [f64; 3],
     /// Share of the volume change the moving chest wall made at this frame (0: rigid wall).
     pub chest_wall_share: f64,
+    /// The mediastinal face against the heart, with `mediastinum = "contact"`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub heart_contact: Option<HeartContactSummary>,
 }
+
+/// Where the mediastinal nodes are against the heart at one frame (one-sided contact).
+#[derive(Debug, Clone, Serialize)]
+pub struct HeartContactSummary {
+    /// Mediastinal nodes held by contact.
+    pub nodes: usize,
+    /// Nodes within [`HEART_TOUCH_MM`] of the heart (their rest tangent plane).
+    pub touching: usize,
+    /// Largest distance a node has left the heart by, mm.
+    pub max_separation_mm: f64,
+    /// Rest position of that node, LPS mm (absent when every node touches).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_separation_at_lps_mm: Option<[f64; 3]>,
+    /// Largest distance a node is inside the heart, mm (the solver's tolerance: 0 up to a
+    /// thousandth of the shortest element edge).
+    pub max_penetration_mm: f64,
+}
+
+/// A mediastinal node closer than this to its plane touches the heart, mm.
+pub const HEART_TOUCH_MM: f64 = 0.1;
 
 impl BreathExtremeSummary {
     /// One console line: which extreme, its frame and volume, the largest displacement and
@@ -414,6 +437,16 @@ pub(super) fn extreme_summary(
         } else {
             0.0
         },
+        heart_contact: (!scene.one_sided.is_empty()).then(|| {
+            let s = scene.one_sided.state(x, HEART_TOUCH_MM * 1e-3);
+            HeartContactSummary {
+                nodes: s.nodes,
+                touching: s.touching,
+                max_separation_mm: s.max_separation_m * 1e3,
+                max_separation_at_lps_mm: s.farthest_node.map(|n| (rest[n as usize] * 1e3).into()),
+                max_penetration_mm: s.max_penetration_m * 1e3,
+            }
+        }),
     }
 }
 

@@ -242,6 +242,9 @@ impl<'s> ExplicitIntegrator<'s> {
         self.scene
             .constraints
             .project_field(&self.positions, &mut self.velocities);
+        self.scene
+            .one_sided
+            .enforce(&mut self.positions, &mut self.velocities);
         // Moving obstacles are where they are at the end of the step.
         self.time_s += h;
         self.update_accelerations(true);

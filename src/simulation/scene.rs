@@ -2,7 +2,7 @@
 
 use super::forces::ForceEvaluator;
 use crate::math::V3;
-use crate::model::{ConstraintSet, Contact, HexMesh, Loads};
+use crate::model::{ConstraintSet, Contact, HexMesh, Loads, OneSidedPlanes};
 use crate::{Error, Result};
 
 /// Everything the solvers need: mesh, constraints, loads, and the packed force kernels.
@@ -22,6 +22,10 @@ pub struct Scene {
     /// Rigid obstacles the nodes are kept out of by penalty contact (none by default); set
     /// with [`Scene::with_contact`].
     contact: Contact,
+    /// Nodes that may leave their plane but not cross it (none by default): the lung's
+    /// mediastinal face against the heart. They are not in `constraints`: the quasi-static
+    /// solver holds on its plane each one that touches.
+    pub one_sided: OneSidedPlanes,
     forces: ForceEvaluator,
 }
 
@@ -37,6 +41,7 @@ impl Scene {
             loads,
             walls_make_volume: None,
             contact: Contact::default(),
+            one_sided: OneSidedPlanes::default(),
             forces,
         })
     }

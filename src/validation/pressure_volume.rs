@@ -268,6 +268,7 @@ fn inflate(model: &LungModel, m: &PvMaterial, config: &PressureVolumeConfig) -> 
         &WallMotion {
             rib_cage_share: config.rib_cage_share,
             dome_flattening: 0.0,
+            ..WallMotion::default()
         },
     )?;
     let rest_ml = scene.mesh.enclosed_volume_m3(&scene.mesh.rest_positions_m) * 1e6;

@@ -243,6 +243,10 @@ fn without_defaults() -> Value {
                     "rib_cage_share": {"type": "number", "minimum": 0, "maximum": 0.8,
                         "description": "Share of every volume change the chest wall makes by \
                             moving outward (0: a rigid wall; physiological about 1/3)"},
+                    "mediastinum": {"type": "string", "enum": ["sliding", "contact"],
+                        "description": "How the lungs' mediastinal face meets the heart: held \
+                            on the wall (sliding, the default) or one-sided contact (it may \
+                            slide along the heart or leave it, never enter it)"},
                     "dynamic": dynamic()
                 }
             },
