@@ -83,6 +83,7 @@ mod report;
 mod settings;
 mod tissue;
 mod wall;
+mod wall_distance;
 
 pub use build::{build_lung_model, build_lung_model_with, LungModel};
 pub use constraints::MIN_SURFACE_GRADIENT;

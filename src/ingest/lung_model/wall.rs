@@ -9,10 +9,8 @@ use rayon::prelude::*;
 
 use super::lattice::{nearest_index, CellLattice};
 use super::report::StepClock;
-use ndarray::Zip;
+use super::wall_distance::signed_distance;
 
-use crate::ingest::segmentation::crop::Crop;
-use crate::ingest::segmentation::morphology::{grid_view, squared_distance_mm2_cancellable};
 use crate::ingest::Cancel;
 use crate::model::SignedDistanceField;
 use crate::volume::Volume;
@@ -314,69 +312,6 @@ fn dilate_columns(input: &[u8], out: &mut [u8], nx: usize) {
     }
 }
 
-/// Signed Euclidean distance in samples to the boundary of `inside` (negative inside; half
-/// a sample puts the surface between samples).
-fn signed_distance(inside: &[u8], dims: [usize; 3], cancel: Cancel<'_>) -> Result<Vec<f32>> {
-    // Unit spacing measures in samples, where the squared distances are exact integers.
-    // Without a sample on one side the distance is capped rather than infinite, so the
-    // field stays finite.
-    const FAR: f32 = 1e12;
-    let mut signed = squared_distance_mm2_cancellable(inside, dims, [1.0; 3], true, None, cancel)?;
-    signed
-        .par_iter_mut()
-        .zip(inside)
-        .filter(|(_, &i)| i == 0)
-        .for_each(|(d, _)| *d = d.min(FAR).sqrt() - 0.5);
-    // An inside sample's nearest outside sample lies in the box of the inside samples grown
-    // by one: that box's border is all outside, and any sample beyond it is farther than its
-    // projection onto the border. So the second transform runs on that box only.
-    let Some((lo, hi)) = bounding_box_of_set(inside, dims) else {
-        return Ok(signed);
-    };
-    let crop = Crop::around(lo, hi, [1; 3], dims);
-    let inside_crop = crop.extract(inside, dims, |v| v);
-    let to_outside =
-        squared_distance_mm2_cancellable(&inside_crop, crop.dims, [1.0; 3], false, None, cancel)?;
-    Zip::from(crop.view_mut(&mut signed, dims))
-        .and(grid_view(&inside_crop, crop.dims))
-        .and(grid_view(&to_outside, crop.dims))
-        .par_for_each(|d, &i, &dout| {
-            if i != 0 {
-                *d = -(dout.min(FAR).sqrt() - 0.5);
-            }
-        });
-    Ok(signed)
-}
-
-/// Smallest and largest sample indices of the non-zero samples of `mask`, if any.
-fn bounding_box_of_set(mask: &[u8], dims: [usize; 3]) -> Option<([usize; 3], [usize; 3])> {
-    let [nx, ny, _] = dims;
-    mask.par_chunks(nx * ny)
-        .enumerate()
-        .filter_map(|(k, slab)| {
-            let mut b: Option<([usize; 3], [usize; 3])> = None;
-            for (j, row) in slab.chunks(nx).enumerate() {
-                let (Some(i0), Some(i1)) = (
-                    row.iter().position(|&v| v != 0),
-                    row.iter().rposition(|&v| v != 0),
-                ) else {
-                    continue;
-                };
-                b = Some(match b {
-                    None => ([i0, j, k], [i1, j, k]),
-                    Some((lo, hi)) => ([lo[0].min(i0), lo[1], k], [hi[0].max(i1), j, k]),
-                });
-            }
-            b
-        })
-        .reduce_with(|a, b| {
-            (
-                std::array::from_fn(|x| a.0[x].min(b.0[x])),
-                std::array::from_fn(|x| a.1[x].max(b.1[x])),
-            )
-        })
-}
-
 /// Normalised taps `w_0 … w_radius` of a Gaussian of `sigma` samples (radius 2.5 σ).
 fn gaussian_weights(sigma: f64) -> Vec<f32> {
     let radius = (2.5 * sigma).ceil() as usize;
@@ -484,53 +419,7 @@ fn blur_line(line: &mut [f32], input: &mut Vec<f32>, weights: &[f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ingest::segmentation::morphology::squared_distance_mm2;
     use crate::volume::VolumeGeometry;
-
-    /// A pseudo-random mask: a ball with holes and specks, so both sides have near and far
-    /// samples and the set does not fill its box.
-    fn speckled_ball(dims: [usize; 3]) -> Vec<u8> {
-        let n: usize = dims.iter().product();
-        let c = dims.map(|d| d as i64 / 2);
-        (0..n)
-            .map(|x| {
-                let (i, j, k) = (x % dims[0], x / dims[0] % dims[1], x / (dims[0] * dims[1]));
-                let r2 = (i as i64 - c[0]).pow(2)
-                    + (j as i64 - c[1]).pow(2) * 2
-                    + (k as i64 - c[2]).pow(2);
-                let hash = x.wrapping_mul(2_654_435_761) % 29;
-                u8::from((r2 <= 30 && hash != 0) || hash == 7)
-            })
-            .collect()
-    }
-
-    #[test]
-    fn signed_distance_on_the_inside_box_equals_two_full_transforms() {
-        for dims in [[17, 13, 11], [9, 20, 7]] {
-            let inside = speckled_ball(dims);
-            let to_inside = squared_distance_mm2(&inside, dims, [1.0; 3], true, None);
-            let to_outside = squared_distance_mm2(&inside, dims, [1.0; 3], false, None);
-            let full: Vec<f32> = inside
-                .iter()
-                .zip(to_inside.iter().zip(&to_outside))
-                .map(|(&i, (&din, &dout))| {
-                    if i != 0 {
-                        -(dout.min(1e12).sqrt() - 0.5)
-                    } else {
-                        din.min(1e12).sqrt() - 0.5
-                    }
-                })
-                .collect();
-            assert_eq!(
-                signed_distance(&inside, dims, Cancel::NEVER).unwrap(),
-                full,
-                "{dims:?}"
-            );
-        }
-        // Without any inside sample the field is the capped distance everywhere.
-        let empty = signed_distance(&[0u8; 8], [2, 2, 2], Cancel::NEVER).unwrap();
-        assert!(empty.iter().all(|&d| d == 1e6 - 0.5), "{empty:?}");
-    }
 
     #[test]
     fn tap_by_tap_blur_equals_the_sample_by_sample_sum_bit_for_bit() {

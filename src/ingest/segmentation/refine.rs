@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use super::components::label_components;
 use super::crop::Crop;
 use super::morphology::{
-    fill_holes_2d, fill_holes_slice, grid_view, squared_distance_mm2, squared_distance_slice_mm2,
+    fill_holes_2d, fill_holes_slice, grid_view, squared_distance_mm2, squared_distance_rect_mm2,
     SliceScratch,
 };
 use super::settings::SegmentationSettings;
@@ -108,6 +108,9 @@ fn close_and_fill(
 
 /// [`close_and_fill`] when the axial slices are contiguous (axial = k): every step of a slice
 /// runs on one core while the slice is in cache, with the same arithmetic, so the same bits.
+/// Each slice is worked on the rectangle of its lung voxels grown by the closing's reach and
+/// one voxel more: beyond it nothing is taken in, and its border is background, so the
+/// distances, the closing and the hole filling inside it are those of the whole slice.
 fn close_and_fill_axial_slices(
     lung: &[u8],
     blocked: &[u8],
@@ -117,38 +120,132 @@ fn close_and_fill_axial_slices(
 ) -> Vec<u8> {
     let [nu, nv, _] = cd;
     let plane = nu * nv;
-    let (su, sv) = (spacing_mm[0] as f32, spacing_mm[1] as f32);
-    let r2 = (r * r) as f32;
+    let spacing = [spacing_mm[0] as f32, spacing_mm[1] as f32];
+    let margin = [0, 1].map(|a| (r / spacing_mm[a]).ceil() as usize + 1);
     let mut closed = vec![0u8; lung.len()];
     closed
         .par_chunks_mut(plane)
         .zip(lung.par_chunks(plane))
         .zip(blocked.par_chunks(plane))
-        .for_each_init(
-            || (vec![0f32; plane], SliceScratch::default(), Vec::new()),
-            |(dist, scratch, stack), ((c, l), b)| {
-                // A slice without lung stays empty: the closing and the filling add nothing.
-                if !l.contains(&1) {
-                    return;
-                }
-                if r > 0.0 {
-                    squared_distance_slice_mm2(l, [nu, nv], [su, sv], true, dist, scratch);
-                    c.iter_mut()
-                        .zip(dist.iter())
-                        .for_each(|(c, &d)| *c = (d <= r2) as u8);
-                    squared_distance_slice_mm2(c, [nu, nv], [su, sv], false, dist, scratch);
-                    c.iter_mut()
-                        .zip(dist.iter())
-                        .for_each(|(c, &d)| *c = (d > r2) as u8);
-                } else {
-                    c.copy_from_slice(l);
-                }
-                keep_allowed(c, b, l);
-                fill_holes_slice(c, nu, nv, stack);
-                keep_allowed(c, b, l);
-            },
-        );
+        .for_each_init(SliceWork::default, |work, ((c, l), b)| {
+            // A slice without lung stays empty: the closing and the filling add nothing.
+            let Some(rect) = SliceRect::around_lung(l, nu, margin) else {
+                return;
+            };
+            work.load(&rect, l, b, nu);
+            work.close_and_fill(&rect, spacing, r);
+            rect.store(&work.closed, c, nu);
+        });
     closed
+}
+
+/// A rectangle of an axial slice: first column and row, width and height.
+struct SliceRect {
+    u0: usize,
+    v0: usize,
+    nu: usize,
+    nv: usize,
+}
+
+impl SliceRect {
+    /// The box of the lung voxels of slice `l` (rows of `nu`) grown by `margin`, clamped to
+    /// the slice; `None` without a lung voxel.
+    fn around_lung(l: &[u8], nu: usize, margin: [usize; 2]) -> Option<Self> {
+        let rows = l.len() / nu;
+        let mut bounds: Option<[usize; 4]> = None;
+        for (v, row) in l.chunks(nu).enumerate() {
+            let (Some(a), Some(z)) = (
+                row.iter().position(|&x| x != 0),
+                row.iter().rposition(|&x| x != 0),
+            ) else {
+                continue;
+            };
+            bounds = Some(match bounds {
+                None => [a, z, v, v],
+                Some([a0, z0, v0, _]) => [a0.min(a), z0.max(z), v0, v],
+            });
+        }
+        let [a, z, v_first, v_last] = bounds?;
+        let (u0, v0) = (
+            a.saturating_sub(margin[0]),
+            v_first.saturating_sub(margin[1]),
+        );
+        Some(SliceRect {
+            u0,
+            v0,
+            nu: (z + margin[0]).min(nu - 1) - u0 + 1,
+            nv: (v_last + margin[1]).min(rows - 1) - v0 + 1,
+        })
+    }
+
+    /// The rectangle's rows of a slice of rows of `width`.
+    fn rows<'a, T>(&'a self, slice: &'a [T], width: usize) -> impl Iterator<Item = &'a [T]> {
+        slice[self.v0 * width..]
+            .chunks(width)
+            .take(self.nv)
+            .map(|row| &row[self.u0..self.u0 + self.nu])
+    }
+
+    /// Writes `rect` (the rectangle's values, rows of `self.nu`) into `slice` (rows of `width`).
+    fn store(&self, rect: &[u8], slice: &mut [u8], width: usize) {
+        for (row, src) in slice[self.v0 * width..]
+            .chunks_mut(width)
+            .zip(rect.chunks(self.nu))
+        {
+            row[self.u0..self.u0 + self.nu].copy_from_slice(src);
+        }
+    }
+}
+
+/// Per-core buffers of the slice-wise closing: one slice's rectangle of lung, blocked and
+/// closed voxels, the distances and the transforms' and flood's scratch.
+#[derive(Default)]
+struct SliceWork {
+    lung: Vec<u8>,
+    blocked: Vec<u8>,
+    closed: Vec<u8>,
+    dist: Vec<f32>,
+    scratch: SliceScratch,
+    stack: Vec<u32>,
+}
+
+impl SliceWork {
+    /// Copies the rectangle of the slice's lung and blocked voxels.
+    fn load(&mut self, rect: &SliceRect, l: &[u8], b: &[u8], width: usize) {
+        self.lung.clear();
+        rect.rows(l, width)
+            .for_each(|r| self.lung.extend_from_slice(r));
+        self.blocked.clear();
+        rect.rows(b, width)
+            .for_each(|r| self.blocked.extend_from_slice(r));
+        let n = rect.nu * rect.nv;
+        self.closed.resize(n, 0);
+        self.dist.resize(n, 0.0);
+    }
+
+    /// Closing by a disc of `r` mm, hole filling, each followed by [`keep_allowed`], on the
+    /// loaded rectangle.
+    fn close_and_fill(&mut self, rect: &SliceRect, [su, sv]: [f32; 2], r: f64) {
+        let dims = [rect.nu, rect.nv];
+        let (c, l, b) = (&mut self.closed, &self.lung, &self.blocked);
+        if r > 0.0 {
+            let r2 = (r * r) as f32;
+            let (dist, scratch) = (&mut self.dist, &mut self.scratch);
+            squared_distance_rect_mm2(l, dims, [su, sv], rect.v0, true, dist, scratch);
+            c.iter_mut()
+                .zip(dist.iter())
+                .for_each(|(c, &d)| *c = (d <= r2) as u8);
+            squared_distance_rect_mm2(c, dims, [su, sv], rect.v0, false, dist, scratch);
+            c.iter_mut()
+                .zip(dist.iter())
+                .for_each(|(c, &d)| *c = (d > r2) as u8);
+        } else {
+            c.copy_from_slice(l);
+        }
+        keep_allowed(c, b, l);
+        fill_holes_slice(c, rect.nu, rect.nv, &mut self.stack);
+        keep_allowed(c, b, l);
+    }
 }
 
 /// Smallest and largest voxel indices carrying `label`, if any.
@@ -208,6 +305,34 @@ mod tests {
             assert_eq!(sliced, whole, "r = {r}");
             let added = whole.iter().zip(&lung).filter(|(&w, &l)| w > l).count();
             assert!(r == 0.0 || added > 0, "r = {r}: the closing added nothing");
+        }
+    }
+
+    #[test]
+    fn closing_on_each_slices_lung_rectangle_equals_the_whole_slice_bit_for_bit() {
+        // Small speckled blobs in a large slice: one at a corner (the rectangle clamped), one
+        // in the middle with a ring around a hole, slices with one, both or none.
+        let cd = [61, 47, 6];
+        let n: usize = cd.iter().product();
+        let ijk = |x: usize| (x % cd[0], x / cd[0] % cd[1], x / (cd[0] * cd[1]));
+        let lung: Vec<u8> = (0..n)
+            .map(|x| {
+                let (i, j, k) = ijk(x);
+                let hash = x.wrapping_mul(2_654_435_761) % 13;
+                let corner = i < 9 && j < 7 && hash > 3 && k != 1;
+                let r2 = (i as i64 - 35).pow(2) + (j as i64 - 22).pow(2);
+                let ring = (12..=40).contains(&r2) && hash > 2 && k % 3 != 2;
+                let speck = k == 4 && (i, j) == (50, 40);
+                u8::from(corner || ring || speck)
+            })
+            .collect();
+        let blocked: Vec<u8> = (0..n).map(|x| u8::from(ijk(x).1 == 25)).collect();
+        for r in [0.0, 1.2, 2.5, 4.0] {
+            for spacing in [[0.7, 0.9, 2.0], [1.3, 0.6, 1.0]] {
+                let whole = close_and_fill(&lung, &blocked, cd, spacing, r, 2);
+                let sliced = close_and_fill_axial_slices(&lung, &blocked, cd, spacing, r);
+                assert_eq!(sliced, whole, "r = {r}, {spacing:?}");
+            }
         }
     }
 }
