@@ -401,3 +401,83 @@ fn the_newton_jacobian_product_carries_the_cubic_tangent_exactly() {
         "the cubic term changes the tangent by only {cubic_share:e}"
     );
 }
+
+/// The batched kernel's continuum correction against the scalar reference, for every law,
+/// with cubic springs and dampers, and on a mesh mixing classes with and without a law (lanes
+/// of one batch then differ in law and moduli).
+#[test]
+fn the_continuum_correction_agrees_with_the_reference() {
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
+    for (spring, law) in [
+        (SpringLaw::Linear, ContinuumLaw::NeoHookean),
+        (SpringLaw::Cubic(1.0), ContinuumLaw::Hyperfoam),
+        (SpringLaw::Linear, ContinuumLaw::LungBirzle),
+    ] {
+        let material = Material::LUNG
+            .with_spring_law(spring)
+            .unwrap()
+            .with_continuum_correction(Some(law))
+            .unwrap();
+        let mut mesh = block([20, 18, 17], [5e-3; 3], material);
+        mesh.classes[0] = mesh.classes[0].clone().with_damping_ratio(0.3);
+        check_against_reference(&mesh, 11);
+    }
+    let base = block([18, 17, 16], [4e-3, 4.5e-3, 5e-3], Material::LUNG);
+    let shape = BrickShape {
+        edges_m: [4e-3, 4.5e-3, 5e-3],
+    };
+    let classes: Vec<BrickCoefficients> = [
+        (390.0, 0.3, Some(ContinuumLaw::NeoHookean)),
+        (1500.0, 0.45, None),
+        (100.0, 0.1, Some(ContinuumLaw::Hyperfoam)),
+    ]
+    .iter()
+    .map(|&(e, nu, law)| {
+        let m = Material::new(e, nu, 700.0)
+            .unwrap()
+            .with_continuum_correction(law)
+            .unwrap();
+        BrickCoefficients::new(shape, m).unwrap()
+    })
+    .collect();
+    let n = base.element_count();
+    let mixed = HexMesh::new(
+        base.rest_positions_m.clone(),
+        base.elements.clone(),
+        (0..n)
+            .map(|e| ((e * 7919) % 3 == 0) as u32 + (e % 5 == 0) as u32)
+            .collect(),
+        classes,
+    )
+    .unwrap();
+    check_against_reference(&mixed, 12);
+}
+
+/// Rest and rigid motion stay force-free with the continuum correction: the law's stress at a
+/// rotation is zero and so is the springs' (to round-off of the law's α·F − α·cof F at rest).
+#[test]
+fn the_continuum_correction_leaves_rest_and_rigid_motion_force_free() {
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
+    for law in [
+        ContinuumLaw::NeoHookean,
+        ContinuumLaw::Hyperfoam,
+        ContinuumLaw::LungBirzle,
+    ] {
+        let material = Material::LUNG
+            .with_spring_law(SpringLaw::Cubic(2.0))
+            .unwrap()
+            .with_continuum_correction(Some(law))
+            .unwrap();
+        let mesh = block([6, 5, 4], [5e-3; 3], material);
+        let r = Rotation3::from_euler_angles(0.4, -1.1, 2.0);
+        let x: Vec<V3> = mesh
+            .rest_positions_m
+            .iter()
+            .map(|p| r * p + V3::new(0.3, -0.2, 0.1))
+            .collect();
+        let f = evaluate(&mesh, &x, None, 2);
+        let largest = f.iter().map(|v| v.norm()).fold(0.0, f64::max);
+        // E·h² = 390 Pa × 25 mm² ≈ 1e-2 N: 1e-12 N is 1e-10 of it.
+        assert!(largest < 1e-12, "{law:?}: rigid motion gave {largest:e} N");
+    }
+}

@@ -113,6 +113,12 @@ pub struct RunArgs {
     /// config's `[material] spring_law`).
     #[arg(long, value_name = "linear|cubic|cubic:C", allow_hyphen_values = true)]
     spring_law: Option<lungmotion::model::SpringLaw>,
+    /// Corner forces that make each element's response to any homogeneous deformation
+    /// (deviatoric and hydrostatic) follow a continuum law with the material's E and ν:
+    /// `neo-hookean` (CalculiX `NEO HOOKE`), `hyperfoam`, `lung-birzle` or `none` (default none,
+    /// or the config's `[material] continuum_correction`; refused beside a volumetric law).
+    #[arg(long, value_name = "neo-hookean|hyperfoam|lung-birzle|none", value_parser = parse_continuum_correction)]
+    continuum_correction: Option<ContinuumCorrectionFlag>,
     /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
     /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
     /// output and exits with status 3.
@@ -165,6 +171,25 @@ fn parse_mediastinum(text: &str) -> Result<lungmotion::motion::MediastinumContac
 }
 
 /// `--diaphragm`: the configuration's names, with `-` or `_`.
+/// `--continuum-correction`: a law, or `none` for the springs' own response.
+#[derive(Debug, Clone, Copy)]
+struct ContinuumCorrectionFlag(Option<lungmotion::model::ContinuumLaw>);
+
+/// `--continuum-correction`: `neo-hookean`, `hyperfoam`, `lung-birzle` or `none` (underscores
+/// accepted, as in the configuration).
+fn parse_continuum_correction(text: &str) -> Result<ContinuumCorrectionFlag, String> {
+    use lungmotion::model::ContinuumLaw;
+    match text.trim().replace('-', "_").as_str() {
+        "neo_hookean" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::NeoHookean))),
+        "hyperfoam" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::Hyperfoam))),
+        "lung_birzle" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::LungBirzle))),
+        "none" => Ok(ContinuumCorrectionFlag(None)),
+        _ => Err(format!(
+            "`{text}` is not a continuum correction: neo-hookean, hyperfoam, lung-birzle or none"
+        )),
+    }
+}
+
 fn parse_diaphragm(text: &str) -> Result<lungmotion::ingest::lung_model::DiaphragmMotion, String> {
     use lungmotion::ingest::lung_model::DiaphragmMotion;
     match text.trim().replace('-', "_").as_str() {
@@ -295,6 +320,9 @@ impl RunArgs {
         }
         if let Some(law) = self.spring_law {
             config.material.spring_law = law;
+        }
+        if let Some(ContinuumCorrectionFlag(law)) = self.continuum_correction {
+            config.material.continuum_correction = law;
         }
         if let Some(s) = self.rib_cage_share {
             config.motion.rib_cage_share = s;

@@ -13,6 +13,7 @@
 use nalgebra::{Matrix3, SMatrix, Vector3};
 use serde::Serialize;
 
+use super::continuum_correction::{self, ContinuumCorrection};
 use super::material::Material;
 use super::volumetric::VolumetricCorrection;
 use crate::{Error, Result};
@@ -112,6 +113,9 @@ pub struct BrickCoefficients {
     /// The correction pressure that makes the hydrostatic response follow the material's
     /// volumetric law, if it names one.
     pub volumetric: Option<VolumetricCorrection>,
+    /// The corner forces that make the element's homogeneous response follow the material's
+    /// continuum correction law, if it names one.
+    pub continuum: Option<ContinuumCorrection>,
 }
 
 impl BrickCoefficients {
@@ -190,6 +194,7 @@ impl BrickCoefficients {
             corner_mass_kg,
             spring_cubic_ratio,
             volumetric: VolumetricCorrection::new(&material),
+            continuum: ContinuumCorrection::new(&material),
         })
     }
 
@@ -276,7 +281,15 @@ impl BrickCoefficients {
             }
         }
         let w = self.correction_map * a;
-        let wa = [axes[0] * w[0], axes[1] * w[1], axes[2] * w[2]];
+        let mut wa = [axes[0] * w[0], axes[1] * w[1], axes[2] * w[2]];
+        if let Some(cc) = &self.continuum {
+            // Same corner pattern Σ_i s_n,i c_i as the Lagrange correction, so it rides along.
+            let ez = (x[4] - x[0]) + (x[5] - x[1]) + (x[6] - x[2]) + (x[7] - x[3]);
+            let c = continuum_correction::corner_axis_forces_n(self, cc, &[ex, ey, ez]);
+            for i in 0..3 {
+                wa[i] += c[i];
+            }
+        }
         for (n, signs) in CORNER_SIGNS.iter().enumerate() {
             f[n] += wa[0] * signs[0] + wa[1] * signs[1] + wa[2] * signs[2] + fd[n];
         }

@@ -20,6 +20,11 @@ pub struct Material {
     /// A continuum law the elements' hydrostatic response follows through a volumetric
     /// correction pressure ([`super::volumetric`]); `None`: the springs' own response.
     pub volumetric_law: Option<ContinuumLaw>,
+    /// A continuum law the elements' whole response to homogeneous deformation follows
+    /// (deviatoric and hydrostatic) through corner forces at the centre-point deformation
+    /// gradient ([`super::continuum_correction`]); `None`: the springs' own response.
+    /// Excludes [`Material::volumetric_law`], whose pressure it already contains.
+    pub continuum_correction: Option<ContinuumLaw>,
 }
 
 impl Default for Material {
@@ -38,6 +43,7 @@ impl Material {
         density_kg_per_m3: 700.0,
         spring_law: SpringLaw::Linear,
         volumetric_law: None,
+        continuum_correction: None,
     };
 
     /// Builds a material after checking every parameter.
@@ -48,6 +54,7 @@ impl Material {
             density_kg_per_m3,
             spring_law: SpringLaw::Linear,
             volumetric_law: None,
+            continuum_correction: None,
         };
         m.validate()?;
         Ok(m)
@@ -60,7 +67,8 @@ impl Material {
             poisson_ratio: nu,
             density_kg_per_m3: rho,
             spring_law,
-            volumetric_law: _,
+            volumetric_law,
+            continuum_correction,
         } = *self;
         if !e.is_finite() || e <= 0.0 {
             return Err(Error::InvalidMaterial(format!(
@@ -78,6 +86,13 @@ impl Material {
                 "density must be a positive finite number of kg/m³, got {rho}"
             )));
         }
+        if let (Some(volumetric), Some(continuum)) = (volumetric_law, continuum_correction) {
+            return Err(Error::InvalidMaterial(format!(
+                "continuum_correction = {continuum:?} already gives the elements its law's \
+                 hydrostatic response; volumetric_law = {volumetric:?} would add a second \
+                 pressure on top: set only one of them"
+            )));
+        }
         spring_law.validate(nu)
     }
 
@@ -92,6 +107,14 @@ impl Material {
     pub fn with_volumetric_law(mut self, law: Option<ContinuumLaw>) -> Self {
         self.volumetric_law = law;
         self
+    }
+
+    /// The same material with its whole homogeneous response following `law` (or the
+    /// springs'); refused beside a volumetric law.
+    pub fn with_continuum_correction(mut self, law: Option<ContinuumLaw>) -> Result<Self> {
+        self.continuum_correction = law;
+        self.validate()?;
+        Ok(self)
     }
 
     /// Shear modulus G = E / (2(1+ν)) in pascals.
@@ -127,6 +150,19 @@ mod tests {
         let msg = Material::new(1.0, 0.5, 1.0).unwrap_err().to_string();
         assert!(msg.contains("Poisson"), "{msg}");
         assert!(Material::new(390.0, 0.3, 700.0).is_ok());
+        let both = Material::LUNG
+            .with_volumetric_law(Some(ContinuumLaw::Hyperfoam))
+            .with_continuum_correction(Some(ContinuumLaw::NeoHookean))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            both.contains("continuum_correction = NeoHookean")
+                && both.contains("volumetric_law = Hyperfoam"),
+            "{both}"
+        );
+        assert!(Material::LUNG
+            .with_continuum_correction(Some(ContinuumLaw::LungBirzle))
+            .is_ok());
     }
 
     #[test]

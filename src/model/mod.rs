@@ -2,6 +2,7 @@
 
 pub mod constraints;
 pub mod contact;
+pub mod continuum_correction;
 pub mod cube_lattice;
 pub mod element;
 pub mod grid;
@@ -16,6 +17,7 @@ pub mod volumetric;
 
 pub use constraints::{ConstraintSet, NodeConstraint};
 pub use contact::{Contact, HuntCrossley, Obstacle, ObstacleMotion};
+pub use continuum_correction::ContinuumCorrection;
 pub use cube_lattice::CubeLattice;
 pub use element::{BrickCoefficients, BrickShape};
 pub use grid::VoxelGrid;

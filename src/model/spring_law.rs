@@ -294,6 +294,8 @@ pub struct CubeResponse {
     pub spring_law: SpringLaw,
     /// The element's volumetric law, if any.
     pub volumetric_law: Option<ContinuumLaw>,
+    /// The element's continuum correction law, if any.
+    pub continuum_correction: Option<ContinuumLaw>,
     /// Uniaxial-stress sweep.
     pub uniaxial: Vec<ResponsePoint>,
     /// Hydrostatic sweep.
@@ -364,9 +366,25 @@ pub fn cube_response(
         law,
         spring_law: material.spring_law,
         volumetric_law: material.volumetric_law,
+        continuum_correction: material.continuum_correction,
         uniaxial,
         hydrostatic,
     })
+}
+
+/// The Cauchy shear stress σ_xy (Pa) that one unit cube of `material` carries under the simple
+/// shear F = I + γ·e_x⊗e_y: its corner forces at x_a = F·X_a projected on the homogeneous
+/// modes, P = −Σ_a f_a ⊗ X_a (V₀ = 1), and σ_xy = (P·Fᵀ)_xy/J = P_xy since J = 1.
+///
+/// The projection is what a lattice of such cubes carries under that shear: the rest of the
+/// corner forces (the body diagonals' unequal tensions put a self-equilibrated s_x·s_y·s_z
+/// pattern on the corners) cancels between neighbours.
+pub fn simple_shear_stress_pa(material: Material, gamma: f64) -> Result<f64> {
+    let cube = BrickCoefficients::new(BrickShape::cube(1.0), material)?;
+    let offsets = cube.corner_offsets_m();
+    let x = offsets.map(|o| nalgebra::Vector3::new(o.x + gamma * o.y, o.y, o.z));
+    let f = cube.corner_forces(&x, None);
+    Ok(-f.iter().zip(&offsets).map(|(f, o)| f.x * o.y).sum::<f64>())
 }
 
 /// The lateral stretch at which the lateral face force `lateral(m)` vanishes (bisection: the

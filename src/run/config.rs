@@ -15,6 +15,9 @@
 //! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
+//! # continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle": their whole
+//!                                      # response to homogeneous deformation follows that law
+//!                                      # (not beside volumetric_law)
 //! [tissue]                             # heterogeneous lung (see `model::tissue`)
 //! from_ct = false                      # each element's E and ρ from the CT's Hounsfield units
 //! stiffness_exponent = 2.0             # E ∝ (tissue fraction)ⁿ, the median element at E
@@ -568,6 +571,11 @@ mod tests {
             c.material.volumetric_law,
             Some(crate::model::ContinuumLaw::LungBirzle)
         );
+        let c = RunConfig::from_toml("[material]\ncontinuum_correction = \"neo_hookean\"").unwrap();
+        assert_eq!(
+            c.material.continuum_correction,
+            Some(crate::model::ContinuumLaw::NeoHookean)
+        );
         let c = RunConfig::from_toml("[material]\nspring_law = \"cubic\"").unwrap();
         assert_eq!(
             c.material.spring_law,
@@ -657,6 +665,18 @@ mod tests {
         assert!(key.contains("quartic"), "{key}");
         let law = err("[material]\nvolumetric_law = \"ogden\"");
         assert!(law.contains("ogden") && law.contains("hyperfoam"), "{law}");
+        let law = err("[material]\ncontinuum_correction = \"mooney\"");
+        assert!(
+            law.contains("mooney") && law.contains("neo_hookean"),
+            "{law}"
+        );
+        let both = err(
+            "[material]\ncontinuum_correction = \"neo_hookean\"\nvolumetric_law = \"hyperfoam\"",
+        );
+        assert!(
+            both.contains("continuum_correction") && both.contains("volumetric_law"),
+            "{both}"
+        );
         assert!(err("[motion]\ninterpolation_tolerance_mm = -1").contains("interpolation"));
         let spacing = err("[outputs]\nregistration_spacing_mm = 0.1");
         assert!(

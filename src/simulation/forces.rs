@@ -21,8 +21,9 @@ use rayon::prelude::*;
 
 use super::lanes::{add3, cross3, dot3, normalize3, scale3, sub3, ElementSource, LaneV3, Lanes};
 use crate::math::V3;
+use crate::model::continuum_correction::DIAGONAL_SIGNS;
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
-use crate::model::{HexMesh, VolumetricCorrection};
+use crate::model::{ContinuumCorrection, HexMesh, VolumetricCorrection};
 
 /// Per-class constants laid out for the force kernel.
 #[derive(Debug, Clone)]
@@ -69,6 +70,10 @@ struct LaneKernel {
     correction_map: [Lanes; 9],
     /// 1/(64·V₀): the volume ratio is det(ex, ey, ez) times this.
     inv_64_rest_volume: Lanes,
+    /// 1/L_i² per axis (continuum correction: I₁ = Σ|ē_i|²/L_i²).
+    inv_edge_squared: [Lanes; 3],
+    /// V₀/(4L_i²) per axis (continuum correction: the law's α·F term on axis i).
+    volume_over_4_edge_squared: [Lanes; 3],
 }
 
 impl LaneKernel {
@@ -80,6 +85,16 @@ impl LaneKernel {
             damping: k.damping.map(Lanes::splat),
             correction_map: std::array::from_fn(|r| Lanes::splat(k.correction_map[(r / 3, r % 3)])),
             inv_64_rest_volume: Lanes::splat(1.0 / (64.0 * k.coefficients.shape.volume_m3())),
+            inv_edge_squared: k
+                .coefficients
+                .shape
+                .edges_m
+                .map(|l| Lanes::splat(1.0 / (l * l))),
+            volume_over_4_edge_squared: k
+                .coefficients
+                .shape
+                .edges_m
+                .map(|l| Lanes::splat(k.coefficients.shape.volume_m3() / (4.0 * l * l))),
         }
     }
 
@@ -97,6 +112,10 @@ impl LaneKernel {
             damping: std::array::from_fn(|s| pick(&|k| k.damping[s])),
             correction_map: std::array::from_fn(|r| pick(&|k| k.correction_map[r])),
             inv_64_rest_volume: pick(&|k| k.inv_64_rest_volume),
+            inv_edge_squared: std::array::from_fn(|i| pick(&|k| k.inv_edge_squared[i])),
+            volume_over_4_edge_squared: std::array::from_fn(|i| {
+                pick(&|k| k.volume_over_4_edge_squared[i])
+            }),
         }
     }
 }
@@ -112,6 +131,7 @@ fn batch_forces<const DAMP: bool>(
     x: &[LaneV3; 8],
     v: &[LaneV3; 8],
     volumetric: Option<&[Option<&VolumetricCorrection>; LANES]>,
+    continuum: Option<&[Option<&ContinuumCorrection>; LANES]>,
 ) -> [LaneV3; 8] {
     // Damper forces kept apart from the elastic ones: see `ElementKernel::forces`.
     let mut f = [[Lanes::ZERO; 3]; 8];
@@ -152,11 +172,14 @@ fn batch_forces<const DAMP: bool>(
     let w = &k.correction_map;
     let wv: [Lanes; 3] =
         std::array::from_fn(|r| w[3 * r] * a[0] + w[3 * r + 1] * a[1] + w[3 * r + 2] * a[2]);
-    let wa = [
+    let mut wa = [
         scale3(&axes[0], wv[0]),
         scale3(&axes[1], wv[1]),
         scale3(&axes[2], wv[2]),
     ];
+    if let Some(laws) = continuum {
+        add_continuum(k, x, &ex, &ey, &axes, laws, &mut wa);
+    }
     // ±wa₀ ± wa₁ ± wa₂ in the scalar kernel's order; negation is exact, so 2 sums suffice.
     let pp = add3(&wa[0], &wa[1]);
     let pm = sub3(&wa[0], &wa[1]);
@@ -181,6 +204,98 @@ fn batch_forces<const DAMP: bool>(
         add_volumetric(k, x, &ex, &ey, vols, &mut f);
     }
     f
+}
+
+/// Adds the continuum correction's per-axis vectors c_i (corner n gets Σ_i s_n,i c_i, the
+/// Lagrange correction's pattern) to `wa`: [`crate::model::continuum_correction`], whose
+/// `corner_axis_forces_n` is the scalar reference. Lanes whose class has no law get nothing.
+#[inline(always)]
+fn add_continuum(
+    k: &LaneKernel,
+    x: &[LaneV3; 8],
+    ex: &LaneV3,
+    ey: &LaneV3,
+    axes: &[LaneV3; 3],
+    laws: &[Option<&ContinuumCorrection>; LANES],
+    wa: &mut [LaneV3; 3],
+) {
+    let ez = edge_sum(x, [(4, 0), (5, 1), (6, 2), (7, 3)]);
+    let quarter = Lanes::splat(0.25);
+    // Mean edge vectors ē_i = F̄·L_i·ê_i: the springs' lengths under the homogeneous F̄.
+    let m = [
+        scale3(ex, quarter),
+        scale3(ey, quarter),
+        scale3(&ez, quarter),
+    ];
+    // Tension over length of a spring of index `s` stretched to `v`.
+    let tension_per_length = |s: usize, v: &LaneV3| {
+        let len = dot3(v, v).sqrt();
+        let e = len - k.rest_length[s];
+        e * (k.stiffness[s] + k.cubic[s] * e * e) / len
+    };
+    let four = Lanes::splat(4.0);
+    let mut r: [LaneV3; 3] = std::array::from_fn(|i| {
+        // Springs 0, 4, 8 are the first edge along x, y, z; the other three of each axis are
+        // identical under a homogeneous deformation.
+        scale3(&m[i], four * tension_per_length(4 * i, &m[i]))
+    });
+    for (d, sigma) in DIAGONAL_SIGNS.iter().enumerate() {
+        let mut v = m[2];
+        v = if sigma[0] > 0.0 {
+            add3(&v, &m[0])
+        } else {
+            sub3(&v, &m[0])
+        };
+        v = if sigma[1] > 0.0 {
+            add3(&v, &m[1])
+        } else {
+            sub3(&v, &m[1])
+        };
+        let t = scale3(&v, tension_per_length(12 + d, &v));
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = if sigma[i] > 0.0 {
+                add3(ri, &t)
+            } else {
+                sub3(ri, &t)
+            };
+        }
+    }
+    // The Lagrange correction's magnitudes under F̄: w = W·a, a_i = ê_i·R_i.
+    let a: [Lanes; 3] = std::array::from_fn(|i| dot3(&axes[i], &r[i]));
+    let w = &k.correction_map;
+    let wh: [Lanes; 3] =
+        std::array::from_fn(|r| w[3 * r] * a[0] + w[3 * r + 1] * a[1] + w[3 * r + 2] * a[2]);
+    // The law at F̄ = [ē_i/L_i]: P = α·F̄ + γ·cof F̄.
+    let cof = [
+        cross3(&m[1], &m[2]),
+        cross3(&m[2], &m[0]),
+        cross3(&m[0], &m[1]),
+    ];
+    let i1 = dot3(&m[0], &m[0]) * k.inv_edge_squared[0]
+        + dot3(&m[1], &m[1]) * k.inv_edge_squared[1]
+        + dot3(&m[2], &m[2]) * k.inv_edge_squared[2];
+    let j = dot3(ex, &cross3(ey, &ez)) * k.inv_64_rest_volume;
+    let mut alpha = Lanes::ZERO;
+    let mut gamma_quarter = Lanes::ZERO;
+    let mut on = Lanes::ZERO;
+    for (l, law) in laws.iter().enumerate() {
+        if let Some(law) = law {
+            let (a, g) = law.piola_coefficients_pa(i1.0[l], j.0[l]);
+            alpha.0[l] = a;
+            gamma_quarter.0[l] = 0.25 * g;
+            on.0[l] = 1.0;
+        }
+    }
+    for i in 0..3 {
+        // c_i = R_i/4 − w_i·ê_i − V₀·P·ê_i/(4L_i), and V₀·P·ê_i/(4L_i) =
+        // α·V₀/(4L_i²)·ē_i + (γ/4)·ē_j × ē_k.
+        let law = add3(
+            &scale3(&m[i], alpha * k.volume_over_4_edge_squared[i]),
+            &scale3(&cof[i], gamma_quarter),
+        );
+        let own = sub3(&scale3(&r[i], quarter), &scale3(&axes[i], wh[i]));
+        wa[i] = add3(&wa[i], &scale3(&sub3(&own, &law), on));
+    }
 }
 
 /// Σ (x[hi] − x[lo]) over the four parallel edges `pairs`: four times the element's mean
@@ -267,6 +382,8 @@ struct Inputs<'a> {
     lane_kernels: &'a [LaneKernel],
     /// Each class's volumetric correction; `None` for every class: the term is skipped.
     volumetric: Option<&'a [Option<VolumetricCorrection>]>,
+    /// Each class's continuum correction; `None` for every class: the term is skipped.
+    continuum: Option<&'a [Option<ContinuumCorrection>]>,
 }
 
 /// Evaluates the elements yielded by `elements` (indices into the mesh) into `sink`.
@@ -308,7 +425,10 @@ fn run_elements<const DAMP: bool, E: ElementSource, S: Sink>(
         let vols = inp
             .volumetric
             .map(|per_class| std::array::from_fn(|l| per_class[classes[l] as usize].as_ref()));
-        let f = batch_forces::<DAMP>(kernel, &xs, &vs, vols.as_ref());
+        let laws = inp
+            .continuum
+            .map(|per_class| std::array::from_fn(|l| per_class[classes[l] as usize].as_ref()));
+        let f = batch_forces::<DAMP>(kernel, &xs, &vs, vols.as_ref(), laws.as_ref());
         for (l, cs) in corners.iter().enumerate().take(count) {
             for (n, &c) in cs.iter().enumerate() {
                 sink.add(c, V3::new(f[n][0].0[l], f[n][1].0[l], f[n][2].0[l]));
@@ -531,6 +651,8 @@ pub struct ForceEvaluator {
     lane_kernels: Vec<LaneKernel>,
     /// Per class; empty when no class has a volumetric law.
     volumetric: Vec<Option<VolumetricCorrection>>,
+    /// Per class; empty when no class has a continuum correction.
+    continuum: Vec<Option<ContinuumCorrection>>,
     /// `None`: the mesh numbering has no chunk locality; use the mesh's element colours.
     schedule: Option<ChunkSchedule>,
     element_count: usize,
@@ -543,7 +665,14 @@ impl ForceEvaluator {
         let kernels: Vec<ElementKernel> = mesh.classes.iter().map(ElementKernel::new).collect();
         let volumetric: Vec<Option<VolumetricCorrection>> =
             mesh.classes.iter().map(|c| c.volumetric.clone()).collect();
+        let continuum: Vec<Option<ContinuumCorrection>> =
+            mesh.classes.iter().map(|c| c.continuum).collect();
         ForceEvaluator {
+            continuum: if continuum.iter().any(Option::is_some) {
+                continuum
+            } else {
+                Vec::new()
+            },
             volumetric: if volumetric.iter().any(Option::is_some) {
                 volumetric
             } else {
@@ -601,6 +730,7 @@ impl ForceEvaluator {
             v,
             lane_kernels: &self.lane_kernels,
             volumetric: (!self.volumetric.is_empty()).then_some(&self.volumetric[..]),
+            continuum: (!self.continuum.is_empty()).then_some(&self.continuum[..]),
         };
         let parallel =
             rayon::current_num_threads() > 1 && mesh.element_count() >= PARALLEL_MIN_ELEMENTS;

@@ -281,13 +281,14 @@ fn write_element_sets(d: &mut String, mesh: &HexMesh, options: &CalculixOptions)
     Ok(materials.len())
 }
 
-/// The constitutive card of `m`: its volumetric law when it names one CalculiX has
+/// The constitutive card of `m`: its volumetric or continuum-correction law when it names one
+/// CalculiX has
 /// (`*HYPERELASTIC, NEO HOOKE` with C₁₀ = G/2, D₁ = 2/K; `*HYPERFOAM, N=1` with μ₁ = G,
 /// α₁ = 2, ν₁ = ν), else `*ELASTIC` (St Venant–Kirchhoff under NLGEOM). Debian's CalculiX
 /// 2.20 stops with exit status 255 on `*HYPERFOAM` (seen on one cube), which `solve` reports.
 pub fn material_card(m: &Material) -> Result<String> {
     let (g, k) = (m.shear_modulus_pa(), m.bulk_modulus_pa());
-    Ok(match m.volumetric_law {
+    Ok(match m.volumetric_law.or(m.continuum_correction) {
         None => format!(
             "*ELASTIC\n{:.12e}, {:.12e}\n",
             m.youngs_modulus_pa, m.poisson_ratio

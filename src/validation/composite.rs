@@ -90,6 +90,10 @@ pub struct CompositeOptions {
     /// Also solve the finest mesh with C3D8I, to show how far C3D8's own locking moves the
     /// reference.
     pub check_reference_with_c3d8i: bool,
+    /// Both codes follow this continuum law: ours through `[material] continuum_correction`,
+    /// CalculiX through the law's card (`calculix::material_card`). `None`: Baudet's springs
+    /// against CalculiX `*ELASTIC` (St Venant–Kirchhoff under NLGEOM), the thesis's comparison.
+    pub continuum_law: Option<crate::model::ContinuumLaw>,
 }
 
 impl CompositeOptions {
@@ -104,6 +108,7 @@ impl CompositeOptions {
             solver: QuasiStaticSettings::default(),
             calculix: CalculixOptions::default(),
             check_reference_with_c3d8i: true,
+            continuum_law: None,
         }
     }
 
@@ -151,7 +156,8 @@ pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> 
                 YOUNGS_MODULUS_PA,
                 POISSON_RATIO,
                 options.cantilever_density_kg_per_m3,
-            )?;
+            )?
+            .with_continuum_correction(options.continuum_law)?;
             let gm = VoxelGrid::filled_box(cells, [h; 3], V3::zeros()).to_mesh(material)?;
             (gm, None)
         }
@@ -175,7 +181,8 @@ pub fn build_case(case: CompositeCase, n: usize, options: &CompositeOptions) -> 
                 YOUNGS_MODULUS_PA,
                 POISSON_RATIO,
                 options.l_density_kg_per_m3,
-            )?;
+            )?
+            .with_continuum_correction(options.continuum_law)?;
             (grid.to_mesh(material)?, Some(options.l_total_force_n))
         }
     };

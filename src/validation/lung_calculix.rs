@@ -589,16 +589,19 @@ impl LungCalculixReport {
             self.pressure_pa,
             self.settings.target_volume_ml,
             {
-                let card = |m: &Material| match m.volumetric_law {
+                let card = |law: Option<crate::model::ContinuumLaw>| match law {
                     None => "St Venant–Kirchhoff".to_string(),
                     Some(law) => format!("{law:?}"),
                 };
                 let ccx = self.settings.calculix_material.unwrap_or(self.material);
+                let m = &self.material;
                 format!(
-                    "{}; ours: {:?} springs, volumetric law {}",
-                    card(&ccx),
-                    self.material.spring_law,
-                    card(&self.material)
+                    "{}; ours: {:?} springs, volumetric law {}, continuum correction {}",
+                    card(ccx.volumetric_law.or(ccx.continuum_correction)),
+                    m.spring_law,
+                    m.volumetric_law.map_or("none".into(), |l| format!("{l:?}")),
+                    m.continuum_correction
+                        .map_or("none".into(), |l| format!("{l:?}"))
                 )
             }
         );

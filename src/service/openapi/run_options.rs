@@ -218,6 +218,11 @@ fn without_defaults() -> Value {
                         "type": ["string", "null"],
                         "enum": ["neo_hookean", "hyperfoam", "lung_birzle", null],
                         "description": "A continuum law the elements' hydrostatic response follows (a volumetric correction pressure, zero at small strain): neo_hookean (CalculiX NEO HOOKE), hyperfoam (Storåkers, α = 2: CalculiX HYPERFOAM N=1), lung_birzle (Birzle et al. 2019, lung parenchyma); null: the springs' own"
+                    },
+                    "continuum_correction": {
+                        "type": ["string", "null"],
+                        "enum": ["neo_hookean", "hyperfoam", "lung_birzle", null],
+                        "description": "A continuum law the elements' whole response to homogeneous deformation follows, deviatoric and hydrostatic (corner forces at the centre-point deformation gradient, second order at small strain on cubes): neo_hookean (CalculiX NEO HOOKE), hyperfoam, lung_birzle; null: the springs' own. Not together with volumetric_law"
                     }
                 }
             },
