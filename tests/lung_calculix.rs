@@ -161,13 +161,26 @@ fn end_inhale_frame_with_the_neo_hookean_law() {
     ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn end_inhale_frame_with_the_continuum_correction() {
+    continuum_correction_against_calculix(&[500.0]);
+}
+
+/// The same at 1 500 mL: by hand only. Our volume search took about 8 minutes at that load
+/// and CalculiX had not finished after 13 (2026-12-05), far beyond CI's budget.
+#[test]
+#[ignore = "very slow (CalculiX at 1 500 mL did not finish in 13 minutes): cargo test --release --features slow-tests --test lung_calculix -- --ignored deep_breath"]
+fn end_inhale_frame_with_the_continuum_correction_deep_breath() {
+    continuum_correction_against_calculix(&[1500.0]);
+}
+
+/// Our element with the continuum correction against CalculiX `NEO HOOKE` at each volume.
+fn continuum_correction_against_calculix(volumes_ml: &[f64]) {
     use lungmotion::model::{ContinuumLaw, Material};
     if calculix::ccx_path().is_none() {
         panic!("CalculiX (`ccx`) is required by this test but was not found: {CCX_INSTALL_HINT}");
     }
     let law = Some(ContinuumLaw::NeoHookean);
     let ours = Material::LUNG.with_continuum_correction(law).unwrap();
-    for target_volume_ml in [500.0, 1500.0] {
+    for &target_volume_ml in volumes_ml {
         let settings = LungCalculixSettings {
             material: ours,
             calculix_material: Some(Material::LUNG.with_volumetric_law(law)),

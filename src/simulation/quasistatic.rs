@@ -1175,14 +1175,8 @@ mod tests {
         (gm.mesh, gm.node_lattice)
     }
 
-    /// A node of the block carries about E·h = 50 N/m; a penalty a hundred times stiffer
-    /// lets an obstacle in by about a hundredth of how far it pushes.
-    const PENALTY_N_PER_M: f64 = 100.0 * 10e3 * EDGE_M;
-
-    #[test]
-    fn contact_keeps_nodes_outside_a_sphere_pushed_into_a_held_block() {
-        // 20 × 20 × 10 mm, top face held; a sphere of radius 15 mm under the middle of the
-        // bottom face rises 3 mm into it (a moving obstacle, held at t = 1 s for the solve).
+    /// The 20 × 20 × 10 mm block ([`block`], 4 × 4 × 2 cubes) with its top face held.
+    fn block_held_by_its_top() -> (crate::model::HexMesh, Vec<[u32; 3]>, ConstraintSet) {
         let cells = [4, 4, 2];
         let (mesh, lattice) = block(cells);
         let mut cs = ConstraintSet::new(mesh.node_count());
@@ -1191,6 +1185,18 @@ mod tests {
                 cs.fix(i as u32, mesh.rest_positions_m[i]).unwrap();
             }
         }
+        (mesh, lattice, cs)
+    }
+
+    /// A node of the block carries about E·h = 50 N/m; a penalty a hundred times stiffer
+    /// lets an obstacle in by about a hundredth of how far it pushes.
+    const PENALTY_N_PER_M: f64 = 100.0 * 10e3 * EDGE_M;
+
+    #[test]
+    fn contact_keeps_nodes_outside_a_sphere_pushed_into_a_held_block() {
+        // 20 × 20 × 10 mm, top face held; a sphere of radius 15 mm under the middle of the
+        // bottom face rises 3 mm into it (a moving obstacle, held at t = 1 s for the solve).
+        let (mesh, lattice, cs) = block_held_by_its_top();
         let (r, centre) = (0.015, Vector3::new(0.01, 0.01, -0.015));
         let push_m = 0.003;
         let field = SignedDistanceField::from_fn(
@@ -1285,14 +1291,7 @@ mod tests {
     fn one_sided_contact_holds_a_block_pressed_onto_it_and_frees_one_pulled_off() {
         // 20 × 20 × 10 mm hung by its top face, its bottom face resting on a floor; its own
         // weight (1 % strain) pushes it onto the floor, then (reversed) lifts it off.
-        let cells = [4, 4, 2];
-        let (mesh, lattice) = block(cells);
-        let mut cs = ConstraintSet::new(mesh.node_count());
-        for (i, l) in lattice.iter().enumerate() {
-            if l[2] == cells[2] as u32 {
-                cs.fix(i as u32, mesh.rest_positions_m[i]).unwrap();
-            }
-        }
+        let (mesh, lattice, cs) = block_held_by_its_top();
         let floor = on_floor(&mesh, &lattice);
         let tolerance_m = CONTACT_PENETRATION_FRACTION * EDGE_M;
         for g_z in [-9.81, 9.81] {
