@@ -79,7 +79,7 @@ pub fn cip_expert_lung_masks(
 /// Builds the CIP chest CT's lung model (expert lung labels, airways for the hilum) at
 /// `element_size_mm`; fails naming the directory when the shared data is missing.
 pub fn cip_lung_model(element_size_mm: f64) -> crate::Result<crate::ingest::lung_model::LungModel> {
-    cip_lung_model_of(element_size_mm, crate::model::Material::LUNG)
+    cip_lung_model_of(element_size_mm, crate::model::Material::default())
 }
 
 /// [`cip_lung_model`] with another material.

@@ -15,9 +15,10 @@
 //! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
-//! # continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle": their whole
-//!                                      # response to homogeneous deformation follows that law
-//!                                      # (not beside volumetric_law)
+//! continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle", or "none" (the
+//!                                      # springs alone): the elements' whole response to
+//!                                      # homogeneous deformation follows that law (none
+//!                                      # when only volumetric_law is given)
 //! [tissue]                             # heterogeneous lung (see `model::tissue`)
 //! from_ct = false                      # each element's E and ρ from the CT's Hounsfield units
 //! stiffness_exponent = 2.0             # E ∝ (tissue fraction)ⁿ, the median element at E
@@ -279,7 +280,7 @@ impl Default for RunConfig {
             series: None,
             diaphragm: DiaphragmMotion::default(),
             sliding: SlidingMode::default(),
-            material: Material::LUNG,
+            material: Material::default(),
             tissue: TissueSettings::default(),
             trace: TraceOptions::default(),
             motion: MotionConfig::default(),
@@ -581,6 +582,50 @@ mod tests {
             c.material.spring_law,
             crate::model::SpringLaw::CubicNeoHookean
         );
+    }
+
+    #[test]
+    fn the_continuum_correction_is_on_unless_refused_or_replaced() {
+        use crate::model::ContinuumLaw;
+        let correction = |toml: &str| {
+            RunConfig::from_toml(toml)
+                .unwrap()
+                .material
+                .continuum_correction
+        };
+        assert_eq!(correction(""), Some(ContinuumLaw::NeoHookean));
+        assert_eq!(
+            correction("[material]\npoisson_ratio = 0.4"),
+            Some(ContinuumLaw::NeoHookean)
+        );
+        assert_eq!(
+            correction("[material]\ncontinuum_correction = \"none\""),
+            None
+        );
+        assert_eq!(
+            correction("[material]\nvolumetric_law = \"hyperfoam\""),
+            None
+        );
+        assert_eq!(
+            correction("[material]\ncontinuum_correction = \"hyperfoam\""),
+            Some(ContinuumLaw::Hyperfoam)
+        );
+        // JSON (the API): null is the springs alone, and writing then reading keeps "none".
+        let m: Material = serde_json::from_str(r#"{"continuum_correction": null}"#).unwrap();
+        assert_eq!(m.continuum_correction, None);
+        let m: Material = serde_json::from_str("{}").unwrap();
+        assert_eq!(m, Material::default());
+        let springs = Material::LUNG;
+        let text = serde_json::to_string(&springs).unwrap();
+        assert!(text.contains(r#""continuum_correction":"none""#), "{text}");
+        assert_eq!(serde_json::from_str::<Material>(&text).unwrap(), springs);
+        let corrected = serde_json::to_string(&Material::default()).unwrap();
+        assert_eq!(
+            serde_json::from_str::<Material>(&corrected).unwrap(),
+            Material::default()
+        );
+        let unknown = serde_json::from_str::<Material>(r#"{"youngs_modulus": 1}"#).unwrap_err();
+        assert!(unknown.to_string().contains("youngs_modulus"), "{unknown}");
     }
 
     #[test]

@@ -86,7 +86,7 @@ impl Default for LungModelSettings {
     fn default() -> Self {
         LungModelSettings {
             element_size_mm: DEFAULT_ELEMENT_SIZE_MM,
-            material: Material::LUNG,
+            material: Material::default(),
             group_overrides: None,
             occupancy_threshold: 0.5,
             hilum_radius_mm: 20.0,
