@@ -373,11 +373,19 @@ impl RunConfig {
 
     /// Parses TOML text and validates it.
     pub fn from_toml(text: &str) -> Result<Self> {
-        let config: RunConfig = toml::from_str(text).map_err(|e| Error::Config {
-            settings: SETTINGS,
-            file: None,
-            key: None,
-            reason: e.message().trim().to_string(),
+        let config: RunConfig = toml::from_str(text).map_err(|e| {
+            let (line, key) = super::toml_key::locate(text, &e).unwrap_or((0, None));
+            let at = if line > 0 {
+                format!(" (line {line})")
+            } else {
+                String::new()
+            };
+            Error::Config {
+                settings: SETTINGS,
+                file: None,
+                key,
+                reason: format!("{}{at}", e.message().trim()),
+            }
         })?;
         config.validate()?;
         Ok(config)
@@ -712,7 +720,10 @@ mod tests {
         assert!(law.contains("ogden") && law.contains("hyperfoam"), "{law}");
         let law = err("[material]\ncontinuum_correction = \"mooney\"");
         assert!(
-            law.contains("mooney") && law.contains("neo_hookean"),
+            law.contains("mooney")
+                && law.contains("neo_hookean")
+                && law.contains("material.continuum_correction: ")
+                && law.contains("(line 2)"),
             "{law}"
         );
         let both = err(

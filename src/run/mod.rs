@@ -27,6 +27,7 @@ mod frames;
 mod quicklooks;
 pub mod staging;
 mod summary;
+pub mod toml_key;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

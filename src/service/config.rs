@@ -408,8 +408,18 @@ impl ServiceConfig {
             )));
         }
         let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
-        let file: ServiceFile =
-            toml::from_str(&text).map_err(|e| bad(e.message().trim().to_string()))?;
+        let file: ServiceFile = toml::from_str(&text).map_err(|e| {
+            let (line, key) = crate::run::toml_key::locate(&text, &e).unwrap_or((0, None));
+            Error::Config {
+                settings: "configuration",
+                file: Some(path.to_path_buf()),
+                key,
+                reason: match line {
+                    0 => e.message().trim().to_string(),
+                    n => format!("{} (line {n})", e.message().trim()),
+                },
+            }
+        })?;
         if let Some(listen) = file.listen {
             self.listen = parse_listen(&listen).map_err(|m| bad(format!("listen: {m}")))?;
         }
