@@ -152,16 +152,21 @@ impl OneSidedPlanes {
         change
     }
 
-    /// Mean |pressing force| over the nodes `active` holds, N (0 when none is held): the
-    /// scale of the pull that releases a node.
-    pub fn mean_pressing_force_n(&self, total_force_n: &[V3], active: &[bool]) -> f64 {
-        let (sum, count) = active
+    /// The contacts `active` holds on their planes (indices into this set).
+    pub fn touching(active: &[bool]) -> impl Iterator<Item = usize> + '_ {
+        active
             .iter()
             .enumerate()
             .filter(|(_, on)| **on)
-            .fold((0.0, 0usize), |(s, c), (i, _)| {
-                (s + self.pressing_force_n(i, total_force_n).abs(), c + 1)
-            });
+            .map(|(i, _)| i)
+    }
+
+    /// Mean |pressing force| over the nodes `active` holds, N (0 when none is held): the
+    /// scale of the pull that releases a node.
+    pub fn mean_pressing_force_n(&self, total_force_n: &[V3], active: &[bool]) -> f64 {
+        let (sum, count) = Self::touching(active).fold((0.0, 0usize), |(s, c), i| {
+            (s + self.pressing_force_n(i, total_force_n).abs(), c + 1)
+        });
         if count == 0 {
             0.0
         } else {

@@ -522,12 +522,7 @@ impl<'s> QuasiStaticSolver<'s> {
             return Ok(std::borrow::Cow::Borrowed(base));
         }
         let mut set = base.clone();
-        for (i, _) in self
-            .contact_active
-            .iter()
-            .enumerate()
-            .filter(|(_, on)| **on)
-        {
+        for i in OneSidedPlanes::touching(&self.contact_active) {
             set.set(planes.nodes()[i], planes.constraint(i))?;
         }
         Ok(std::borrow::Cow::Owned(set))
@@ -874,7 +869,7 @@ fn push_contact_projectors(
     active: &[bool],
     constrained: &mut Vec<(u32, Matrix3<f64>)>,
 ) {
-    for (i, _) in active.iter().enumerate().filter(|(_, on)| **on) {
+    for i in OneSidedPlanes::touching(active) {
         let n = planes.normal(i);
         constrained.push((planes.nodes()[i], Matrix3::identity() - n * n.transpose()));
     }
