@@ -82,7 +82,7 @@ impl ScaleBenchReport {
         }
         let _ = writeln!(
             s,
-            "## CalculiX (C3D8, NLGEOM) on the CIP end-inhale frame\n"
+            "## CalculiX (C3D8, NLGEOM, the run's default material's law) on the CIP end-inhale frame\n"
         );
         match &self.calculix {
             Outcome::Measured(c) => {
