@@ -24,9 +24,10 @@ pub struct ValidateArgs {
     /// several minutes; skipped anyway without ../shared/data).
     #[arg(long)]
     no_pressure_volume: bool,
-    /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm) against
-    /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes);
-    /// writes lung_calculix.json and lung_calculix.md.
+    /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm; the default
+    /// material, then the springs alone into `springs/`) against
+    /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes each);
+    /// writes lung_calculix.json and lung_calculix.md (and springs/ likewise).
     #[arg(long, conflicts_with_all = ["quick", "no_calculix", "no_pressure_volume"])]
     lung: bool,
     /// Instead: the model against a 4D-CT: a folder of phase folders (each a DICOM series),
@@ -90,20 +91,38 @@ fn validate(out: &std::path::Path, options: &ValidateOptions) -> anyhow::Result<
 
 /// The end-inhale frame of the CIP lungs against CalculiX: reports written, Markdown printed.
 fn validate_lung(out: &std::path::Path) -> anyhow::Result<()> {
+    use lungmotion::model::Material;
     use lungmotion::validation::lung_calculix::{
         compare_end_inhale_with_calculix, LungCalculixSettings,
     };
     prepare_out(out)?;
-    eprintln!("lungmotion: end-inhale frame of the CIP lungs against CalculiX (minutes)");
-    let report = compare_end_inhale_with_calculix(&LungCalculixSettings::default())?;
-    report
-        .write(out)
-        .with_context(|| format!("writing the reports into {}", out.display()))?;
-    println!("{}", report.to_markdown());
-    eprintln!(
-        "lungmotion: wrote {}",
-        out.join("lung_calculix.json").display()
-    );
+    // The run's default material against CalculiX following its law, then Baudet's springs
+    // alone against St Venant–Kirchhoff, so both figures come from one command.
+    for (material, dir, what) in [
+        (
+            Material::default(),
+            out.to_path_buf(),
+            "the default material",
+        ),
+        (Material::LUNG, out.join("springs"), "the springs alone"),
+    ] {
+        eprintln!(
+            "lungmotion: end-inhale frame of the CIP lungs against CalculiX, {what} (minutes)"
+        );
+        let settings = LungCalculixSettings {
+            material,
+            ..LungCalculixSettings::default()
+        };
+        let report = compare_end_inhale_with_calculix(&settings)?;
+        report
+            .write(&dir)
+            .with_context(|| format!("writing the reports into {}", dir.display()))?;
+        println!("{}", report.to_markdown());
+        eprintln!(
+            "lungmotion: wrote {}",
+            dir.join("lung_calculix.json").display()
+        );
+    }
     Ok(())
 }
 
