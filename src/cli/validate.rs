@@ -25,9 +25,9 @@ pub struct ValidateArgs {
     #[arg(long)]
     no_pressure_volume: bool,
     /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm; the default
-    /// material, then the springs alone into `springs/`) against
+    /// material, then the neo-Hookean correction into `neo-hookean/`) against
     /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes each);
-    /// writes lung_calculix.json and lung_calculix.md (and springs/ likewise).
+    /// writes lung_calculix.json and lung_calculix.md (and neo-hookean/ likewise).
     #[arg(long, conflicts_with_all = ["quick", "no_calculix", "no_pressure_volume"])]
     lung: bool,
     /// Instead: the model against a 4D-CT: a folder of phase folders (each a DICOM series),
@@ -96,15 +96,19 @@ fn validate_lung(out: &std::path::Path) -> anyhow::Result<()> {
         compare_end_inhale_with_calculix, LungCalculixSettings,
     };
     prepare_out(out)?;
-    // The run's default material against CalculiX following its law, then Baudet's springs
-    // alone against St Venant–Kirchhoff, so both figures come from one command.
+    // The run's default material (the springs alone) against St Venant–Kirchhoff, then the
+    // neo-Hookean continuum correction against CalculiX's NEO HOOKE, from one command.
     for (material, dir, what) in [
         (
             Material::default(),
             out.to_path_buf(),
             "the default material",
         ),
-        (Material::LUNG, out.join("springs"), "the springs alone"),
+        (
+            Material::LUNG_CORRECTED,
+            out.join("neo-hookean"),
+            "the neo-Hookean continuum correction",
+        ),
     ] {
         eprintln!(
             "lungmotion: end-inhale frame of the CIP lungs against CalculiX, {what} (minutes)"

@@ -15,10 +15,10 @@
 //! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
-//! continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle", or "none" (the
-//!                                      # springs alone): the elements' whole response to
-//!                                      # homogeneous deformation follows that law (none
-//!                                      # when only volumetric_law is given)
+//! # continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle"; "none" (the
+//!                                      # default): the elements' whole response to
+//!                                      # homogeneous deformation follows that law (not
+//!                                      # beside volumetric_law)
 //! [tissue]                             # heterogeneous lung (see `model::tissue`)
 //! from_ct = false                      # each element's E and ρ from the CT's Hounsfield units
 //! stiffness_exponent = 2.0             # E ∝ (tissue fraction)ⁿ, the median element at E
@@ -593,7 +593,7 @@ mod tests {
     }
 
     #[test]
-    fn the_continuum_correction_is_on_unless_refused_or_replaced() {
+    fn the_continuum_correction_is_read_written_and_kept_apart_from_a_volumetric_law() {
         use crate::model::ContinuumLaw;
         let correction = |toml: &str| {
             RunConfig::from_toml(toml)
@@ -601,9 +601,10 @@ mod tests {
                 .material
                 .continuum_correction
         };
-        assert_eq!(correction(""), Some(ContinuumLaw::NeoHookean));
+        assert_eq!(correction(""), None);
+        assert_eq!(correction("[material]\npoisson_ratio = 0.4"), None);
         assert_eq!(
-            correction("[material]\npoisson_ratio = 0.4"),
+            correction("[material]\ncontinuum_correction = \"neo_hookean\""),
             Some(ContinuumLaw::NeoHookean)
         );
         assert_eq!(
@@ -627,10 +628,10 @@ mod tests {
         let text = serde_json::to_string(&springs).unwrap();
         assert!(text.contains(r#""continuum_correction":"none""#), "{text}");
         assert_eq!(serde_json::from_str::<Material>(&text).unwrap(), springs);
-        let corrected = serde_json::to_string(&Material::default()).unwrap();
+        let corrected = serde_json::to_string(&Material::LUNG_CORRECTED).unwrap();
         assert_eq!(
             serde_json::from_str::<Material>(&corrected).unwrap(),
-            Material::default()
+            Material::LUNG_CORRECTED
         );
         let unknown = serde_json::from_str::<Material>(r#"{"youngs_modulus": 1}"#).unwrap_err();
         assert!(unknown.to_string().contains("youngs_modulus"), "{unknown}");

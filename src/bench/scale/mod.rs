@@ -512,8 +512,8 @@ fn scaling_fit(sizes: &[SizePoint]) -> Option<ScalingFit> {
 }
 
 fn calculix_point(h: f64) -> Result<CalculixPoint> {
-    // The run's default material, so CalculiX follows the same law (NEO HOOKE for the
-    // neo-Hookean correction).
+    // The run's default material, CalculiX following the same law (St Venant–Kirchhoff for
+    // the springs alone, NEO HOOKE for the neo-Hookean correction).
     let settings = LungCalculixSettings {
         element_size_mm: h,
         material: crate::model::Material::default(),

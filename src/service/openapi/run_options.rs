@@ -222,8 +222,8 @@ fn without_defaults() -> Value {
                     "continuum_correction": {
                         "type": ["string", "null"],
                         "enum": ["neo_hookean", "hyperfoam", "lung_birzle", "none", null],
-                        "default": "neo_hookean",
-                        "description": "A continuum law the elements' whole response to homogeneous deformation follows, deviatoric and hydrostatic (corner forces at the centre-point deformation gradient, second order at small strain on cubes): neo_hookean (CalculiX NEO HOOKE; the default), hyperfoam, lung_birzle; \"none\" or null: the springs' own. Not together with volumetric_law: when only volumetric_law is given, no correction"
+                        "default": "none",
+                        "description": "A continuum law the elements' whole response to homogeneous deformation follows, deviatoric and hydrostatic (corner forces at the centre-point deformation gradient, second order at small strain on cubes): neo_hookean (CalculiX NEO HOOKE), hyperfoam, lung_birzle; \"none\" or null (the default): the springs' own. Not together with volumetric_law"
                     }
                 }
             },
