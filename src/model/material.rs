@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use super::hourglass::HourglassLaw;
 pub use super::spring_law::{ContinuumLaw, SpringLaw};
 use crate::{Error, Result};
 
@@ -25,6 +26,9 @@ pub struct Material {
     /// gradient ([`super::continuum_correction`]); `None`: the springs' own response.
     /// Excludes [`Material::volumetric_law`], whose pressure it already contains.
     pub continuum_correction: Option<ContinuumLaw>,
+    /// Where the elements' hourglass (bending, twist) response comes from: the springs'
+    /// (default) or a continuum finite element's ([`super::hourglass`]).
+    pub hourglass: HourglassLaw,
 }
 
 impl Default for Material {
@@ -44,6 +48,7 @@ impl Material {
         spring_law: SpringLaw::Linear,
         volumetric_law: None,
         continuum_correction: None,
+        hourglass: HourglassLaw::Springs,
     };
 
     /// Builds a material after checking every parameter.
@@ -55,6 +60,7 @@ impl Material {
             spring_law: SpringLaw::Linear,
             volumetric_law: None,
             continuum_correction: None,
+            hourglass: HourglassLaw::Springs,
         };
         m.validate()?;
         Ok(m)
@@ -69,6 +75,7 @@ impl Material {
             spring_law,
             volumetric_law,
             continuum_correction,
+            hourglass: _,
         } = *self;
         if !e.is_finite() || e <= 0.0 {
             return Err(Error::InvalidMaterial(format!(
@@ -115,6 +122,12 @@ impl Material {
         self.continuum_correction = law;
         self.validate()?;
         Ok(self)
+    }
+
+    /// The same material with its hourglass response taken from `law`.
+    pub fn with_hourglass(mut self, law: HourglassLaw) -> Self {
+        self.hourglass = law;
+        self
     }
 
     /// Shear modulus G = E / (2(1+ν)) in pascals.
