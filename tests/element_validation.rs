@@ -197,7 +197,7 @@ fn error_curves_do_not_depend_on_youngs_modulus() {
 /// Baudet's (the cubic term is O(d³), the volumetric correction O((J − 1)²)).
 #[test]
 fn cubic_springs_and_volumetric_laws_keep_e_nu_and_k_at_small_strain() {
-    use lungmotion::model::{ContinuumLaw, HourglassLaw, SpringLaw};
+    use lungmotion::model::{ContinuumLaw, SpringLaw};
     for edges in [CUBE, BRICK] {
         for (spring, vol) in [
             (SpringLaw::Cubic(5.0), None),
