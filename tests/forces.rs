@@ -427,6 +427,10 @@ fn the_continuum_correction_agrees_with_the_reference() {
         let mut mesh = block([20, 18, 17], [5e-3; 3], material);
         mesh.classes[0] = mesh.classes[0].clone().with_damping_ratio(0.3);
         check_against_reference(&mesh, 11);
+        // With the hourglass response of a continuum element (evaluated lane by lane).
+        let material = material.with_hourglass(lungmotion::model::HourglassLaw::IncompatibleModes);
+        let mesh = block([12, 11, 10], [5e-3, 5.5e-3, 4.5e-3], material);
+        check_against_reference(&mesh, 13);
     }
     let base = block([18, 17, 16], [4e-3, 4.5e-3, 5e-3], Material::LUNG);
     let shape = BrickShape {
@@ -477,5 +481,11 @@ fn the_continuum_correction_leaves_rest_and_rigid_motion_force_free() {
         let largest = largest_force_after_a_rigid_motion(material);
         // E·h² = 390 Pa × 25 mm² ≈ 1e-2 N: 1e-12 N is 1e-10 of it.
         assert!(largest < 1e-12, "{law:?}: rigid motion gave {largest:e} N");
+        let material = material.with_hourglass(lungmotion::model::HourglassLaw::FullIntegration);
+        let largest = largest_force_after_a_rigid_motion(material);
+        assert!(
+            largest < 1e-12,
+            "{law:?} with the hourglass correction: rigid motion gave {largest:e} N"
+        );
     }
 }

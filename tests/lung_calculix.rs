@@ -9,6 +9,7 @@
 //! Venant–Kirchhoff), so they agree to about 8 % of the mean displacement, not to round-off.
 #![cfg(feature = "validation")]
 
+use lungmotion::model::HourglassLaw;
 use lungmotion::validation::calculix::{self, ElementType, CCX_INSTALL_HINT};
 use lungmotion::validation::lung_calculix::{
     compare_end_inhale_with_calculix, LungCalculixSettings,
@@ -161,7 +162,18 @@ fn end_inhale_frame_with_the_neo_hookean_law() {
     ignore = "slow study (CalculiX on the CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
 fn end_inhale_frame_with_the_continuum_correction() {
-    continuum_correction_against_calculix(&[500.0]);
+    continuum_correction_against_calculix(&[500.0], HourglassLaw::Springs);
+}
+
+/// The same frame with the hourglass response of a fully integrated trilinear brick as well
+/// (`hourglass = "full_integration"`): the element is then C3D8 at small strain, and issue 16's
+/// target is asserted. By hand (one more CalculiX run of the lungs, about 4 minutes):
+/// `cargo test --release --features slow-tests --test lung_calculix -- --ignored
+/// hourglass_correction`.
+#[test]
+#[ignore = "slow study (CalculiX on the CIP lungs), by hand: cargo test --release --features slow-tests --test lung_calculix -- --ignored hourglass_correction"]
+fn end_inhale_frame_with_the_continuum_and_hourglass_correction() {
+    continuum_correction_against_calculix(&[500.0], HourglassLaw::FullIntegration);
 }
 
 /// The same at 1 500 mL: by hand only. Our volume search took about 8 minutes at that load
@@ -169,17 +181,21 @@ fn end_inhale_frame_with_the_continuum_correction() {
 #[test]
 #[ignore = "very slow (CalculiX at 1 500 mL did not finish in 13 minutes): cargo test --release --features slow-tests --test lung_calculix -- --ignored deep_breath"]
 fn end_inhale_frame_with_the_continuum_correction_deep_breath() {
-    continuum_correction_against_calculix(&[1500.0]);
+    continuum_correction_against_calculix(&[1500.0], HourglassLaw::Springs);
 }
 
-/// Our element with the continuum correction against CalculiX `NEO HOOKE` at each volume.
-fn continuum_correction_against_calculix(volumes_ml: &[f64]) {
+/// Our element with the continuum correction (and the hourglass response `hourglass`) against
+/// CalculiX `NEO HOOKE` at each volume.
+fn continuum_correction_against_calculix(volumes_ml: &[f64], hourglass: HourglassLaw) {
     use lungmotion::model::{ContinuumLaw, Material};
     if calculix::ccx_path().is_none() {
         panic!("CalculiX (`ccx`) is required by this test but was not found: {CCX_INSTALL_HINT}");
     }
     let law = Some(ContinuumLaw::NeoHookean);
-    let ours = Material::LUNG.with_continuum_correction(law).unwrap();
+    let ours = Material::LUNG
+        .with_continuum_correction(law)
+        .unwrap()
+        .with_hourglass(hourglass);
     for &target_volume_ml in volumes_ml {
         let settings = LungCalculixSettings {
             material: ours,
@@ -219,6 +235,247 @@ fn continuum_correction_against_calculix(volumes_ml: &[f64]) {
         if target_volume_ml == 500.0 {
             // Bounds from the measured run with headroom, not the issue's target (see README).
             assert!(d.mean_mm.is_finite() && d.mean_mm < 2.0, "{d:?}");
+            if hourglass == HourglassLaw::FullIntegration {
+                // Issue 16's target (measured 2026-12-05 at the same pressure: 0.03 mm mean,
+                // 0.46 mm max).
+                assert!(d.mean_mm <= 0.3 && d.max_mm <= 1.0, "{d:?}");
+            }
         }
     }
+}
+
+/// Where the continuum-corrected element's remaining difference from CalculiX `NEO HOOKE` comes
+/// from (issue 16, part 2): dumps the CIP 8 mm scene, our fields and CalculiX decks for the
+/// by-hand analysis in `docs/studies/ccx_gap/` (CalculiX element variants, refined meshes, the
+/// difference by group, direction and element). By hand only:
+/// `LUNGMOTION_CCX_STUDY_DIR=/tmp/ccx-study cargo test --release --features slow-tests --test
+/// lung_calculix -- --ignored --nocapture ccx_gap_study_dump`.
+#[test]
+#[ignore = "by-hand study (dumps the CIP scene and our fields for docs/studies/ccx_gap)"]
+fn ccx_gap_study_dump() {
+    use lungmotion::model::{
+        BrickCoefficients, BrickShape, ContinuumLaw, Material, NodeConstraint,
+    };
+    use lungmotion::motion::{elastic_compliance_ml_per_pa, lung_scene, REFERENCE_PRESSURE_PA};
+    use lungmotion::simulation::{BreathingDriver, QuasiStaticSettings, Scene};
+    use lungmotion::validation::calculix::{write_deck, CalculixOptions};
+    use std::io::Write as _;
+
+    let dir = std::path::PathBuf::from(
+        std::env::var("LUNGMOTION_CCX_STUDY_DIR").unwrap_or_else(|_| "/tmp/ccx-study".into()),
+    );
+    std::fs::create_dir_all(&dir).unwrap();
+    let law = Some(ContinuumLaw::NeoHookean);
+    let ours_material = Material::LUNG.with_continuum_correction(law).unwrap();
+    let ccx_material = Material::LUNG.with_volumetric_law(law);
+    let extra_volumes: Vec<f64> = std::env::var("LUNGMOTION_CCX_STUDY_VOLUMES")
+        .ok()
+        .map(|s| s.split(',').map(|v| v.trim().parse().unwrap()).collect())
+        .unwrap_or_default();
+    let model = lungmotion::datasets::cip_lung_model_of(8.0, ours_material).unwrap();
+    let scene = lung_scene(&model).unwrap();
+    let rest = scene.mesh.rest_positions_m.clone();
+    let rest_volume_ml = scene.mesh.enclosed_volume_m3(&rest) * 1e6;
+    let compliance = elastic_compliance_ml_per_pa(rest_volume_ml, &ours_material);
+    let settings = QuasiStaticSettings::default();
+
+    let write_field = |name: &str, u: &[lungmotion::math::V3]| {
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join(name)).unwrap());
+        for v in u {
+            writeln!(f, "{:.15e} {:.15e} {:.15e}", v.x, v.y, v.z).unwrap();
+        }
+    };
+    let scaled = |s: &Scene, factor: f64| {
+        let mut s = s.clone();
+        for p in &mut s.loads.pressures {
+            p.pressure_pa *= factor;
+        }
+        for class in &mut s.mesh.classes {
+            class.material = ccx_material;
+        }
+        s
+    };
+
+    // The mesh, groups and constraints.
+    {
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("nodes.txt")).unwrap());
+        for (p, g) in rest.iter().zip(&model.node_group) {
+            writeln!(f, "{:.15e} {:.15e} {:.15e} {}", p.x, p.y, p.z, g).unwrap();
+        }
+        let mut f =
+            std::io::BufWriter::new(std::fs::File::create(dir.join("elements.txt")).unwrap());
+        for e in &scene.mesh.elements {
+            let s: Vec<String> = e.iter().map(|c| c.to_string()).collect();
+            writeln!(f, "{}", s.join(" ")).unwrap();
+        }
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dir.join("faces.txt")).unwrap());
+        for e in &scene.mesh.external_faces {
+            let s: Vec<String> = e.iter().map(|c| c.to_string()).collect();
+            writeln!(f, "{}", s.join(" ")).unwrap();
+        }
+        let mut f =
+            std::io::BufWriter::new(std::fs::File::create(dir.join("constraints.txt")).unwrap());
+        for (n, c) in &scene.constraints.entries {
+            match c {
+                NodeConstraint::Fixed { target_m: t } => {
+                    writeln!(f, "{n} fixed {:.15e} {:.15e} {:.15e}", t.x, t.y, t.z)
+                }
+                NodeConstraint::Plane {
+                    point_m: p,
+                    normal: d,
+                } => writeln!(
+                    f,
+                    "{n} plane {:.15e} {:.15e} {:.15e} {:.15e} {:.15e} {:.15e}",
+                    p.x, p.y, p.z, d.x, d.y, d.z
+                ),
+                NodeConstraint::Line {
+                    point_m: p,
+                    direction: d,
+                } => writeln!(
+                    f,
+                    "{n} line {:.15e} {:.15e} {:.15e} {:.15e} {:.15e} {:.15e}",
+                    p.x, p.y, p.z, d.x, d.y, d.z
+                ),
+                NodeConstraint::Surface { .. } => writeln!(f, "{n} surface"),
+            }
+            .unwrap();
+        }
+    }
+    // One 8 mm cube's small-strain stiffness (corner offsets, then the 24 × 24 matrix).
+    for (name, m) in [("linear", Material::LUNG), ("corrected", ours_material)] {
+        let c = BrickCoefficients::new(BrickShape::cube(8e-3), m).unwrap();
+        let k = c.linear_stiffness();
+        let mut f = std::fs::File::create(dir.join(format!("cube_k_{name}.txt"))).unwrap();
+        for o in c.corner_offsets_m() {
+            writeln!(f, "{:.15e} {:.15e} {:.15e}", o.x, o.y, o.z).unwrap();
+        }
+        for r in 0..24 {
+            let row: Vec<String> = (0..24).map(|c| format!("{:.15e}", k[(r, c)])).collect();
+            writeln!(f, "{}", row.join(" ")).unwrap();
+        }
+    }
+
+    // The corrected cube's tangent stiffness (central differences of its corner forces) at a few
+    // homogeneous states F: the 24 × 24 matrix after the row "F" with F row-major.
+    {
+        let c = BrickCoefficients::new(BrickShape::cube(8e-3), ours_material).unwrap();
+        let offsets = c.corner_offsets_m();
+        let mut out = String::new();
+        let states: [[f64; 9]; 5] = [
+            [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            [1.0323, 0.0, 0.0, 0.0, 1.0323, 0.0, 0.0, 0.0, 1.0323],
+            [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.1],
+            [1.05, 0.0, 0.0, 0.0, 1.05, 0.0, 0.0, 0.0, 1.1],
+            [1.03, 0.1, 0.0, 0.0, 1.03, 0.0, 0.0, 0.0, 1.03],
+        ];
+        for fs in states {
+            let f = nalgebra::Matrix3::from_row_slice(&fs);
+            let x0 = offsets.map(|o| f * o);
+            let h = 1e-9;
+            out += &format!("F {}\n", fs.map(|v| v.to_string()).join(" "));
+            let mut k = vec![[0.0f64; 24]; 24];
+            for col in 0..24 {
+                let (mut xp, mut xm) = (x0, x0);
+                xp[col / 3][col % 3] += h;
+                xm[col / 3][col % 3] -= h;
+                let (fp, fm) = (c.corner_forces(&xp, None), c.corner_forces(&xm, None));
+                for row in 0..24 {
+                    // force = −K·u
+                    k[row][col] = -(fp[row / 3][row % 3] - fm[row / 3][row % 3]) / (2.0 * h);
+                }
+            }
+            for row in k {
+                out += &row.map(|v| format!("{v:.12e}")).join(" ");
+                out += "\n";
+            }
+        }
+        std::fs::write(dir.join("cube_tangents_corrected.txt"), out).unwrap();
+    }
+
+    // Ours at 500 mL (volume search, then a fresh solve from rest at that pressure, as the
+    // comparison does), at 1 % of that pressure, and at the extra volumes asked for.
+    let mut driver =
+        BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone()).unwrap();
+    let p = driver.solve_volume(500.0, 2.5).unwrap().pressure_pa;
+    let mut summary = format!("rest_volume_ml {rest_volume_ml}\npressure_pa {p}\n");
+    let mut fresh =
+        BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone()).unwrap();
+    let s = fresh.solve_pressure(p).unwrap();
+    summary += &format!("ours_500_volume_ml {}\n", s.volume_change_ml);
+    write_field("u_ours_500.txt", &scene.displacements(&s.positions_m));
+    let mut fresh =
+        BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone()).unwrap();
+    let s = fresh.solve_pressure(0.01 * p).unwrap();
+    summary += &format!("ours_small_volume_ml {}\n", s.volume_change_ml);
+    write_field("u_ours_small.txt", &scene.displacements(&s.positions_m));
+    for v in extra_volumes {
+        let s = driver.solve_volume(v, 0.2).unwrap();
+        summary += &format!(
+            "ours_{v}_pressure_pa {}\nours_{v}_volume_ml {}\n",
+            s.pressure_pa, s.volume_change_ml
+        );
+        write_field(
+            &format!("u_ours_{v}.txt"),
+            &scene.displacements(&s.positions_m),
+        );
+    }
+    // The same frame with the hourglass response of a continuum element (issue 16's gap study):
+    // at CalculiX's pressure p (the comparison's frame) and at 500 mL, and at 1 % of p.
+    if std::env::var("LUNGMOTION_CCX_STUDY_HOURGLASS").is_ok() {
+        for (name, law) in [
+            ("inc", HourglassLaw::IncompatibleModes),
+            ("full", HourglassLaw::FullIntegration),
+        ] {
+            let m = ours_material.with_hourglass(law);
+            let model = lungmotion::datasets::cip_lung_model_of(8.0, m).unwrap();
+            let scene = lung_scene(&model).unwrap();
+            for (tag, pressure) in [("p", p), ("small", 0.01 * p)] {
+                let mut d = BreathingDriver::new(
+                    &scene,
+                    REFERENCE_PRESSURE_PA,
+                    compliance,
+                    settings.clone(),
+                )
+                .unwrap();
+                let t = std::time::Instant::now();
+                let s = d.solve_pressure(pressure).unwrap();
+                summary += &format!(
+                    "hg_{name}_{tag}_volume_ml {} ({} Newton, {:.2} s)\n",
+                    s.volume_change_ml,
+                    s.newton_iterations,
+                    t.elapsed().as_secs_f64()
+                );
+                write_field(
+                    &format!("u_hg_{name}_{tag}.txt"),
+                    &scene.displacements(&s.positions_m),
+                );
+            }
+            let mut d =
+                BreathingDriver::new(&scene, REFERENCE_PRESSURE_PA, compliance, settings.clone())
+                    .unwrap();
+            let s = d.solve_volume(500.0, 0.5).unwrap();
+            summary += &format!("hg_{name}_500_pressure_pa {}\n", s.pressure_pa);
+            write_field(
+                &format!("u_hg_{name}_500.txt"),
+                &scene.displacements(&s.positions_m),
+            );
+        }
+    }
+    std::fs::write(dir.join("summary.txt"), &summary).unwrap();
+    eprintln!("{summary}");
+
+    // CalculiX decks at that pressure (NLGEOM, neo-Hookean) and at 1 % (linear).
+    let deck = write_deck(
+        &scaled(&scene, p / REFERENCE_PRESSURE_PA),
+        &CalculixOptions::default(),
+    )
+    .unwrap();
+    std::fs::write(dir.join("c3d8_nh.inp"), deck).unwrap();
+    let deck = write_deck(
+        &scaled(&scene, 0.01 * p / REFERENCE_PRESSURE_PA),
+        &CalculixOptions::linear(),
+    )
+    .unwrap();
+    std::fs::write(dir.join("c3d8_small.inp"), deck).unwrap();
+    eprintln!("written to {}", dir.display());
 }

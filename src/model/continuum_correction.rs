@@ -214,7 +214,7 @@ pub fn corner_axis_forces_n(
 mod tests {
     use super::*;
     use crate::model::element::BrickShape;
-    use crate::model::SpringLaw;
+    use crate::model::{HourglassLaw, SpringLaw};
 
     fn laws() -> [ContinuumLaw; 3] {
         [
@@ -316,13 +316,19 @@ mod tests {
     fn a_corrected_brick_under_any_homogeneous_deformation_carries_the_laws_stress() {
         for law in laws() {
             for spring_law in [SpringLaw::Linear, SpringLaw::Cubic(3.0)] {
-                for edges_m in [[1e-3, 1e-3, 1e-3], [4e-3, 4.5e-3, 5e-3]] {
+                for (edges_m, hourglass) in [
+                    ([1e-3, 1e-3, 1e-3], HourglassLaw::Springs),
+                    ([4e-3, 4.5e-3, 5e-3], HourglassLaw::Springs),
+                    ([1e-3, 1e-3, 1e-3], HourglassLaw::IncompatibleModes),
+                    ([4e-3, 4.5e-3, 5e-3], HourglassLaw::FullIntegration),
+                ] {
                     let m = Material::new(390.0, 0.3, 700.0)
                         .unwrap()
                         .with_spring_law(spring_law)
                         .unwrap()
                         .with_continuum_correction(Some(law))
-                        .unwrap();
+                        .unwrap()
+                        .with_hourglass(hourglass);
                     let c = BrickCoefficients::new(BrickShape { edges_m }, m).unwrap();
                     let cc = ContinuumCorrection::new(&m).unwrap();
                     for seed in 0..20 {

@@ -14,6 +14,7 @@ use nalgebra::{Matrix3, SMatrix, Vector3};
 use serde::Serialize;
 
 use super::continuum_correction::{self, ContinuumCorrection};
+use super::hourglass::HourglassCorrection;
 use super::material::Material;
 use super::volumetric::VolumetricCorrection;
 use crate::{Error, Result};
@@ -116,6 +117,8 @@ pub struct BrickCoefficients {
     /// The corner forces that make the element's homogeneous response follow the material's
     /// continuum correction law, if it names one.
     pub continuum: Option<ContinuumCorrection>,
+    /// The hourglass response that replaces the springs', if the material names one.
+    pub hourglass: Option<HourglassCorrection>,
 }
 
 impl BrickCoefficients {
@@ -195,6 +198,7 @@ impl BrickCoefficients {
             spring_cubic_ratio,
             volumetric: VolumetricCorrection::new(&material),
             continuum: ContinuumCorrection::new(&material),
+            hourglass: HourglassCorrection::new(&shape, &material),
         })
     }
 
@@ -244,6 +248,17 @@ impl BrickCoefficients {
         x: &[Vector3<f64>; 8],
         v: Option<&[Vector3<f64>; 8]>,
     ) -> [Vector3<f64>; 8] {
+        // With an hourglass correction the springs and corrections see only the affine part of
+        // the motion; the correction gives the rest its response ([`super::hourglass`]).
+        let x_all = x;
+        let affine;
+        let x = match &self.hourglass {
+            Some(_) => {
+                affine = super::hourglass::affine_part(x);
+                &affine
+            }
+            None => x,
+        };
         // Elastic spring forces in `f`, damper forces apart in `fd`: the corrections are derived
         // for the elastic response (they make E and ν exact), so they act on `f` only. Fed the
         // damper forces too, they would amplify the damping by up to 1/(2 − 4ν) (25× at
@@ -273,6 +288,13 @@ impl BrickCoefficients {
         let e2 = (ey - e1 * ey.dot(&e1)).normalize();
         let e3 = e1.cross(&e2);
         let axes = [e1, e2, e3];
+        // The hourglass correction from the springs' elastic forces alone (the corrections
+        // below act along the linear corner patterns, which it neither sees nor changes) and
+        // the whole motion's hourglass coordinates.
+        let hourglass = self
+            .hourglass
+            .as_ref()
+            .map(|h| h.corner_forces(x_all, &axes, &f));
         // Axial resultants a_i = −½ Σ_n s_n,i (f_n · e_i).
         let mut a = Vector3::zeros();
         for (n, signs) in CORNER_SIGNS.iter().enumerate() {
@@ -292,6 +314,11 @@ impl BrickCoefficients {
         }
         for (n, signs) in CORNER_SIGNS.iter().enumerate() {
             f[n] += wa[0] * signs[0] + wa[1] * signs[1] + wa[2] * signs[2] + fd[n];
+        }
+        if let Some(h) = hourglass {
+            for (fn_, hn) in f.iter_mut().zip(h) {
+                *fn_ += hn;
+            }
         }
         if let Some(vol) = &self.volumetric {
             // J from the mean deformation gradient (ex, ey, ez)/(4·edge); the force is
@@ -360,7 +387,18 @@ impl BrickCoefficients {
             }
         }
         let b = -0.5 * s.transpose() * self.correction_map * s;
-        (SMatrix::<f64, 24, 24>::identity() + b) * ks
+        let k = (SMatrix::<f64, 24, 24>::identity() + b) * ks;
+        match &self.hourglass {
+            None => k,
+            Some(hg) => {
+                // The springs see the affine part of the motion, (I − P)·u, and their forces
+                // along the hourglass patterns, P·f, are removed (P = H·Hᵀ/8); the target's
+                // H·C·Hᵀ is added (at rest the element's axes are the coordinate axes).
+                let h = super::hourglass::pattern_matrix();
+                let q = SMatrix::<f64, 24, 24>::identity() - h * h.transpose() / 8.0;
+                q * k * q + h * hg.stiffness * h.transpose()
+            }
+        }
     }
 }
 

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use super::hourglass::HourglassLaw;
 pub use super::spring_law::{ContinuumLaw, SpringLaw};
 use crate::{Error, Result};
 
@@ -31,6 +32,9 @@ pub struct Material {
     /// Excludes [`Material::volumetric_law`], whose pressure it already contains.
     #[serde(serialize_with = "serialize_correction")]
     pub continuum_correction: Option<ContinuumLaw>,
+    /// Where the elements' hourglass (bending, twist) response comes from: the springs'
+    /// (default) or a continuum finite element's ([`super::hourglass`]).
+    pub hourglass: HourglassLaw,
 }
 
 impl Default for Material {
@@ -88,6 +92,7 @@ struct MaterialTable {
     volumetric_law: Option<ContinuumLaw>,
     #[serde(default, deserialize_with = "present")]
     continuum_correction: Option<Option<CorrectionName>>,
+    hourglass: Option<HourglassLaw>,
 }
 
 /// Marks a key that is present (even as `null`) as `Some`, so a missing key stays `None`.
@@ -112,6 +117,7 @@ impl From<MaterialTable> for Material {
             spring_law: t.spring_law.unwrap_or(d.spring_law),
             volumetric_law: t.volumetric_law,
             continuum_correction,
+            hourglass: t.hourglass.unwrap_or(d.hourglass),
         }
     }
 }
@@ -126,6 +132,7 @@ impl Material {
         spring_law: SpringLaw::Linear,
         volumetric_law: None,
         continuum_correction: None,
+        hourglass: HourglassLaw::Springs,
     };
 
     /// [`Material::LUNG`] whose elements follow compressible neo-Hookean under any homogeneous
@@ -146,6 +153,7 @@ impl Material {
             spring_law: SpringLaw::Linear,
             volumetric_law: None,
             continuum_correction: None,
+            hourglass: HourglassLaw::Springs,
         };
         m.validate()?;
         Ok(m)
@@ -160,6 +168,7 @@ impl Material {
             spring_law,
             volumetric_law,
             continuum_correction,
+            hourglass: _,
         } = *self;
         if !e.is_finite() || e <= 0.0 {
             return Err(Error::InvalidMaterial(format!(
@@ -206,6 +215,12 @@ impl Material {
         self.continuum_correction = law;
         self.validate()?;
         Ok(self)
+    }
+
+    /// The same material with its hourglass response taken from `law`.
+    pub fn with_hourglass(mut self, law: HourglassLaw) -> Self {
+        self.hourglass = law;
+        self
     }
 
     /// Shear modulus G = E / (2(1+ν)) in pascals.

@@ -633,6 +633,11 @@ mod tests {
             serde_json::from_str::<Material>(&corrected).unwrap(),
             Material::LUNG_CORRECTED
         );
+        let hourglass = RunConfig::from_toml("[material]\nhourglass = \"full_integration\"")
+            .unwrap()
+            .material
+            .hourglass;
+        assert_eq!(hourglass, crate::model::HourglassLaw::FullIntegration);
         let unknown = serde_json::from_str::<Material>(r#"{"youngs_modulus": 1}"#).unwrap_err();
         assert!(unknown.to_string().contains("youngs_modulus"), "{unknown}");
     }

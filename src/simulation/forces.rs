@@ -23,7 +23,7 @@ use super::lanes::{add3, cross3, dot3, normalize3, scale3, sub3, ElementSource, 
 use crate::math::V3;
 use crate::model::continuum_correction::DIAGONAL_SIGNS;
 use crate::model::element::{BrickCoefficients, CORNER_SIGNS, SPRINGS};
-use crate::model::{ContinuumCorrection, HexMesh, VolumetricCorrection};
+use crate::model::{ContinuumCorrection, HexMesh, HourglassCorrection, VolumetricCorrection};
 
 /// Per-class constants laid out for the force kernel.
 #[derive(Debug, Clone)]
@@ -132,7 +132,13 @@ fn batch_forces<const DAMP: bool>(
     v: &[LaneV3; 8],
     volumetric: Option<&[Option<&VolumetricCorrection>; LANES]>,
     continuum: Option<&[Option<&ContinuumCorrection>; LANES]>,
+    hourglass: Option<&[Option<&HourglassCorrection>; LANES]>,
 ) -> [LaneV3; 8] {
+    // With an hourglass correction the springs and corrections see the affine part of the
+    // motion (`BrickCoefficients::corner_forces`); `x_all` keeps the whole of it.
+    let x_all = x;
+    let affine = hourglass.map(|per_lane| affine_lanes(x, per_lane));
+    let x = affine.as_ref().unwrap_or(x);
     // Damper forces kept apart from the elastic ones: see `ElementKernel::forces`.
     let mut f = [[Lanes::ZERO; 3]; 8];
     let mut fd = [[Lanes::ZERO; 3]; 8];
@@ -156,6 +162,9 @@ fn batch_forces<const DAMP: bool>(
     let e2 = normalize3(&sub3(&ey, &scale3(&e1, dot3(&ey, &e1))));
     let e3 = cross3(&e1, &e2);
     let axes = [e1, e2, e3];
+    // The hourglass correction, lane by lane from the springs' elastic forces (the scalar
+    // reference's order; the corrections below act along the linear patterns only).
+    let hourglass_forces = hourglass.map(|per_lane| add_hourglass(x_all, &axes, &f, per_lane));
     // a_i = −½ (Σ_n s_n,i f_n) · e_i.
     let mut a = [Lanes::ZERO; 3];
     for (i, axis) in axes.iter().enumerate() {
@@ -203,7 +212,59 @@ fn batch_forces<const DAMP: bool>(
     if let Some(vols) = volumetric {
         add_volumetric(k, x, &ex, &ey, vols, &mut f);
     }
+    if let Some(h) = hourglass_forces {
+        for (fn_, hn) in f.iter_mut().zip(&h) {
+            *fn_ = add3(fn_, hn);
+        }
+    }
     f
+}
+
+/// `x` with, in each lane whose class has an hourglass correction, its hourglass components
+/// removed ([`crate::model::hourglass::affine_part`]).
+#[inline(always)]
+fn affine_lanes(x: &[LaneV3; 8], per_lane: &[Option<&HourglassCorrection>; LANES]) -> [LaneV3; 8] {
+    let mut out = *x;
+    for (l, h) in per_lane.iter().enumerate() {
+        if h.is_none() {
+            continue;
+        }
+        let xl: [V3; 8] =
+            std::array::from_fn(|n| V3::new(x[n][0].0[l], x[n][1].0[l], x[n][2].0[l]));
+        let a = crate::model::hourglass::affine_part(&xl);
+        for n in 0..8 {
+            for i in 0..3 {
+                out[n][i].0[l] = a[n][i];
+            }
+        }
+    }
+    out
+}
+
+/// The hourglass correction's corner forces of each lane whose class has one
+/// ([`HourglassCorrection::corner_forces`], evaluated per lane); zero in the others.
+#[inline(always)]
+fn add_hourglass(
+    x: &[LaneV3; 8],
+    axes: &[LaneV3; 3],
+    f: &[LaneV3; 8],
+    per_lane: &[Option<&HourglassCorrection>; LANES],
+) -> [LaneV3; 8] {
+    let mut out = [[Lanes::ZERO; 3]; 8];
+    for (l, h) in per_lane.iter().enumerate() {
+        let Some(h) = h else { continue };
+        let pick = |v: &LaneV3| V3::new(v[0].0[l], v[1].0[l], v[2].0[l]);
+        let xl: [V3; 8] = std::array::from_fn(|n| pick(&x[n]));
+        let fl: [V3; 8] = std::array::from_fn(|n| pick(&f[n]));
+        let al: [V3; 3] = std::array::from_fn(|i| pick(&axes[i]));
+        let c = h.corner_forces(&xl, &al, &fl);
+        for n in 0..8 {
+            for i in 0..3 {
+                out[n][i].0[l] = c[n][i];
+            }
+        }
+    }
+    out
 }
 
 /// Adds the continuum correction's per-axis vectors c_i (corner n gets Σ_i s_n,i c_i, the
@@ -384,6 +445,8 @@ struct Inputs<'a> {
     volumetric: Option<&'a [Option<VolumetricCorrection>]>,
     /// Each class's continuum correction; `None` for every class: the term is skipped.
     continuum: Option<&'a [Option<ContinuumCorrection>]>,
+    /// Each class's hourglass correction; `None` for every class: the term is skipped.
+    hourglass: Option<&'a [Option<HourglassCorrection>]>,
 }
 
 /// Evaluates the elements yielded by `elements` (indices into the mesh) into `sink`.
@@ -428,7 +491,17 @@ fn run_elements<const DAMP: bool, E: ElementSource, S: Sink>(
         let laws = inp
             .continuum
             .map(|per_class| std::array::from_fn(|l| per_class[classes[l] as usize].as_ref()));
-        let f = batch_forces::<DAMP>(kernel, &xs, &vs, vols.as_ref(), laws.as_ref());
+        let hourglass = inp
+            .hourglass
+            .map(|per_class| std::array::from_fn(|l| per_class[classes[l] as usize].as_ref()));
+        let f = batch_forces::<DAMP>(
+            kernel,
+            &xs,
+            &vs,
+            vols.as_ref(),
+            laws.as_ref(),
+            hourglass.as_ref(),
+        );
         for (l, cs) in corners.iter().enumerate().take(count) {
             for (n, &c) in cs.iter().enumerate() {
                 sink.add(c, V3::new(f[n][0].0[l], f[n][1].0[l], f[n][2].0[l]));
@@ -653,6 +726,8 @@ pub struct ForceEvaluator {
     volumetric: Vec<Option<VolumetricCorrection>>,
     /// Per class; empty when no class has a continuum correction.
     continuum: Vec<Option<ContinuumCorrection>>,
+    /// Per class; empty when no class has an hourglass correction.
+    hourglass: Vec<Option<HourglassCorrection>>,
     /// `None`: the mesh numbering has no chunk locality; use the mesh's element colours.
     schedule: Option<ChunkSchedule>,
     element_count: usize,
@@ -667,7 +742,14 @@ impl ForceEvaluator {
             mesh.classes.iter().map(|c| c.volumetric.clone()).collect();
         let continuum: Vec<Option<ContinuumCorrection>> =
             mesh.classes.iter().map(|c| c.continuum).collect();
+        let hourglass: Vec<Option<HourglassCorrection>> =
+            mesh.classes.iter().map(|c| c.hourglass.clone()).collect();
         ForceEvaluator {
+            hourglass: if hourglass.iter().any(Option::is_some) {
+                hourglass
+            } else {
+                Vec::new()
+            },
             continuum: if continuum.iter().any(Option::is_some) {
                 continuum
             } else {
@@ -731,6 +813,7 @@ impl ForceEvaluator {
             lane_kernels: &self.lane_kernels,
             volumetric: (!self.volumetric.is_empty()).then_some(&self.volumetric[..]),
             continuum: (!self.continuum.is_empty()).then_some(&self.continuum[..]),
+            hourglass: (!self.hourglass.is_empty()).then_some(&self.hourglass[..]),
         };
         let parallel =
             rayon::current_num_threads() > 1 && mesh.element_count() >= PARALLEL_MIN_ELEMENTS;
