@@ -5,8 +5,9 @@
 /// The 1-based line and the dotted key path (`table.key`) of `error` in `text`, when the
 /// error carries a position.
 pub fn locate(text: &str, error: &toml::de::Error) -> Option<(usize, Option<String>)> {
-    let start = error.span()?.start.min(text.len());
-    let before = &text[..start];
+    // `get` rather than slicing: a span that is not on a character boundary gives no
+    // location instead of a panic inside an error path.
+    let before = text.get(..error.span()?.start.min(text.len()))?;
     let line_index = before.matches('\n').count();
     let lines: Vec<&str> = text.lines().collect();
     let line = lines.get(line_index).copied().unwrap_or("");
