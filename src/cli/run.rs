@@ -115,10 +115,17 @@ pub struct RunArgs {
     spring_law: Option<lungmotion::model::SpringLaw>,
     /// Corner forces that make each element's response to any homogeneous deformation
     /// (deviatoric and hydrostatic) follow a continuum law with the material's E and ν:
-    /// `neo-hookean` (CalculiX `NEO HOOKE`), `hyperfoam`, `lung-birzle` or `none` (default none,
-    /// or the config's `[material] continuum_correction`; refused beside a volumetric law).
+    /// `neo-hookean` (CalculiX `NEO HOOKE`), `hyperfoam`, `lung-birzle` or `none` (default
+    /// neo-hookean, or the config's `[material] continuum_correction`; refused beside a
+    /// volumetric law).
     #[arg(long, value_name = "neo-hookean|hyperfoam|lung-birzle|none", value_parser = parse_continuum_correction)]
     continuum_correction: Option<ContinuumCorrectionFlag>,
+    /// Where each element's bending and twist (hourglass) response comes from: `full-integration`
+    /// (a fully integrated trilinear brick, CalculiX C3D8), `incompatible-modes` (C3D8I) or
+    /// `springs` (Baudet's springs alone) (default full-integration, or the config's
+    /// `[material] hourglass`).
+    #[arg(long, value_name = "full-integration|incompatible-modes|springs", value_parser = parse_hourglass)]
+    hourglass: Option<lungmotion::model::HourglassLaw>,
     /// Wall-clock budget of the whole run, seconds (1 – 604800; default 1800, or the config's
     /// `[budget] time_s`): a run that reaches it stops within about a second, leaves no
     /// output and exits with status 3.
@@ -170,7 +177,6 @@ fn parse_mediastinum(text: &str) -> Result<lungmotion::motion::MediastinumContac
     }
 }
 
-/// `--diaphragm`: the configuration's names, with `-` or `_`.
 /// `--continuum-correction`: a law, or `none` for the springs' own response.
 #[derive(Debug, Clone, Copy)]
 struct ContinuumCorrectionFlag(Option<lungmotion::model::ContinuumLaw>);
@@ -190,6 +196,20 @@ fn parse_continuum_correction(text: &str) -> Result<ContinuumCorrectionFlag, Str
     }
 }
 
+/// `--hourglass`: the configuration's names, with `-` or `_`.
+fn parse_hourglass(text: &str) -> Result<lungmotion::model::HourglassLaw, String> {
+    use lungmotion::model::HourglassLaw;
+    match text.trim().replace('-', "_").as_str() {
+        "full_integration" => Ok(HourglassLaw::FullIntegration),
+        "incompatible_modes" => Ok(HourglassLaw::IncompatibleModes),
+        "springs" => Ok(HourglassLaw::Springs),
+        _ => Err(format!(
+            "`{text}` is not an hourglass response: full-integration, incompatible-modes or springs"
+        )),
+    }
+}
+
+/// `--diaphragm`: the configuration's names, with `-` or `_`.
 fn parse_diaphragm(text: &str) -> Result<lungmotion::ingest::lung_model::DiaphragmMotion, String> {
     use lungmotion::ingest::lung_model::DiaphragmMotion;
     match text.trim().replace('-', "_").as_str() {
@@ -323,6 +343,9 @@ impl RunArgs {
         }
         if let Some(ContinuumCorrectionFlag(law)) = self.continuum_correction {
             config.material.continuum_correction = law;
+        }
+        if let Some(law) = self.hourglass {
+            config.material.hourglass = law;
         }
         if let Some(s) = self.rib_cage_share {
             config.motion.rib_cage_share = s;

@@ -601,8 +601,11 @@ mod tests {
                 .material
                 .continuum_correction
         };
-        assert_eq!(correction(""), None);
-        assert_eq!(correction("[material]\npoisson_ratio = 0.4"), None);
+        assert_eq!(correction(""), Some(ContinuumLaw::NeoHookean));
+        assert_eq!(
+            correction("[material]\npoisson_ratio = 0.4"),
+            Some(ContinuumLaw::NeoHookean)
+        );
         assert_eq!(
             correction("[material]\ncontinuum_correction = \"neo_hookean\""),
             Some(ContinuumLaw::NeoHookean)
@@ -633,11 +636,17 @@ mod tests {
             serde_json::from_str::<Material>(&corrected).unwrap(),
             Material::LUNG_CORRECTED
         );
-        let hourglass = RunConfig::from_toml("[material]\nhourglass = \"full_integration\"")
-            .unwrap()
-            .material
-            .hourglass;
-        assert_eq!(hourglass, crate::model::HourglassLaw::FullIntegration);
+        let hourglass = |text: &str| RunConfig::from_toml(text).unwrap().material.hourglass;
+        use crate::model::HourglassLaw;
+        assert_eq!(hourglass(""), HourglassLaw::FullIntegration);
+        assert_eq!(
+            hourglass("[material]\nhourglass = \"springs\""),
+            HourglassLaw::Springs
+        );
+        assert_eq!(
+            hourglass("[material]\nhourglass = \"incompatible_modes\""),
+            HourglassLaw::IncompatibleModes
+        );
         let unknown = serde_json::from_str::<Material>(r#"{"youngs_modulus": 1}"#).unwrap_err();
         assert!(unknown.to_string().contains("youngs_modulus"), "{unknown}");
     }

@@ -222,13 +222,14 @@ fn without_defaults() -> Value {
                     "continuum_correction": {
                         "type": ["string", "null"],
                         "enum": ["neo_hookean", "hyperfoam", "lung_birzle", "none", null],
-                        "default": "none",
-                        "description": "A continuum law the elements' whole response to homogeneous deformation follows, deviatoric and hydrostatic (corner forces at the centre-point deformation gradient, second order at small strain on cubes): neo_hookean (CalculiX NEO HOOKE), hyperfoam, lung_birzle; \"none\" or null (the default): the springs' own. Not together with volumetric_law"
+                        "default": "neo_hookean",
+                        "description": "A continuum law the elements' whole response to homogeneous deformation follows, deviatoric and hydrostatic (corner forces at the centre-point deformation gradient, second order at small strain on cubes): neo_hookean (CalculiX NEO HOOKE, the default), hyperfoam, lung_birzle; \"none\" or null: the springs' own. Not together with volumetric_law"
                     },
                     "hourglass": {
                         "type": "string",
                         "enum": ["springs", "incompatible_modes", "full_integration"],
-                        "description": "Where the elements' hourglass (bending, twist) response comes from: springs (Baudet's element, default), incompatible_modes (a trilinear brick with incompatible modes, as CalculiX C3D8I) or full_integration (a fully integrated trilinear brick, as CalculiX C3D8); the springs then see only the affine part of each element's motion"
+                        "default": "full_integration",
+                        "description": "Where the elements' hourglass (bending, twist) response comes from: full_integration (a fully integrated trilinear brick, as CalculiX C3D8; the default), incompatible_modes (a trilinear brick with incompatible modes, as CalculiX C3D8I) or springs (Baudet's element as published); with either brick the springs see only the affine part of each element's motion"
                     }
                 }
             },

@@ -89,11 +89,17 @@ impl Level {
             elements: mesh.elements.clone(),
             matrix_of: mesh.element_class.clone(),
             matrices: class_k,
-            springs: mesh
-                .classes
-                .iter()
-                .map(|c| LinearSprings::new(c, &lattice.axes))
-                .collect(),
+            // The spring operator carries no hourglass correction: with one, the fine level
+            // multiplies by the classes' dense matrices (which do), as the coarse levels do
+            // (an hourglass term in the lane kernel, tried, was slower than the dense product).
+            springs: if mesh.classes.iter().any(|c| c.hourglass.is_some()) {
+                Vec::new()
+            } else {
+                mesh.classes
+                    .iter()
+                    .map(|c| LinearSprings::new(c, &lattice.axes))
+                    .collect()
+            },
             lane_springs: Vec::new(),
             rotation: None,
             colors: mesh.colors.clone(),

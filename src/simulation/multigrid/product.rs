@@ -391,12 +391,12 @@ mod tests {
     use super::super::level::project_flat;
     use super::super::preconditioner::Multigrid;
     use super::*;
-    use crate::model::{BrickCoefficients, Material};
+    use crate::model::{BrickCoefficients, HourglassLaw, Material};
     use nalgebra::{Matrix3, Rotation3, SMatrix};
 
     /// A lung-like irregular lattice: an ellipsoid with holes, two element classes on
     /// non-cubic bricks, and plane, line and fixed constraints on scattered nodes.
-    fn irregular_multigrid(axes: Matrix3<f64>) -> Multigrid {
+    fn irregular_multigrid(axes: Matrix3<f64>, hourglass: HourglassLaw) -> Multigrid {
         let cells = [26, 22, 18];
         let mut active = Vec::new();
         for k in 0..cells[2] {
@@ -418,14 +418,23 @@ mod tests {
             axes,
             active,
         };
-        let mut mesh = grid.to_mesh(Material::LUNG).unwrap().mesh;
+        let mut mesh = grid
+            .to_mesh(Material::LUNG.with_hourglass(hourglass))
+            .unwrap()
+            .mesh;
         assert!(
             mesh.element_count() >= PARALLEL_MIN_ELEMENTS,
             "exercise the parallel path"
         );
         let shape = mesh.classes[0].shape;
         mesh.classes.push(
-            BrickCoefficients::new(shape, Material::new(2500.0, 0.35, 1.0).unwrap()).unwrap(),
+            BrickCoefficients::new(
+                shape,
+                Material::new(2500.0, 0.35, 1.0)
+                    .unwrap()
+                    .with_hourglass(hourglass),
+            )
+            .unwrap(),
         );
         for (e, class) in mesh.element_class.iter_mut().enumerate() {
             *class = ((e * 7919) % 5 == 0) as u32;
@@ -498,8 +507,17 @@ mod tests {
     #[test]
     fn batched_products_equal_the_per_element_product() {
         let rotated = *Rotation3::from_euler_angles(0.2, 0.5, -0.3).matrix();
-        for axes in [Matrix3::identity(), rotated] {
-            let mut mg = irregular_multigrid(axes);
+        let cases = [Matrix3::identity(), rotated]
+            .into_iter()
+            .flat_map(|a| [HourglassLaw::Springs, HourglassLaw::FullIntegration].map(|h| (a, h)));
+        for (axes, hourglass) in cases {
+            let mut mg = irregular_multigrid(axes, hourglass);
+            // The spring lane kernels carry no hourglass correction: with one, the fine level
+            // is multiplied by the classes' dense matrices, which do.
+            assert_eq!(
+                mg.levels[0].springs.is_empty(),
+                hourglass != HourglassLaw::Springs
+            );
             assert!(!mg.levels[0].constrained.is_empty());
             assert!(mg.levels[0].schedule.is_some());
             assert!(mg.levels[0].row_quad.iter().any(|&r| r));
@@ -540,8 +558,8 @@ mod tests {
                                 .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
                             assert!(
                                 err <= 1e-12 * scale,
-                                "level {l}, {threads} threads, simd {simd}, {variant}: \
-                                 error {err:e} of {scale:e}"
+                                "level {l}, {threads} threads, simd {simd}, {variant}, \
+                                 {hourglass:?}: error {err:e} of {scale:e}"
                             );
                             if simd {
                                 // Same chunks in the same order on any number of threads.
