@@ -143,7 +143,7 @@ fn bad_traces_points_and_configurations_are_named() {
     std::fs::write(dir.join("trace.csv"), "time_s,volume_ml\n0,0\n1,300\n2,0\n").unwrap();
     std::fs::write(dir.join("points.csv"), "name,x_mm,y_mm\ntumour,1,2\n").unwrap();
     std::fs::write(dir.join("typo.toml"), "element_sise_mm = 6\n").unwrap();
-    let cases: [(&[&str], &str); 10] = [
+    let cases: [(&[&str], &str); 12] = [
         (&["--trace", "{dir}/unsorted.csv"], "unsorted.csv"),
         (
             &["--trace", "{dir}/trace.csv", "--trace-window", "5:9"],
@@ -177,6 +177,19 @@ fn bad_traces_points_and_configurations_are_named() {
         (
             &["--trace", "{dir}/trace.csv", "--sliding", "curvy"],
             "`curvy` is not a sliding mode",
+        ),
+        (
+            &["--trace", "{dir}/trace.csv", "--hourglass", "twist"],
+            "`twist` is not an hourglass response: full-integration, incompatible-modes or springs",
+        ),
+        (
+            &[
+                "--trace",
+                "{dir}/trace.csv",
+                "--continuum-correction",
+                "mooney",
+            ],
+            "`mooney` is not a continuum correction",
         ),
     ];
     for (args, named) in cases {
