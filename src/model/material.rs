@@ -41,7 +41,7 @@ impl Default for Material {
     /// [`Material::LUNG_CONTINUUM`]: what a run uses unless told otherwise. Against CalculiX
     /// (C3D8, `NEO HOOKE`) on the CIP lungs at 500 mL it is 0.03 mm mean, it completes the
     /// deflations below the scan and the large breaths the springs alone do not, and its
-    /// Newton–Krylov solves take fewer iterations (README, "The element's response").
+    /// Newton–Krylov solves take fewer iterations (README, "The default element").
     fn default() -> Self {
         Material::LUNG_CONTINUUM
     }
