@@ -25,9 +25,9 @@
 //! the input: constraint projections are applied while gathering the few elements that touch
 //! a constrained node. The fine level evaluates the springs four elements at a time (one
 //! element per SIMD lane, AVX2 chosen at run time as in the force kernel; with an hourglass
-//! correction, which the spring operator lacks, it multiplies by the dense class matrices); four consecutive
-//! elements of a lattice row share their x-faces, so they load and store 20 nodes instead of
-//! 32. Coarse cells are multiplied one at a time with fused multiply–adds (AVX2 + FMA), since
+//! correction, which the spring operator lacks, it multiplies by the dense class matrices);
+//! four consecutive elements of a lattice row share their x-faces, so they load and store 20
+//! nodes instead of 32. Coarse cells are multiplied one at a time with fused multiply–adds (AVX2 + FMA), since
 //! neighbouring cells may have different matrices.
 //!
 //! Layout: `lattice` recovers the voxel lattice of a mesh; `level` holds one level of the
