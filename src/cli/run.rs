@@ -153,28 +153,27 @@ fn parse_time_budget(text: &str) -> Result<f64, String> {
     }
 }
 
+/// A flag's value as the configuration names it (`-` accepted for `_`), read by the
+/// configuration's own deserialiser so that flag and file accept the same names; `what` says
+/// what was expected and lists the choices.
+fn config_name<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> Result<T, String> {
+    use serde::de::IntoDeserializer;
+    let name = text.trim().replace('-', "_");
+    T::deserialize(name.as_str().into_deserializer())
+        .map_err(|_: serde::de::value::Error| format!("`{text}` is not {what}"))
+}
+
 /// `--sliding`: the configuration's names, with `-` or `_`.
 fn parse_sliding(text: &str) -> Result<lungmotion::ingest::lung_model::SlidingMode, String> {
-    use lungmotion::ingest::lung_model::SlidingMode;
-    match text.trim().replace('-', "_").as_str() {
-        "tangent_plane" => Ok(SlidingMode::TangentPlane),
-        "wall_surface" => Ok(SlidingMode::WallSurface),
-        _ => Err(format!(
-            "`{text}` is not a sliding mode: tangent-plane or wall-surface"
-        )),
-    }
+    config_name(text, "a sliding mode: tangent-plane or wall-surface")
 }
 
 /// `--mediastinum`: the configuration's names.
 fn parse_mediastinum(text: &str) -> Result<lungmotion::motion::MediastinumContact, String> {
-    use lungmotion::motion::MediastinumContact;
-    match text.trim() {
-        "sliding" => Ok(MediastinumContact::Sliding),
-        "contact" => Ok(MediastinumContact::Contact),
-        _ => Err(format!(
-            "`{text}` is not a way for the mediastinal face to meet the heart: sliding or contact"
-        )),
-    }
+    config_name(
+        text,
+        "a way for the mediastinal face to meet the heart: sliding or contact",
+    )
 }
 
 /// `--continuum-correction`: a law, or `none` for the springs' own response.
@@ -184,42 +183,27 @@ struct ContinuumCorrectionFlag(Option<lungmotion::model::ContinuumLaw>);
 /// `--continuum-correction`: `neo-hookean`, `hyperfoam`, `lung-birzle` or `none` (underscores
 /// accepted, as in the configuration).
 fn parse_continuum_correction(text: &str) -> Result<ContinuumCorrectionFlag, String> {
-    use lungmotion::model::ContinuumLaw;
-    match text.trim().replace('-', "_").as_str() {
-        "neo_hookean" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::NeoHookean))),
-        "hyperfoam" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::Hyperfoam))),
-        "lung_birzle" => Ok(ContinuumCorrectionFlag(Some(ContinuumLaw::LungBirzle))),
-        "none" => Ok(ContinuumCorrectionFlag(None)),
-        _ => Err(format!(
-            "`{text}` is not a continuum correction: neo-hookean, hyperfoam, lung-birzle or none"
-        )),
+    if text.trim() == "none" {
+        return Ok(ContinuumCorrectionFlag(None));
     }
+    config_name(
+        text,
+        "a continuum correction: neo-hookean, hyperfoam, lung-birzle or none",
+    )
+    .map(|law| ContinuumCorrectionFlag(Some(law)))
 }
 
 /// `--hourglass`: the configuration's names, with `-` or `_`.
 fn parse_hourglass(text: &str) -> Result<lungmotion::model::HourglassLaw, String> {
-    use lungmotion::model::HourglassLaw;
-    match text.trim().replace('-', "_").as_str() {
-        "full_integration" => Ok(HourglassLaw::FullIntegration),
-        "incompatible_modes" => Ok(HourglassLaw::IncompatibleModes),
-        "springs" => Ok(HourglassLaw::Springs),
-        _ => Err(format!(
-            "`{text}` is not an hourglass response: full-integration, incompatible-modes or springs"
-        )),
-    }
+    config_name(
+        text,
+        "an hourglass response: full-integration, incompatible-modes or springs",
+    )
 }
 
 /// `--diaphragm`: the configuration's names, with `-` or `_`.
 fn parse_diaphragm(text: &str) -> Result<lungmotion::ingest::lung_model::DiaphragmMotion, String> {
-    use lungmotion::ingest::lung_model::DiaphragmMotion;
-    match text.trim().replace('-', "_").as_str() {
-        "cranio_caudal" => Ok(DiaphragmMotion::CranioCaudal),
-        "sliding" => Ok(DiaphragmMotion::Sliding),
-        "free" => Ok(DiaphragmMotion::Free),
-        _ => Err(format!(
-            "`{text}` is not a diaphragm motion: cranio-caudal, sliding or free"
-        )),
-    }
+    config_name(text, "a diaphragm motion: cranio-caudal, sliding or free")
 }
 
 /// `--rib-cage-share`: a fraction the configuration accepts.
@@ -557,4 +541,51 @@ fn parse_window(text: &str) -> Result<[f64; 2], String> {
             .map_err(|_| format!("'{v}' in '{text}' is not a number of seconds"))
     };
     Ok([number(a)?, number(b)?])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lungmotion::ingest::lung_model::{DiaphragmMotion, SlidingMode};
+    use lungmotion::model::{ContinuumLaw, HourglassLaw};
+    use lungmotion::motion::MediastinumContact;
+
+    #[test]
+    fn named_flags_take_the_configurations_names_with_hyphens_or_underscores() {
+        assert_eq!(parse_sliding("wall-surface"), Ok(SlidingMode::WallSurface));
+        assert_eq!(
+            parse_sliding("tangent_plane"),
+            Ok(SlidingMode::TangentPlane)
+        );
+        assert_eq!(
+            parse_diaphragm(" cranio-caudal "),
+            Ok(DiaphragmMotion::CranioCaudal)
+        );
+        assert_eq!(parse_diaphragm("free"), Ok(DiaphragmMotion::Free));
+        assert_eq!(
+            parse_mediastinum("contact"),
+            Ok(MediastinumContact::Contact)
+        );
+        assert_eq!(
+            parse_hourglass("incompatible-modes"),
+            Ok(HourglassLaw::IncompatibleModes)
+        );
+        assert_eq!(
+            parse_hourglass("full_integration"),
+            Ok(HourglassLaw::FullIntegration)
+        );
+        assert_eq!(parse_hourglass("springs"), Ok(HourglassLaw::Springs));
+        let law = |t| parse_continuum_correction(t).map(|f| f.0);
+        assert_eq!(law("lung-birzle"), Ok(Some(ContinuumLaw::LungBirzle)));
+        assert_eq!(law("neo_hookean"), Ok(Some(ContinuumLaw::NeoHookean)));
+        assert_eq!(law("none"), Ok(None));
+        assert_eq!(
+            parse_diaphragm("piston"),
+            Err("`piston` is not a diaphragm motion: cranio-caudal, sliding or free".into())
+        );
+        assert!(law("None")
+            .unwrap_err()
+            .contains("`None` is not a continuum correction"));
+        assert!(parse_hourglass("").is_err());
+    }
 }

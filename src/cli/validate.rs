@@ -25,9 +25,9 @@ pub struct ValidateArgs {
     #[arg(long)]
     no_pressure_volume: bool,
     /// Instead: the breathing model's end-inhale frame (500 mL, CIP lungs at 8 mm; the default
-    /// material, then the neo-Hookean correction into `neo-hookean/`) against
-    /// CalculiX C3D8 and C3D8I with NLGEOM (needs ../shared/data; about 3 minutes each);
-    /// writes lung_calculix.json and lung_calculix.md (and neo-hookean/ likewise).
+    /// material, then Baudet's springs alone into `springs/`) against CalculiX C3D8 and C3D8I
+    /// with NLGEOM (needs ../shared/data; about 3 minutes each); writes lung_calculix.json
+    /// and lung_calculix.md (and springs/ likewise).
     #[arg(long, conflicts_with_all = ["quick", "no_calculix", "no_pressure_volume"])]
     lung: bool,
     /// Instead: the model against a 4D-CT: a folder of phase folders (each a DICOM series),

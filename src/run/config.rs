@@ -15,10 +15,12 @@
 //! spring_law = "linear"               # "cubic" (fitted to neo-Hookean) or { cubic = 3.0 }
 //! # volumetric_law = "hyperfoam"      # or "neo_hookean", "lung_birzle": the elements'
 //!                                      # hydrostatic response follows that law
-//! # continuum_correction = "neo_hookean"  # or "hyperfoam", "lung_birzle"; "none" (the
-//!                                      # default): the elements' whole response to
-//!                                      # homogeneous deformation follows that law (not
-//!                                      # beside volumetric_law)
+//! continuum_correction = "neo_hookean" # or "hyperfoam", "lung_birzle"; "none": the springs'
+//!                                      # own; the elements' whole response to homogeneous
+//!                                      # deformation follows the law (not beside
+//!                                      # volumetric_law)
+//! hourglass = "full_integration"       # or "incompatible_modes" (C3D8I), "springs" (Baudet's
+//!                                      # own): where bending and twist stiffness comes from
 //! [tissue]                             # heterogeneous lung (see `model::tissue`)
 //! from_ct = false                      # each element's E and ρ from the CT's Hounsfield units
 //! stiffness_exponent = 2.0             # E ∝ (tissue fraction)ⁿ, the median element at E
@@ -374,17 +376,12 @@ impl RunConfig {
     /// Parses TOML text and validates it.
     pub fn from_toml(text: &str) -> Result<Self> {
         let config: RunConfig = toml::from_str(text).map_err(|e| {
-            let (line, key) = super::toml_key::locate(text, &e).unwrap_or((0, None));
-            let at = if line > 0 {
-                format!(" (line {line})")
-            } else {
-                String::new()
-            };
+            let (key, reason) = super::toml_key::describe(text, &e);
             Error::Config {
                 settings: SETTINGS,
                 file: None,
                 key,
-                reason: format!("{}{at}", e.message().trim()),
+                reason,
             }
         })?;
         config.validate()?;

@@ -4,7 +4,7 @@
 
 /// The 1-based line and the dotted key path (`table.key`) of `error` in `text`, when the
 /// error carries a position.
-pub fn locate(text: &str, error: &toml::de::Error) -> Option<(usize, Option<String>)> {
+fn locate(text: &str, error: &toml::de::Error) -> Option<(usize, Option<String>)> {
     // `get` rather than slicing: a span that is not on a character boundary gives no
     // location instead of a panic inside an error path.
     let before = text.get(..error.span()?.start.min(text.len()))?;
@@ -24,6 +24,16 @@ pub fn locate(text: &str, error: &toml::de::Error) -> Option<(usize, Option<Stri
     // A header line itself (`[motoin]`): the table is the key.
     let key = key.or_else(|| table_header(line).map(str::to_string));
     Some((line_index + 1, key))
+}
+
+/// The dotted key `error` points at in `text`, if any, and its message with the line appended
+/// (`unknown variant `glue`, expected … (line 5)`): what a refused configuration reports.
+pub fn describe(text: &str, error: &toml::de::Error) -> (Option<String>, String) {
+    let message = error.message().trim();
+    match locate(text, error) {
+        Some((line, key)) => (key, format!("{message} (line {line})")),
+        None => (None, message.to_string()),
+    }
 }
 
 /// `key` of a `key = value` line (quotes and spaces trimmed); `None` for other lines.
@@ -84,5 +94,12 @@ mod tests {
         let unknown = located("[motion]\nshere = 0.3\n");
         assert_eq!(unknown, (2, Some("motion.shere".into())));
         assert_eq!(located("[motoin]\n"), (1, Some("motoin".into())));
+        let text = "[motion]\nmediastinum = \"glue\"\n";
+        let (key, reason) = describe(text, &toml::from_str::<Doc>(text).unwrap_err());
+        assert_eq!(key.as_deref(), Some("motion.mediastinum"));
+        assert!(
+            reason.contains("glue") && reason.ends_with(" (line 2)"),
+            "{reason}"
+        );
     }
 }

@@ -409,15 +409,12 @@ impl ServiceConfig {
         }
         let text = std::fs::read_to_string(path).at(IoOp::Read, path)?;
         let file: ServiceFile = toml::from_str(&text).map_err(|e| {
-            let (line, key) = crate::run::toml_key::locate(&text, &e).unwrap_or((0, None));
+            let (key, reason) = crate::run::toml_key::describe(&text, &e);
             Error::Config {
                 settings: "configuration",
                 file: Some(path.to_path_buf()),
                 key,
-                reason: match line {
-                    0 => e.message().trim().to_string(),
-                    n => format!("{} (line {n})", e.message().trim()),
-                },
+                reason,
             }
         })?;
         if let Some(listen) = file.listen {
