@@ -218,10 +218,11 @@ fn build_preconditioner(
                 for (l, c) in mg.profile(9).iter().enumerate() {
                     tracing::debug!(
                         "multigrid level {l}: {} nodes, {} cells, {} distinct cell \
-                             matrices, {:.3} ms a product",
+                             matrices, {:.0} % of nodes by stencil, {:.3} ms a product",
                         c.nodes,
                         c.cells,
                         c.distinct_matrices,
+                        100.0 * c.stencil_fraction,
                         c.product_ms
                     );
                 }

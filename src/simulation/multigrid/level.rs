@@ -6,6 +6,7 @@ use nalgebra::{DMatrix, Matrix3};
 use super::batch::ROW_LINES;
 use super::lattice::Lattice;
 use super::springs::{LaneSprings, LinearSprings};
+use super::stencil::Stencil;
 use super::M24;
 use crate::math::V3;
 use crate::model::HexMesh;
@@ -58,6 +59,8 @@ pub(super) struct Level {
     pub(super) prolong: Vec<[(u32, f64); 8]>,
     /// Scratch of the two-phase dense product: each cell's 24 outputs (see `product.rs`).
     pub(super) cell_products: std::sync::Mutex<Vec<[f64; 24]>>,
+    /// Dense fine level only: the nodes computed as a 27-point stencil (see `stencil.rs`).
+    pub(super) stencil: Option<Stencil>,
 }
 
 /// `slot` of an unconstrained node.
@@ -116,7 +119,17 @@ impl Level {
             lambda_max: 0.0,
             prolong: Vec::new(),
             cell_products: Default::default(),
+            stencil: None,
         };
+        if fine.springs.is_empty() {
+            fine.stencil = Stencil::new(
+                fine.n_nodes,
+                &fine.elements,
+                &fine.matrix_of,
+                &fine.matrices,
+                &fine.projector,
+            );
+        }
         fine.finish();
         fine
     }
@@ -153,6 +166,7 @@ impl Level {
             lambda_max: 0.0,
             prolong: Vec::new(),
             cell_products: Default::default(),
+            stencil: None,
         }
     }
 

@@ -48,6 +48,7 @@ mod preconditioner;
 mod product;
 mod smoother;
 mod springs;
+mod stencil;
 
 use nalgebra::SMatrix;
 

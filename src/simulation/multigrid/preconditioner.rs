@@ -30,6 +30,8 @@ pub struct LevelCost {
     pub cells: usize,
     /// Distinct 24 × 24 cell matrices stored (0 on the fine level, applied through springs).
     pub distinct_matrices: usize,
+    /// Fraction of the nodes whose product is a 27-point stencil (fine level; else 0).
+    pub stencil_fraction: f64,
     /// Median wall time of one operator product, milliseconds.
     pub product_ms: f64,
 }
@@ -133,6 +135,7 @@ impl Multigrid {
                     } else {
                         0
                     },
+                    stencil_fraction: l.stencil.as_ref().map_or(0.0, |s| s.coverage()),
                     product_ms: times[times.len() / 2],
                 }
             })

@@ -6,6 +6,7 @@ use rayon::prelude::*;
 use super::batch::{dense_lanes, gather, scatter, Shared, Sink, Window};
 use super::level::{Level, FREE};
 use super::springs::LaneSprings;
+use super::stencil::{Ids, Masked};
 use super::NODE_TASK;
 use crate::math::V3;
 use crate::simulation::forces::PARALLEL_MIN_ELEMENTS;
@@ -91,8 +92,12 @@ impl Level {
             && self.schedule.is_some()
             && rayon::current_num_threads() > 1
             && self.lane_springs.is_empty()
+            && self.stencil.is_none()
             && (TWO_PHASE_MIN_CELLS..PARALLEL_MIN_ELEMENTS).contains(&self.elements.len())
             && has_avx2_fma();
+        if let Some(stencil) = &self.stencil {
+            stencil.add_product(x, &self.constrained, y, parallel, simd);
+        }
         if two_phase {
             self.dense_two_phase(x, y);
         } else {
@@ -117,13 +122,36 @@ impl Level {
                     out: window,
                 };
                 let mut batch = elements.start as u32..elements.end as u32;
-                self.scatter(x, &mut batch, &mut sink, simd);
+                match &self.stencil {
+                    Some(st) => self.scatter(
+                        x,
+                        &mut Ids(batch.filter(|&e| !st.skip[e as usize])),
+                        &mut Masked {
+                            inner: &mut sink,
+                            regular: &st.regular,
+                            spare: [0.0; 3],
+                        },
+                        simd,
+                    ),
+                    None => self.scatter(x, &mut batch, &mut sink, simd),
+                }
             }),
             None => {
                 let shared = Shared(y.as_mut_ptr(), y.len());
                 for colour in &self.colors {
-                    let run =
-                        |task: &[u32]| self.scatter(x, &mut task.iter(), &mut { shared }, simd);
+                    let run = |task: &[u32]| match &self.stencil {
+                        Some(st) => self.scatter(
+                            x,
+                            &mut Ids(task.iter().copied().filter(|&e| !st.skip[e as usize])),
+                            &mut Masked {
+                                inner: &mut { shared },
+                                regular: &st.regular,
+                                spare: [0.0; 3],
+                            },
+                            simd,
+                        ),
+                        None => self.scatter(x, &mut task.iter(), &mut { shared }, simd),
+                    };
                     if parallel && colour.len() >= 512 {
                         colour.par_chunks(128).for_each(run);
                     } else {
@@ -519,6 +547,13 @@ mod tests {
                 hourglass != HourglassLaw::Springs
             );
             assert!(!mg.levels[0].constrained.is_empty());
+            // With dense matrices the fine level takes the stencil product where a node's cells
+            // share a class, and the element product (writing only the others) elsewhere.
+            let coverage = mg.levels[0].stencil.as_ref().map(|s| s.coverage());
+            match hourglass {
+                HourglassLaw::Springs => assert!(coverage.is_none()),
+                _ => assert!(coverage.is_some_and(|c| c > 0.2 && c < 0.9), "{coverage:?}"),
+            }
             assert!(mg.levels[0].schedule.is_some());
             assert!(mg.levels[0].row_quad.iter().any(|&r| r));
             // A coarse level takes the two-phase dense product on two threads: the bitwise
