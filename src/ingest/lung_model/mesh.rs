@@ -59,7 +59,9 @@ pub(super) fn mesh_lungs(
             }
             continue;
         }
-        let gm = lattice.grid(mask.clone()).to_mesh(material)?;
+        let gm = lattice
+            .grid(mask.clone())
+            .to_mesh_in_lattice_order(material)?;
         let offset = positions.len() as u32;
         positions.extend_from_slice(&gm.mesh.rest_positions_m);
         elements.extend(gm.mesh.elements.iter().map(|e| e.map(|n| n + offset)));

@@ -14,10 +14,11 @@ use rayon::prelude::*;
 use nalgebra::Matrix3;
 
 use super::batch::Sink;
-use super::level::project_flat;
+use super::product::constrained_in;
 use super::M24;
 use crate::model::element::CORNER_SIGNS;
 use crate::simulation::lanes::{ElementSource, LANES};
+use crate::simulation::linalg::nodes_mut;
 
 /// Nodes per parallel task of the stencil pass (runs are cut at task boundaries).
 const TASK_NODES: usize = 2048;
@@ -227,29 +228,48 @@ impl Stencil {
         n as f64 / self.regular.len().max(1) as f64
     }
 
-    /// Adds S·(Π x) into `y` on the stencil nodes, Π projecting the `constrained` nodes (on
-    /// every core when `parallel`; `simd` = false forces the portable kernel).
-    pub(super) fn add_product(
+    /// Whether the stencil computes every node (no element product is left to do).
+    pub(super) fn covers_all(&self) -> bool {
+        self.skip.iter().all(|&s| s)
+    }
+
+    /// Sets `y` = (σ·M + S)·(Π x) on the stencil nodes, Π projecting the `constrained` nodes,
+    /// M the lumped `mass` and σ the `shift` (on every core when `parallel`; `simd` = false
+    /// forces the portable kernel).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn product(
         &self,
         x: &[f64],
         constrained: &[(u32, Matrix3<f64>)],
+        mass: &[f64],
+        shift: f64,
         y: &mut [f64],
         parallel: bool,
         simd: bool,
     ) {
         assert_eq!(x.len(), 3 * self.regular.len());
         assert_eq!(y.len(), x.len());
+        assert_eq!(mass.len(), self.regular.len());
         let mut guard = self.projected.as_ref().map(|m| {
             let mut p = m.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             p.resize(x.len(), 0.0);
+            let copy = |(t, (p, x)): (usize, (&mut [f64], &[f64]))| {
+                p.copy_from_slice(x);
+                let lo = (t * TASK_NODES) as u32;
+                let pn = nodes_mut(p);
+                for (n, proj) in constrained_in(constrained, lo..lo + pn.len() as u32) {
+                    let i = (n - lo) as usize;
+                    pn[i] = proj * pn[i];
+                }
+            };
             if parallel {
                 p.par_chunks_mut(3 * TASK_NODES)
                     .zip(x.par_chunks(3 * TASK_NODES))
-                    .for_each(|(p, x)| p.copy_from_slice(x));
+                    .enumerate()
+                    .for_each(copy);
             } else {
-                p.copy_from_slice(x);
+                copy((0, (&mut p[..], x)));
             }
-            project_flat(constrained, &mut p);
             p
         });
         let x: &[f64] = guard.as_deref_mut().map_or(x, |p| &p[..]);
@@ -258,26 +278,42 @@ impl Stencil {
             let lo = t * TASK_NODES;
             for run in &self.runs[self.tasks[t].clone()] {
                 let cols = &self.patterns[run.pattern as usize];
-                let out = &mut y
-                    [3 * (run.first as usize - lo)..3 * (run.first + run.len) as usize - 3 * lo];
+                let (first, end) = (run.first as usize, (run.first + run.len) as usize);
+                let out = &mut y[3 * (first - lo)..3 * (end - lo)];
                 // Every node a run reads (up to dx = +1 of its last node) is a mesh node.
                 let last =
                     run.rows.iter().max().copied().unwrap_or(0) as usize + run.len as usize + 1;
                 assert!(3 * last + 3 <= x.len(), "stencil run beyond the input");
+                let (xs, ms) = (&x[3 * first..3 * end], &mass[first..end]);
                 #[cfg(target_arch = "x86_64")]
                 if simd {
                     // SAFETY: the CPU has AVX2 and FMA (checked above); the run's reads are in
                     // bounds (asserted just above) and `out` holds its 3·len outputs.
                     unsafe { run_avx2(cols, x, &run.rows, out) };
+                    shifted(out, xs, ms, shift);
                     continue;
                 }
                 run_portable(cols, x, &run.rows, out);
+                shifted(out, xs, ms, shift);
             }
         };
         if parallel {
             y.par_chunks_mut(3 * TASK_NODES).enumerate().for_each(task);
         } else {
             y.chunks_mut(3 * TASK_NODES).enumerate().for_each(task);
+        }
+    }
+}
+
+/// Adds the shift term σ·m·x to a run's outputs (`x` and `m`: the run's own nodes).
+#[inline(always)]
+fn shifted(out: &mut [f64], x: &[f64], m: &[f64], shift: f64) {
+    if shift > 0.0 {
+        for ((o, x), m) in out.chunks_exact_mut(3).zip(x.chunks_exact(3)).zip(m) {
+            let s = shift * m;
+            o[0] += s * x[0];
+            o[1] += s * x[1];
+            o[2] += s * x[2];
         }
     }
 }
@@ -292,7 +328,7 @@ fn has_avx2_fma() -> bool {
     false
 }
 
-/// One run's outputs `out` (3 per node) += S·x, node by node.
+/// One run's outputs `out` (3 per node) = S·x, node by node.
 fn run_portable(cols: &[[f64; 4]; 81], x: &[f64], rows: &[u32; 9], out: &mut [f64]) {
     for (t, y) in out.chunks_exact_mut(3).enumerate() {
         let mut acc = [0.0; 3];
@@ -305,9 +341,7 @@ fn run_portable(cols: &[[f64; 4]; 81], x: &[f64], rows: &[u32; 9], out: &mut [f6
                 }
             }
         }
-        for a in 0..3 {
-            y[a] += acc[a];
-        }
+        y.copy_from_slice(&acc);
     }
 }
 
@@ -332,9 +366,7 @@ unsafe fn run_avx2(cols: &[[f64; 4]; 81], x: &[f64], rows: &[u32; 9], out: &mut 
                 _mm256_add_pd(_mm256_add_pd(acc[0], acc[1]), acc[2]),
             )
         };
-        out[0] += v[0];
-        out[1] += v[1];
-        out[2] += v[2];
+        out.copy_from_slice(&v[..3]);
     };
     let mut t = 0;
     // SAFETY (both loops): reads stay within x by the caller's contract, columns are 4 f64.
