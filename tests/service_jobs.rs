@@ -19,11 +19,13 @@ use service_support::*;
 /// Longest wait for jobs to finish (each takes seconds alone; the machine is shared).
 const JOB_TIMEOUT: Duration = Duration::from_secs(900);
 /// Frames of the long job.
-const LONG_JOB_PHASES: usize = 10;
+const LONG_JOB_PHASES: usize = 20;
 
-/// A job that runs long enough to be interrupted: 8 mm elements, 10 phases (about 18 s alone).
+/// A job that runs long enough to be interrupted while it solves: 4 mm elements, 4 breaths,
+/// 20 phases (about 5 s alone; at 8 mm its solves took under half a second by 2026-12-05,
+/// too short to be caught solving reliably).
 fn long_request() -> Value {
-    simulation_request(2, &tracked_points(), 8.0, LONG_JOB_PHASES)
+    simulation_request(4, &tracked_points(), 4.0, LONG_JOB_PHASES)
 }
 
 /// Reads `jobs/<id>/job.json` straight from the store.

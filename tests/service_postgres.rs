@@ -410,7 +410,9 @@ fn a_journey_through_an_api_process_and_a_separate_worker() {
 
     // Cancelling a running job reaches the worker's run; the job ends cancelled, its partial
     // outputs gone.
-    let long = server.submit(&scan, &simulation_request(2, &tracked_points(), 8.0, 10));
+    // 4 mm, 20 phases: about 5 s alone (at 8 mm the whole job took 0.8 s by 2026-12-05 and
+    // could finish before the cancel reached it).
+    let long = server.submit(&scan, &simulation_request(4, &tracked_points(), 4.0, 20));
     server.wait_for_state(&long, &["running"], JOB_TIMEOUT);
     let resp = server.delete(&format!("/v1/jobs/{long}"));
     assert_eq!(resp.status(), 202);

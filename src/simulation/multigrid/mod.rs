@@ -24,14 +24,16 @@
 //! has 2–3 barriers instead of one per element colour, and needs neither a lock nor a copy of
 //! the input: constraint projections are applied while gathering the few elements that touch
 //! a constrained node. The fine level evaluates the springs four elements at a time (one
-//! element per SIMD lane, AVX2 chosen at run time as in the force kernel; with an hourglass
-//! correction, which the spring operator lacks, it multiplies by the dense class matrices);
-//! four consecutive elements of a lattice row share their x-faces, so they load and store 20
-//! nodes instead of 32. Coarse cells are multiplied one at a time with fused multiply–adds (AVX2 + FMA), since
+//! element per SIMD lane, AVX2 chosen at run time as in the force kernel); four consecutive
+//! elements of a lattice row share their x-faces, so they load and store 20 nodes instead of
+//! 32. With an hourglass correction (the default element), which the spring operator lacks,
+//! the fine level is the dense class matrices assembled into a 27-point stencil per node (by
+//! class and by which of the node's eight cells exist), applied node by node without scatter. Coarse cells are multiplied one at a time with fused multiply–adds (AVX2 + FMA), since
 //! neighbouring cells may have different matrices.
 //!
 //! Layout: `lattice` recovers the voxel lattice of a mesh; `level` holds one level of the
-//! hierarchy and its set-up; `springs` is the fine level's element operator; `batch` (with
+//! hierarchy and its set-up; `springs` is the fine level's element operator; `stencil` its
+//! node-wise form for dense classes; `batch` (with
 //! `avx2`) moves lane batches between node vectors and SIMD lanes; `product` is a level's
 //! operator product; `smoother` its Chebyshev smoothing; `coarsen` builds the next coarser
 //! level; `preconditioner` is the hierarchy and its V-cycle.
