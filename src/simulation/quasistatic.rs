@@ -67,9 +67,7 @@ impl Default for QuasiStaticSettings {
             max_newton_iterations: 40,
             max_linear_iterations: 300,
             preconditioner: PreconditionerKind::Auto,
-            // 3, not 4, since the fine level's stencil product (2026-12-05): 5–11 % faster
-            // solves on CIP 4 and 3 mm and POPI 6 mm for 4–10 % more Krylov iterations.
-            smoothing_degree: 3,
+            smoothing_degree: 4,
             relaxation_max_steps: 2_000_000,
             cancel: None,
         }

@@ -82,7 +82,7 @@ impl Multigrid {
         Multigrid {
             levels,
             coarse_lu,
-            degree: 3,
+            degree: 4,
             scratch,
         }
     }
@@ -96,7 +96,7 @@ impl Multigrid {
         self.coarse_lu = coarse_factor(self.levels.last().expect("non-empty"));
     }
 
-    /// Chebyshev smoothing steps before and after each coarse correction (3 by default).
+    /// Chebyshev smoothing steps before and after each coarse correction (4 by default).
     pub fn set_smoothing_degree(&mut self, degree: usize) {
         self.degree = degree;
     }

@@ -30,8 +30,6 @@ impl Level {
     ) {
         // Interval measured on pressurised blocks: degree 4 over [λmax/30, 1.1·λmax] needed the
         // fewest fine-level products per digit of residual.
-        // (With the fine level's stencil product, degree 3 is the faster default: see the
-        // solver settings.)
         let (upper, lower) = (1.1 * self.lambda_max, self.lambda_max / 30.0);
         let theta = 0.5 * (upper + lower);
         let delta = 0.5 * (upper - lower);
