@@ -23,7 +23,7 @@ use crate::simulation::linalg::nodes_mut;
 /// Nodes per parallel task of the stencil pass (runs are cut at task boundaries).
 const TASK_NODES: usize = 2048;
 
-/// Consecutive stencil nodes of one class whose rows advance together.
+/// Consecutive stencil nodes of one pattern whose rows advance together.
 #[derive(Debug, Clone, Copy)]
 struct Run {
     /// First node of the run.
@@ -36,8 +36,8 @@ struct Run {
     rows: [u32; 9],
 }
 
-/// The fine level's stencil part: which nodes it computes, their runs, and each class's
-/// stencil as 81 four-lane columns (3 output components and one unused lane).
+/// The stencil part of a level's product: which nodes it computes, their runs, and each
+/// pattern's row as 81 four-lane columns (3 output components and one unused lane).
 pub(super) struct Stencil {
     /// Per node, whether the stencil computes its output.
     pub(super) regular: Vec<bool>,
@@ -49,9 +49,9 @@ pub(super) struct Stencil {
     /// Per (class, cells present) met: column 9·r + 3·(dx + 1) + c is the coefficient of
     /// input component c of the neighbour (dx, row r) in the three output components.
     patterns: Vec<[[f64; 4]; 81]>,
-    /// Scratch for the projected input Π·x, when a stencil node has a constrained neighbour:
-    /// with those nodes left to the element pass the stencil covered half the CIP lungs' nodes
-    /// at 4 mm instead of three quarters.
+    /// Scratch for the projected input Π·x, when a stencil node has a constrained neighbour
+    /// (leaving such nodes to the element pass instead covered only half the CIP lungs' nodes
+    /// at 4 mm: the wall's sliding nodes and their neighbours are a quarter of the rest).
     projected: Option<std::sync::Mutex<Vec<f64>>>,
 }
 
@@ -119,7 +119,9 @@ impl Stencil {
         let mut pattern_of: std::collections::HashMap<(u32, u8), u32> = Default::default();
         // The node's nine row starts and pattern, when the stencil can compute it: its cells
         // share one class, and the neighbours they hold lie along consecutive numbers in each
-        // row. A neighbour no cell holds has zero coefficients, so any in-range number serves.
+        // row. A neighbour no cell holds has zero coefficients, so any in-range number serves
+        // (a non-finite entry would spoil the Krylov vectors' dot products whatever it touched,
+        // and the solver reports a non-finite residual).
         let mut regular = |n: usize| -> Option<([u32; 9], u32)> {
             let cells = around[n];
             let first = cells.iter().find(|&&e| e != u32::MAX)?;
