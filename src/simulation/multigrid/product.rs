@@ -100,7 +100,8 @@ impl Level {
             self.scatter_all(x, y, parallel, simd);
         }
         // Π y plus the identity on the constrained directions: node range by node range, on
-        // every core for long levels (a fifth of the lungs' nodes slide on the wall).
+        // every core for long levels (the wall's sliding nodes are a quarter of the CIP
+        // lungs' nodes at 4 mm).
         let finish = |(t, y): (usize, &mut [f64])| {
             let lo = (t * NODE_TASK) as u32;
             let hi = lo + (y.len() / 3) as u32;
