@@ -131,22 +131,22 @@ impl VoxelGrid {
                 }
             }
         }
-        let mut order: Vec<u32> = (0..node_lattice.len() as u32).collect();
         if lattice_order {
+            let mut order: Vec<u32> = (0..node_lattice.len() as u32).collect();
             order.sort_unstable_by_key(|&n| {
                 let l = node_lattice[n as usize];
                 (l[2], l[1], l[0])
             });
+            let mut renumber = vec![0u32; order.len()];
+            for (new, &old) in order.iter().enumerate() {
+                renumber[old as usize] = new as u32;
+            }
+            for corners in &mut elements {
+                *corners = corners.map(|c| renumber[c as usize]);
+            }
+            positions = order.iter().map(|&o| positions[o as usize]).collect();
+            node_lattice = order.iter().map(|&o| node_lattice[o as usize]).collect();
         }
-        let mut renumber = vec![0u32; order.len()];
-        for (new, &old) in order.iter().enumerate() {
-            renumber[old as usize] = new as u32;
-        }
-        for corners in &mut elements {
-            *corners = corners.map(|c| renumber[c as usize]);
-        }
-        let mut positions: Vec<_> = order.iter().map(|&o| positions[o as usize]).collect();
-        let mut node_lattice: Vec<_> = order.iter().map(|&o| node_lattice[o as usize]).collect();
         // Grown by push: release the slack so node arrays cost what they hold.
         positions.shrink_to_fit();
         node_lattice.shrink_to_fit();

@@ -43,6 +43,8 @@ pub(super) struct Stencil {
     pub(super) regular: Vec<bool>,
     /// Per element, whether all its corners are stencil nodes (the element pass skips it).
     pub(super) skip: Vec<bool>,
+    /// Whether every node is a stencil node (then no element product is left to do).
+    all: bool,
     runs: Vec<Run>,
     /// Per task of [`TASK_NODES`] nodes, its runs in `runs`.
     tasks: Vec<std::ops::Range<usize>>,
@@ -203,6 +205,7 @@ impl Stencil {
         if runs.is_empty() {
             return None;
         }
+        let all = is_regular.iter().all(|&r| r);
         let skip = elements
             .iter()
             .map(|cs| cs.iter().all(|&c| is_regular[c as usize]))
@@ -217,6 +220,7 @@ impl Stencil {
         Some(Stencil {
             regular: is_regular,
             skip,
+            all,
             runs,
             tasks,
             patterns,
@@ -232,7 +236,7 @@ impl Stencil {
 
     /// Whether the stencil computes every node (no element product is left to do).
     pub(super) fn covers_all(&self) -> bool {
-        self.skip.iter().all(|&s| s)
+        self.all
     }
 
     /// Sets `y` = (σ·M + S)·(Π x) on the stencil nodes, Π projecting the `constrained` nodes,
