@@ -63,6 +63,9 @@ pub struct FieldSampler {
     /// rather than stored (8 bytes a lung voxel instead of 40: 90 MB less on POPI).
     lattice_at_first_voxel: V3,
     lattice_per_voxel: [V3; 3],
+    /// Whether a step along the grid's i axis moves along the lattice's x axis only (the CT
+    /// and the mesh share their axes), so the field along a row is linear inside an element.
+    rows_along_lattice_x: bool,
     /// Lattice cell of each element (its first corner, in element edges).
     element_cell: Vec<V3>,
     /// Lung voxels with no element within the search radius (left at zero).
@@ -172,6 +175,10 @@ impl FieldSampler {
             element: Vec::with_capacity(covered),
             lattice_at_first_voxel: first,
             lattice_per_voxel: [step(0), step(1), step(2)],
+            rows_along_lattice_x: {
+                let i_step = step(0);
+                i_step.y.abs() < 1e-12 && i_step.z.abs() < 1e-12
+            },
             element_cell: lattice
                 .element_cell
                 .iter()
@@ -231,8 +238,14 @@ impl FieldSampler {
             self.voxel_count,
             "output must cover the field's grid"
         );
-        let rest = &mesh.rest_positions_m;
         let [nx, ny, _] = self.geometry.dims;
+        // Each node's displacement once per frame rather than once per voxel and corner (the
+        // same subtraction, so the same bits).
+        let displacement_m: Vec<V3> = positions_m
+            .par_iter()
+            .zip(&mesh.rest_positions_m)
+            .map(|(x, r)| x - r)
+            .collect();
         // Each chunk of the grid zeroes itself and fills its own lung voxels (`voxels` is
         // sorted), so the grid is written once, in parallel, without a staging buffer.
         out.par_chunks_mut(SAMPLE_CHUNK_VOXELS)
@@ -246,27 +259,92 @@ impl FieldSampler {
                 let hi = self
                     .voxels
                     .partition_point(|&v| (v as usize) < start + chunk.len());
+                // Lung voxels come in runs along a grid row: the row's (j, k) is found by
+                // division once per row, not per voxel.
+                let (mut row_start, mut row_end) = (0, 0);
+                let (mut j, mut k) = (0.0, 0.0);
+                // Along a row inside one element of a lattice aligned with the grid's i axis
+                // the trilinear field is linear in the local x: u = a + b·x, from the
+                // element's four x edges once per run instead of eight corners per voxel.
+                let mut run: Option<(usize, V3, V3)> = None;
                 for s in lo..hi {
                     let v = self.voxels[s] as usize;
+                    if v >= row_end {
+                        let row = v / nx;
+                        row_start = row * nx;
+                        row_end = row_start + nx;
+                        (j, k) = ((row % ny) as f64, (row / ny) as f64);
+                        run = None;
+                    }
                     let e = self.element[s] as usize;
                     let f = self.lattice_at_first_voxel
-                        + self.lattice_per_voxel[0] * (v % nx) as f64
-                        + self.lattice_per_voxel[1] * ((v / nx) % ny) as f64
-                        + self.lattice_per_voxel[2] * (v / (nx * ny)) as f64;
-                    // Inside its element the clamp changes nothing; a voxel beyond the mesh
-                    // takes the element's nearest point.
-                    let local = (f - self.element_cell[e]).map(|t| t.clamp(0.0, 1.0));
-                    let mut u = V3::zeros();
-                    for (corner, &n) in mesh.elements[e].iter().enumerate() {
-                        let n = n as usize;
-                        u += (positions_m[n] - rest[n]) * corner_weight(local, corner);
-                    }
-                    let step =
-                        |m: f64| (m as f32 * FIELD_STEPS_PER_MM).round() / FIELD_STEPS_PER_MM;
-                    chunk[self.voxels[s] as usize - start] =
-                        [step(u.x * 1e3), step(u.y * 1e3), step(u.z * 1e3)];
+                        + self.lattice_per_voxel[0] * (v - row_start) as f64
+                        + self.lattice_per_voxel[1] * j
+                        + self.lattice_per_voxel[2] * k;
+                    let unclamped = f - self.element_cell[e];
+                    let inside = unclamped.iter().all(|t| (0.0..=1.0).contains(t));
+                    let u = match run {
+                        Some((run_e, a, b)) if run_e == e && inside => a + b * unclamped.x,
+                        _ => {
+                            // Inside its element the clamp changes nothing; a voxel beyond
+                            // the mesh takes the element's nearest point.
+                            let local = unclamped.map(|t| t.clamp(0.0, 1.0));
+                            let corners = &mesh.elements[e];
+                            if inside && self.rows_along_lattice_x {
+                                let (a, b) = x_edges(corners, &displacement_m, local);
+                                run = Some((e, a, b));
+                                a + b * local.x
+                            } else {
+                                run = None;
+                                let mut u = V3::zeros();
+                                for (corner, &n) in corners.iter().enumerate() {
+                                    u += displacement_m[n as usize] * corner_weight(local, corner);
+                                }
+                                u
+                            }
+                        }
+                    };
+                    let step = |m: f64| {
+                        round_half_away(m as f32 * FIELD_STEPS_PER_MM) / FIELD_STEPS_PER_MM
+                    };
+                    chunk[v - start] = [step(u.x * 1e3), step(u.y * 1e3), step(u.z * 1e3)];
                 }
             });
+    }
+}
+
+/// The trilinear field of an element with corner displacements from `displacement_m` at
+/// local (y, z) of `local`, as `a + b·x` along its x edges (VTK corners 0–1, 3–2, 4–5, 7–6).
+#[inline]
+fn x_edges(corners: &[u32; 8], displacement_m: &[V3], local: V3) -> (V3, V3) {
+    let d = |c: usize| displacement_m[corners[c] as usize];
+    let (y, z) = (local.y, local.z);
+    let mut a = V3::zeros();
+    let mut b = V3::zeros();
+    for (low, high, w) in [
+        (0, 1, (1.0 - y) * (1.0 - z)),
+        (3, 2, y * (1.0 - z)),
+        (4, 5, (1.0 - y) * z),
+        (7, 6, y * z),
+    ] {
+        a += d(low) * w;
+        b += (d(high) - d(low)) * w;
+    }
+    (a, b)
+}
+
+/// `y.round()` without libm's `roundf` call (x86-64 has no rounding instruction before
+/// SSE4.1, and three calls a lung voxel were a tenth of a POPI frame's CPU): the truncation
+/// of `y` plus the largest `f32` below one half, with `y`'s sign, which is exact (a tie's sum
+/// rounds to the next integer), keeping `y`'s sign on a zero. Beyond 2²³ every `f32` is an
+/// integer; NaN stays NaN.
+#[inline]
+fn round_half_away(y: f32) -> f32 {
+    const BELOW_HALF: f32 = 0.499_999_97;
+    if y.abs() < 8_388_608.0 {
+        ((y + BELOW_HALF.copysign(y)) as i32 as f32).copysign(y)
+    } else {
+        y
     }
 }
 
@@ -436,6 +514,44 @@ mod tests {
     use crate::model::{Material, VoxelGrid};
 
     #[test]
+    fn rounding_without_libm_equals_f32_round() {
+        let mut cases = vec![
+            0.0f32,
+            -0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.499_999_97,
+            -0.499_999_97,
+        ];
+        cases.extend([
+            8_388_607.5f32,
+            -8_388_607.5,
+            8_388_608.0,
+            1e9,
+            -1e9,
+            f32::MAX,
+        ]);
+        cases.extend([f32::INFINITY, f32::NEG_INFINITY, f32::MIN_POSITIVE]);
+        // Every tie and its neighbours up to ±4096, and a sweep of ordinary values.
+        for n in -8192..8192 {
+            let tie = n as f32 + 0.5;
+            cases.extend([
+                tie,
+                f32::from_bits(tie.to_bits() + 1),
+                f32::from_bits(tie.to_bits() - 1),
+            ]);
+        }
+        cases.extend((0..200_000).map(|i| (i as f32 - 100_000.0) * 0.013_7));
+        for y in cases {
+            assert_eq!(round_half_away(y).to_bits(), y.round().to_bits(), "{y}");
+        }
+        assert!(round_half_away(f32::NAN).is_nan());
+    }
+
+    #[test]
     fn an_affine_motion_is_reproduced_at_every_lung_voxel_and_zero_elsewhere() {
         // A 4×3×2 block of 10 mm cubes from (−20, −10, 0) mm; CT of 2.5 mm voxels.
         let origin = V3::new(-0.02, -0.01, 0.0);
@@ -566,6 +682,69 @@ mod tests {
         let e = PointSampler::new(&[[200.0, 0.0, 0.0]], &mesh, &lungs).unwrap_err();
         assert!(e.to_string().contains("point 1 at LPS (200.0"), "{e}");
         assert!(PointSampler::new(&[[f64::NAN, 0.0, 0.0]], &mesh, &lungs).is_err());
+    }
+
+    #[test]
+    fn a_non_affine_motion_matches_the_point_sampler_on_straight_and_oblique_grids() {
+        // Rows of a straight grid take the per-row form inside an element, an oblique grid's
+        // the eight corners: both must give the trilinear field the points get.
+        let origin = V3::new(-0.02, -0.01, 0.0);
+        let gm = VoxelGrid::filled_box([4, 3, 2], [0.01; 3], origin)
+            .to_mesh(Material::LUNG)
+            .unwrap();
+        let mesh = gm.mesh;
+        let lung_of = vec![1u8; mesh.elements.len()];
+        // Every node moves its own way (a hash of its index, up to ±4 mm per axis).
+        let moved: Vec<V3> = mesh
+            .rest_positions_m
+            .iter()
+            .enumerate()
+            .map(|(n, x)| {
+                let h = |a: usize| ((n * 7919 + a * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                x + V3::new(h(0), h(1), h(2)) * 8e-3
+            })
+            .collect();
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        for direction in [
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+        ] {
+            let geometry = VolumeGeometry {
+                dims: [22, 18, 10],
+                spacing_mm: [1.7, 1.9, 2.1],
+                origin_lps_mm: [-19.0, -9.0, 0.5],
+                direction_lps: direction,
+            };
+            let mut lungs = Volume::filled(geometry, 0u8).unwrap();
+            let mut centres = Vec::new();
+            for idx in 0..geometry.voxel_count() {
+                let (i, j, k) = (idx % 22, (idx / 22) % 18, idx / (22 * 18));
+                let p = geometry.voxel_to_lps_mm(V3::new(i as f64, j as f64, k as f64));
+                if p.x > -19.5 && p.x < 19.5 && p.y > -9.5 && p.y < 19.5 && p.z > 0.5 && p.z < 19.5
+                {
+                    lungs.as_slice_mut()[idx] = 1;
+                    centres.push((idx, [p.x, p.y, p.z]));
+                }
+            }
+            let sampler = FieldSampler::new(&lungs, &mesh, &lung_of, FieldGrid::Ct).unwrap();
+            assert_eq!(sampler.extrapolated_voxels, 0);
+            let mut field = vec![[f32::NAN; 3]; geometry.voxel_count()];
+            sampler.sample_mm(&mesh, &moved, &mut field);
+            let points: Vec<[f64; 3]> = centres.iter().map(|c| c.1).collect();
+            let at_points = PointSampler::new(&points, &mesh, &lung_of)
+                .unwrap()
+                .displacements_mm(&mesh, &moved);
+            for ((idx, _), expected) in centres.iter().zip(&at_points) {
+                for a in 0..3 {
+                    let got = field[*idx][a] as f64;
+                    assert!(
+                        (got - expected[a]).abs() <= 0.5 / f64::from(FIELD_STEPS_PER_MM) + 1e-4,
+                        "{direction:?} voxel {idx}: {:?} vs {expected:?}",
+                        field[*idx]
+                    );
+                }
+            }
+        }
     }
 
     #[test]
