@@ -31,8 +31,10 @@ pub(super) fn gzip_blocks<F>(block_count: usize, level: u32, fill: F) -> std::io
 where
     F: Fn(usize, &mut Vec<u8>) + Sync,
 {
+    // The result is held whole anyway, so every block goes in one parallel pass: no batch
+    // waits for its slowest block while a core idles.
     let mut gz = Vec::new();
-    gzip_blocks_into(block_count, level, fill, &mut gz)?;
+    write_batches(block_count, block_count.max(1), level, fill, &mut gz)?;
     Ok(gz)
 }
 
@@ -52,11 +54,27 @@ where
     F: Fn(usize, &mut Vec<u8>) + Sync,
     W: std::io::Write,
 {
+    // At least four blocks per worker per batch, so many cores stay busy too.
+    let batch = BLOCKS_PER_BATCH.max(4 * rayon::current_num_threads());
+    write_batches(block_count, batch, level, fill, out)
+}
+
+/// The gzip member of `block_count` blocks, deflated `batch` blocks at a time in parallel and
+/// written to `out` batch by batch.
+fn write_batches<F, W>(
+    block_count: usize,
+    batch: usize,
+    level: u32,
+    fill: F,
+    out: &mut W,
+) -> std::io::Result<()>
+where
+    F: Fn(usize, &mut Vec<u8>) + Sync,
+    W: std::io::Write,
+{
     out.write_all(&GZIP_HEADER)?;
     let mut crc = crc32fast::Hasher::new();
     let mut raw_len: u64 = 0;
-    // At least four blocks per worker per batch, so many cores stay busy too.
-    let batch = BLOCKS_PER_BATCH.max(4 * rayon::current_num_threads());
     for first in (0..block_count).step_by(batch) {
         let end = (first + batch).min(block_count);
         let blocks: Vec<Deflated> = (first..end)
