@@ -214,7 +214,8 @@ impl FieldSampler {
     /// Writes the displacement (node positions minus rest positions, metres) as millimetres,
     /// in steps of 1/[`FIELD_STEPS_PER_MM`], on every voxel of the field's grid: zero outside
     /// the lungs. `out` has one entry per
-    /// voxel and is reused across frames: nothing is allocated per call.
+    /// voxel and is reused across frames: nothing grid-sized is allocated per call (only one
+    /// displacement per mesh node).
     pub fn sample_mm(&self, mesh: &HexMesh, positions_m: &[V3], out: &mut [[f32; 3]]) {
         self.sample_into(mesh, positions_m, out, true);
     }
@@ -513,6 +514,14 @@ mod tests {
     use super::*;
     use crate::model::{Material, VoxelGrid};
 
+    /// A 4×3×2 block of 10 mm cubes from (−20, −10, 0) mm.
+    fn block_mesh() -> HexMesh {
+        VoxelGrid::filled_box([4, 3, 2], [0.01; 3], V3::new(-0.02, -0.01, 0.0))
+            .to_mesh(Material::LUNG)
+            .unwrap()
+            .mesh
+    }
+
     #[test]
     fn rounding_without_libm_equals_f32_round() {
         let mut cases = vec![
@@ -535,7 +544,7 @@ mod tests {
             f32::MAX,
         ]);
         cases.extend([f32::INFINITY, f32::NEG_INFINITY, f32::MIN_POSITIVE]);
-        // Every tie and its neighbours up to ±4096, and a sweep of ordinary values.
+        // Every tie and its neighbours up to ±8192, and a sweep of ordinary values.
         for n in -8192..8192 {
             let tie = n as f32 + 0.5;
             cases.extend([
@@ -553,12 +562,8 @@ mod tests {
 
     #[test]
     fn an_affine_motion_is_reproduced_at_every_lung_voxel_and_zero_elsewhere() {
-        // A 4×3×2 block of 10 mm cubes from (−20, −10, 0) mm; CT of 2.5 mm voxels.
-        let origin = V3::new(-0.02, -0.01, 0.0);
-        let gm = VoxelGrid::filled_box([4, 3, 2], [0.01; 3], origin)
-            .to_mesh(Material::LUNG)
-            .unwrap();
-        let mesh = gm.mesh;
+        // CT of 2.5 mm voxels over the block.
+        let mesh = block_mesh();
         let geometry = VolumeGeometry::axis_aligned([24, 20, 12], [2.5; 3], [-28.0, -18.0, -5.0]);
         let mut lungs = Volume::filled(geometry, 0u8).unwrap();
         let mut inside = 0;
@@ -688,11 +693,7 @@ mod tests {
     fn a_non_affine_motion_matches_the_point_sampler_on_straight_and_oblique_grids() {
         // Rows of a straight grid take the per-row form inside an element, an oblique grid's
         // the eight corners: both must give the trilinear field the points get.
-        let origin = V3::new(-0.02, -0.01, 0.0);
-        let gm = VoxelGrid::filled_box([4, 3, 2], [0.01; 3], origin)
-            .to_mesh(Material::LUNG)
-            .unwrap();
-        let mesh = gm.mesh;
+        let mesh = block_mesh();
         let lung_of = vec![1u8; mesh.elements.len()];
         // Every node moves its own way (a hash of its index, up to ±4 mm per axis).
         let moved: Vec<V3> = mesh

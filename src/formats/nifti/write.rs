@@ -242,11 +242,7 @@ fn encode_planar_values(vectors: &[[f32; 3]], range: std::ops::Range<usize>, raw
         let component = at / n;
         let plane_end = ((component + 1) * n).min(range.end);
         let voxels = &vectors[at - component * n..plane_end - component * n];
-        let at_byte = raw.len();
-        raw.resize(at_byte + 4 * voxels.len(), 0);
-        for (bytes, v) in raw[at_byte..].chunks_exact_mut(4).zip(voxels) {
-            bytes.copy_from_slice(&v[component].to_le_bytes());
-        }
+        raw.extend(voxels.iter().flat_map(|v| v[component].to_le_bytes()));
         at = plane_end;
     }
 }
