@@ -55,6 +55,7 @@
 mod airways;
 mod components;
 pub(crate) mod crop;
+mod disc;
 mod left_right;
 pub(crate) mod morphology;
 mod refine;

@@ -126,18 +126,6 @@ struct EnvelopeScratch {
 /// infinite entries being no source; returns false when the line is left as it was (no
 /// source at all, or sources only), so a strided line need not be written back.
 fn envelope_line(line: &mut [f32], spacing: f32, s: &mut EnvelopeScratch) -> bool {
-    envelope_line_from(line, spacing, 0, s)
-}
-
-/// [`envelope_line`] on the part of a longer line that starts at index `first`: positions
-/// are the whole line's (`(first + q)·s`), so a cropped line holding every source of the
-/// whole one gives the same values bit for bit.
-fn envelope_line_from(
-    line: &mut [f32],
-    spacing: f32,
-    first: usize,
-    s: &mut EnvelopeScratch,
-) -> bool {
     // A line with no source stays infinite and one of sources only stays zero: the bulk of
     // the lines far from (or deep inside) a mask, skipped without building an envelope.
     if line.iter().all(|v| !v.is_finite()) || line.iter().all(|&v| v == 0.0) {
@@ -152,14 +140,14 @@ fn envelope_line_from(
         if !fq.is_finite() {
             continue;
         }
-        let pq = (first + q) as f32 * spacing;
+        let pq = q as f32 * spacing;
         loop {
             let Some(&p) = s.vertices.last() else {
                 s.vertices.push(q);
                 s.bounds.push(f32::NEG_INFINITY);
                 break;
             };
-            let pp = (first + p) as f32 * spacing;
+            let pp = p as f32 * spacing;
             let cross = ((fq + pq * pq) - (f[p] + pp * pp)) / (2.0 * (pq - pp));
             if cross <= s.bounds[s.bounds.len() - 1] {
                 s.vertices.pop();
@@ -177,12 +165,12 @@ fn envelope_line_from(
     }
     let mut v = 0;
     for (q, out) in line.iter_mut().enumerate() {
-        let x = (first + q) as f32 * spacing;
+        let x = q as f32 * spacing;
         while v + 1 < s.vertices.len() && s.bounds[v + 1] < x {
             v += 1;
         }
         let p = s.vertices[v];
-        let d = x - (first + p) as f32 * spacing;
+        let d = x - p as f32 * spacing;
         *out = d * d + f[p];
     }
     true
@@ -312,21 +300,6 @@ pub(crate) fn squared_distance_slice_mm2(
     out: &mut [f32],
     scratch: &mut SliceScratch,
 ) {
-    squared_distance_rect_mm2(mask, [nu, nv], [su, sv], 0, feature_is_set, out, scratch);
-}
-
-/// [`squared_distance_slice_mm2`] on a rectangle of a slice whose first row is row
-/// `first_row` of the slice: the columns keep the slice's positions (see
-/// [`envelope_line_from`]), the rows' distances depend on differences of indices only.
-pub(crate) fn squared_distance_rect_mm2(
-    mask: &[u8],
-    [nu, nv]: [usize; 2],
-    [su, sv]: [f32; 2],
-    first_row: usize,
-    feature_is_set: bool,
-    out: &mut [f32],
-    scratch: &mut SliceScratch,
-) {
     out.iter_mut()
         .zip(mask)
         .for_each(|(d, &m)| *d = feature_seed(m, feature_is_set));
@@ -340,7 +313,7 @@ pub(crate) fn squared_distance_rect_mm2(
         &mut plane,
         &mut scratch.strip,
         &mut scratch.envelope,
-        &|c, e| envelope_line_from(c, sv, first_row, e),
+        &|c, e| envelope_line(c, sv, e),
     );
 }
 

@@ -1,14 +1,13 @@
 //! Closing, axial hole filling and largest-component selection of each lung.
 
+use ndarray::parallel::prelude::*;
 use ndarray::Zip;
 use rayon::prelude::*;
 
 use super::components::label_components;
 use super::crop::Crop;
-use super::morphology::{
-    fill_holes_2d, fill_holes_slice, grid_view, squared_distance_mm2, squared_distance_rect_mm2,
-    SliceScratch,
-};
+use super::disc::{close_by_disc, Disc, DiscScratch};
+use super::morphology::{array_axis, fill_holes_slice, grid_view, grid_view_mut};
 use super::settings::SegmentationSettings;
 use crate::volume::VolumeGeometry;
 
@@ -74,7 +73,7 @@ fn keep_allowed(closed: &mut [u8], blocked: &[u8], lung: &[u8]) {
 
 /// Closing by a disc of `r` mm within each slice across `axial`, then hole filling in those
 /// slices, each followed by [`keep_allowed`]: the whole-volume form, for grids whose axial
-/// slices are not contiguous.
+/// slices are not contiguous (each slice is gathered, worked whole, and scattered back).
 fn close_and_fill(
     lung: &[u8],
     blocked: &[u8],
@@ -83,34 +82,38 @@ fn close_and_fill(
     r: f64,
     axial: usize,
 ) -> Vec<u8> {
-    let mut closed = if r > 0.0 {
-        let r2 = (r * r) as f32;
-        let to_lung = squared_distance_mm2(lung, cd, spacing_mm, true, Some(axial));
-        let dilated: Vec<u8> = to_lung.par_iter().map(|&d| (d <= r2) as u8).collect();
-        drop(to_lung);
-        let to_outside = squared_distance_mm2(&dilated, cd, spacing_mm, false, Some(axial));
-        to_outside.par_iter().map(|&d| (d > r2) as u8).collect()
-    } else {
-        lung.to_vec()
+    // Within a slice across `axial` the lower of the two other voxel axes runs fastest.
+    let [u, v] = match axial {
+        0 => [1, 2],
+        1 => [0, 2],
+        _ => [0, 1],
     };
-    let clean = |closed: &mut [u8]| {
-        closed
-            .par_chunks_mut(cd[0] * cd[1])
-            .zip(blocked.par_chunks(cd[0] * cd[1]))
-            .zip(lung.par_chunks(cd[0] * cd[1]))
-            .for_each(|((c, b), l)| keep_allowed(c, b, l));
-    };
-    clean(&mut closed);
-    fill_holes_2d(&mut closed, cd, axial);
-    clean(&mut closed);
+    let dims = [cd[u], cd[v]];
+    let disc = Disc::new(r, [spacing_mm[u], spacing_mm[v]], cd[v]);
+    let (lung, blocked) = (grid_view(lung, cd), grid_view(blocked, cd));
+    let across = array_axis(axial);
+    let mut closed = vec![0u8; cd.iter().product()];
+    grid_view_mut(&mut closed, cd)
+        .axis_iter_mut(across)
+        .into_par_iter()
+        .enumerate()
+        .for_each_init(SliceWork::default, |work, (s, mut out)| {
+            work.lung.clear();
+            work.lung.extend(lung.index_axis(across, s).iter());
+            work.blocked.clear();
+            work.blocked.extend(blocked.index_axis(across, s).iter());
+            work.closed.resize(dims[0] * dims[1], 0);
+            work.close_and_fill(dims, &disc);
+            out.iter_mut().zip(&work.closed).for_each(|(o, &c)| *o = c);
+        });
     closed
 }
 
 /// [`close_and_fill`] when the axial slices are contiguous (axial = k): every step of a slice
-/// runs on one core while the slice is in cache, with the same arithmetic, so the same bits.
-/// Each slice is worked on the rectangle of its lung voxels grown by the closing's reach and
-/// one voxel more: beyond it nothing is taken in, and its border is background, so the
-/// distances, the closing and the hole filling inside it are those of the whole slice.
+/// runs on one core while the slice is in cache. Each slice is worked on the rectangle of its
+/// lung voxels grown by the closing's reach and one voxel more: beyond it nothing is taken
+/// in, and its border is background, so the closing and the hole filling inside it are those
+/// of the whole slice.
 fn close_and_fill_axial_slices(
     lung: &[u8],
     blocked: &[u8],
@@ -120,7 +123,7 @@ fn close_and_fill_axial_slices(
 ) -> Vec<u8> {
     let [nu, nv, _] = cd;
     let plane = nu * nv;
-    let spacing = [spacing_mm[0] as f32, spacing_mm[1] as f32];
+    let disc = Disc::new(r, [spacing_mm[0], spacing_mm[1]], nv);
     let margin = [0, 1].map(|a| (r / spacing_mm[a]).ceil() as usize + 1);
     let mut closed = vec![0u8; lung.len()];
     closed
@@ -133,7 +136,7 @@ fn close_and_fill_axial_slices(
                 return;
             };
             work.load(&rect, l, b, nu);
-            work.close_and_fill(&rect, spacing, r);
+            work.close_and_fill([rect.nu, rect.nv], &disc);
             rect.store(&work.closed, c, nu);
         });
     closed
@@ -197,15 +200,15 @@ impl SliceRect {
     }
 }
 
-/// Per-core buffers of the slice-wise closing: one slice's rectangle of lung, blocked and
-/// closed voxels, the distances and the transforms' and flood's scratch.
+/// Per-core buffers of the slice-wise closing: one slice's (or rectangle's) lung, blocked,
+/// dilated and closed voxels, and the disc's and flood's scratch.
 #[derive(Default)]
 struct SliceWork {
     lung: Vec<u8>,
     blocked: Vec<u8>,
+    dilated: Vec<u8>,
     closed: Vec<u8>,
-    dist: Vec<f32>,
-    scratch: SliceScratch,
+    scratch: DiscScratch,
     stack: Vec<u32>,
 }
 
@@ -218,32 +221,16 @@ impl SliceWork {
         self.blocked.clear();
         rect.rows(b, width)
             .for_each(|r| self.blocked.extend_from_slice(r));
-        let n = rect.nu * rect.nv;
-        self.closed.resize(n, 0);
-        self.dist.resize(n, 0.0);
+        self.closed.resize(rect.nu * rect.nv, 0);
     }
 
-    /// Closing by a disc of `r` mm, hole filling, each followed by [`keep_allowed`], on the
-    /// loaded rectangle.
-    fn close_and_fill(&mut self, rect: &SliceRect, [su, sv]: [f32; 2], r: f64) {
-        let dims = [rect.nu, rect.nv];
+    /// Closing by `disc`, hole filling, each followed by [`keep_allowed`], on the loaded
+    /// slice or rectangle of `nu × nv` voxels.
+    fn close_and_fill(&mut self, [nu, nv]: [usize; 2], disc: &Disc) {
         let (c, l, b) = (&mut self.closed, &self.lung, &self.blocked);
-        if r > 0.0 {
-            let r2 = (r * r) as f32;
-            let (dist, scratch) = (&mut self.dist, &mut self.scratch);
-            squared_distance_rect_mm2(l, dims, [su, sv], rect.v0, true, dist, scratch);
-            c.iter_mut()
-                .zip(dist.iter())
-                .for_each(|(c, &d)| *c = (d <= r2) as u8);
-            squared_distance_rect_mm2(c, dims, [su, sv], rect.v0, false, dist, scratch);
-            c.iter_mut()
-                .zip(dist.iter())
-                .for_each(|(c, &d)| *c = (d > r2) as u8);
-        } else {
-            c.copy_from_slice(l);
-        }
+        close_by_disc(l, [nu, nv], disc, c, &mut self.dilated, &mut self.scratch);
         keep_allowed(c, b, l);
-        fill_holes_slice(c, rect.nu, rect.nv, &mut self.stack);
+        fill_holes_slice(c, nu, nv, &mut self.stack);
         keep_allowed(c, b, l);
     }
 }
@@ -305,6 +292,55 @@ mod tests {
             assert_eq!(sliced, whole, "r = {r}");
             let added = whole.iter().zip(&lung).filter(|(&w, &l)| w > l).count();
             assert!(r == 0.0 || added > 0, "r = {r}: the closing added nothing");
+        }
+    }
+
+    #[test]
+    fn slices_across_i_or_j_are_closed_as_the_same_slices_stored_axially() {
+        // The lung of the rectangle test's kind, stored with its axial axis first or second:
+        // gathered slice by slice it must close exactly as when stored with k axial.
+        let axial_dims = [29, 21, 5];
+        let n: usize = axial_dims.iter().product();
+        let lung: Vec<u8> = (0..n)
+            .map(|x| {
+                let (u, v, s) = (x % 29, x / 29 % 21, x / (29 * 21));
+                let r2 = (u as i64 - 14).pow(2) + (v as i64 - 10).pow(2);
+                let hash = x.wrapping_mul(2_654_435_761) % 13;
+                u8::from((10..=60).contains(&r2) && hash > 2 && s != 3)
+            })
+            .collect();
+        let blocked: Vec<u8> = (0..n).map(|x| u8::from(x % 29 == 20)).collect();
+        let spacing = [0.7, 0.9, 2.0];
+        let expected = close_and_fill_axial_slices(&lung, &blocked, axial_dims, spacing, 2.5);
+        assert!(expected.iter().zip(&lung).any(|(&c, &l)| c > l));
+        for axial in [0, 1] {
+            // (u, v, s) of the axial storage become voxel axes: s → `axial`, u and v the others
+            // in order.
+            let [a_u, a_v] = if axial == 0 { [1, 2] } else { [0, 2] };
+            let mut dims = [0; 3];
+            let mut sp = [0.0; 3];
+            for (from, to) in [(0, a_u), (1, a_v), (2, axial)] {
+                dims[to] = axial_dims[from];
+                sp[to] = spacing[from];
+            }
+            let index = |x: usize| {
+                let uvs = [x % 29, x / 29 % 21, x / (29 * 21)];
+                let mut ijk = [0; 3];
+                for (from, to) in [(0, a_u), (1, a_v), (2, axial)] {
+                    ijk[to] = uvs[from];
+                }
+                ijk[0] + dims[0] * (ijk[1] + dims[1] * ijk[2])
+            };
+            let mut l = vec![0u8; n];
+            let mut b = vec![0u8; n];
+            for x in 0..n {
+                l[index(x)] = lung[x];
+                b[index(x)] = blocked[x];
+            }
+            let closed = close_and_fill(&l, &b, dims, sp, 2.5, axial);
+            for x in 0..n {
+                assert_eq!(closed[index(x)], expected[x], "axial {axial}, voxel {x}");
+            }
         }
     }
 
