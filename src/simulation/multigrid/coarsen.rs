@@ -5,6 +5,7 @@
 use std::collections::HashMap;
 
 use nalgebra::Matrix3;
+use rayon::prelude::*;
 
 use super::level::{sparse, Level};
 use super::M24;
@@ -128,14 +129,15 @@ fn prolongation_rows(node_ijk: &[LatticeKey], node_index: &NodeIndex) -> Vec<[(u
 /// A coarse cell's matrix depends only on its children's offsets, classes and corner
 /// projectors; cells agreeing on all three (the interior, and runs along flat constrained
 /// faces) share one computed matrix, which keeps the level's matrices few enough to stay in
-/// cache during products.
+/// cache during products. The distinct matrices are then computed on all cores, each by the
+/// same sum in the same order as alone, so the level is the same bit for bit.
 fn galerkin_matrices(fine: &Level, children: &[Vec<Child>]) -> (Vec<M24>, Vec<u32>) {
     let interp: Vec<M24> = (0..8)
         .map(|o| child_interpolation([o & 1, (o >> 1) & 1, (o >> 2) & 1]))
         .collect();
     let node_projector = projector_ids(fine);
     let mut by_children: HashMap<Vec<(usize, u32, [u32; 8])>, u32> = HashMap::new();
-    let mut matrices: Vec<M24> = Vec::new();
+    let mut distinct: Vec<&[Child]> = Vec::new();
     let mut matrix_of: Vec<u32> = Vec::with_capacity(children.len());
     for kids in children {
         let mut key: Vec<(usize, u32, [u32; 8])> = kids
@@ -148,16 +150,42 @@ fn galerkin_matrices(fine: &Level, children: &[Vec<Child>]) -> (Vec<M24>, Vec<u3
             })
             .collect();
         key.sort_unstable();
-        if let Some(&m) = by_children.get(&key) {
-            matrix_of.push(m);
-            continue;
-        }
-        matrices.push(galerkin_product(fine, kids, &interp));
-        let m = (matrices.len() - 1) as u32;
-        by_children.insert(key, m);
+        let next = distinct.len() as u32;
+        let m = *by_children.entry(key).or_insert_with(|| {
+            distinct.push(kids);
+            next
+        });
         matrix_of.push(m);
     }
+    // A child none of whose corners is constrained contributes Qᵀ·K·Q for its offset and
+    // class alone: computed once per pair (most children of a lung's interior).
+    let mut free_pairs: Vec<(usize, u32)> = distinct
+        .iter()
+        .flat_map(|kids| kids.iter())
+        .filter(|&&(e, _)| !child_is_constrained(fine, e))
+        .map(|&(e, o)| (o, fine.matrix_of[e as usize]))
+        .collect();
+    free_pairs.sort_unstable();
+    free_pairs.dedup();
+    let free_products: HashMap<(usize, u32), M24> = free_pairs
+        .par_iter()
+        .map(|&(o, m)| {
+            let q = &interp[o];
+            ((o, m), q.transpose() * fine.matrices[m as usize] * q)
+        })
+        .collect();
+    let matrices = distinct
+        .par_iter()
+        .map(|kids| galerkin_product(fine, kids, &interp, &free_products))
+        .collect();
     (matrices, matrix_of)
+}
+
+/// Whether any corner of fine element `e` carries a constraint projector.
+fn child_is_constrained(fine: &Level, e: u32) -> bool {
+    fine.elements[e as usize]
+        .iter()
+        .any(|&n| fine.projector.get(n as usize).copied().flatten().is_some())
 }
 
 /// Per fine node, an id of its constraint projector (0 = free; equal bits, equal id).
@@ -177,12 +205,25 @@ fn projector_ids(fine: &Level) -> Vec<u32> {
 }
 
 /// Σ Qᵀ·K·Q over a coarse cell's children, Q being the child's interpolation `interp[o]`
-/// with its constrained corners' rows projected.
-fn galerkin_product(fine: &Level, kids: &[Child], interp: &[M24]) -> M24 {
+/// with its constrained corners' rows projected; an unconstrained child's term is taken from
+/// `free_products` (the same product, computed once).
+fn galerkin_product(
+    fine: &Level,
+    kids: &[Child],
+    interp: &[M24],
+    free_products: &HashMap<(usize, u32), M24>,
+) -> M24 {
     let mut kc = M24::zeros();
     for &(e, o) in kids {
+        let matrix = fine.matrix_of[e as usize];
+        if let Some(term) = free_products.get(&(o, matrix)) {
+            if !child_is_constrained(fine, e) {
+                kc += term;
+                continue;
+            }
+        }
         let e = e as usize;
-        let k = &fine.matrices[fine.matrix_of[e] as usize];
+        let k = &fine.matrices[matrix as usize];
         let mut q = interp[o];
         for (c, &n) in fine.elements[e].iter().enumerate() {
             if let Some(p) = fine.projector.get(n as usize).copied().flatten() {
@@ -260,5 +301,53 @@ impl Level {
             })
             .collect();
         self.constrained = sparse(&self.projector);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::HourglassLaw;
+    use crate::simulation::multigrid::product::tests::irregular_multigrid;
+
+    #[test]
+    fn shared_and_parallel_galerkin_matrices_equal_each_cells_own_sum_bit_for_bit() {
+        // The fine level of a lung-like lattice with plane, line and fixed nodes and two
+        // classes; its elements grouped eight by eight into "coarse cells" with offsets
+        // 0–7, so free and constrained children, repeated and unique groups all occur.
+        let mg = irregular_multigrid(Matrix3::identity(), HourglassLaw::Springs);
+        let fine = &mg.levels[0];
+        let children: Vec<Vec<Child>> = (0..fine.elements.len() as u32)
+            .collect::<Vec<_>>()
+            .chunks(8)
+            .map(|c| c.iter().map(|&e| (e, (e % 8) as usize)).collect())
+            .collect();
+        let interp: Vec<M24> = (0..8)
+            .map(|o| child_interpolation([o & 1, (o >> 1) & 1, (o >> 2) & 1]))
+            .collect();
+        let (matrices, matrix_of) = galerkin_matrices(fine, &children);
+        assert!(matrices.len() < children.len(), "some cells share a matrix");
+        let free = children
+            .iter()
+            .flatten()
+            .filter(|&&(e, _)| !child_is_constrained(fine, e))
+            .count();
+        assert!(free > 0 && free < fine.elements.len());
+        for (c, kids) in children.iter().enumerate() {
+            // Each child's term computed in place, as before the products were shared.
+            let mut want = M24::zeros();
+            for &(e, o) in kids {
+                let e = e as usize;
+                let mut q = interp[o];
+                for (corner, &n) in fine.elements[e].iter().enumerate() {
+                    if let Some(p) = fine.projector[n as usize] {
+                        let rows = p * q.fixed_view::<3, 24>(3 * corner, 0);
+                        q.fixed_view_mut::<3, 24>(3 * corner, 0).copy_from(&rows);
+                    }
+                }
+                want += q.transpose() * fine.matrices[fine.matrix_of[e] as usize] * q;
+            }
+            assert_eq!(matrices[matrix_of[c] as usize], want, "coarse cell {c}");
+        }
     }
 }

@@ -453,7 +453,7 @@ impl Level {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::super::lattice::Lattice;
     use super::super::level::project_flat;
     use super::super::preconditioner::Multigrid;
@@ -463,7 +463,10 @@ mod tests {
 
     /// A lung-like irregular lattice: an ellipsoid with holes, two element classes on
     /// non-cubic bricks, and plane, line and fixed constraints on scattered nodes.
-    fn irregular_multigrid(axes: Matrix3<f64>, hourglass: HourglassLaw) -> Multigrid {
+    pub(in crate::simulation::multigrid) fn irregular_multigrid(
+        axes: Matrix3<f64>,
+        hourglass: HourglassLaw,
+    ) -> Multigrid {
         let cells = [26, 22, 18];
         let mut active = Vec::new();
         for k in 0..cells[2] {
