@@ -291,7 +291,11 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
     );
     // One sweep: the rest key is free, every other key is predicted well enough for one
     // solve but for the second, whose load-factor prediction has no curvature yet.
-    assert_eq!(r.keys, 9, "{r:?}");
+    assert_eq!(
+        r.keys,
+        lungmotion::simulation::keyframes::FIRST_SWEEP_KEYS,
+        "{r:?}"
+    );
     assert!(r.solves <= r.keys + 1, "{r:?}");
     assert!(r.newton_iterations <= 3 * r.solves, "{r:?}");
     // Fresh direct solves between the keys, each from rest in its own driver: the
