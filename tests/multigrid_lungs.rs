@@ -293,7 +293,7 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
     // solve but for the second, whose load-factor prediction has no curvature yet.
     assert_eq!(
         r.keys,
-        lungmotion::simulation::keyframes::FIRST_SWEEP_KEYS,
+        lungmotion::simulation::keyframes::FirstSweep::PLANES.min_keys,
         "{r:?}"
     );
     assert!(r.solves <= r.keys + 1, "{r:?}");

@@ -186,6 +186,12 @@ impl<'s> BreathingDriver<'s> {
         })
     }
 
+    /// Whether some nodes slide on curved surfaces (level sets of a distance field) rather
+    /// than on planes and lines.
+    pub fn slides_on_curved_surfaces(&self) -> bool {
+        !self.scene.constraints.fields.is_empty()
+    }
+
     /// Rest positions of the scene's nodes, metres.
     pub fn rest_positions(&self) -> &[V3] {
         &self.scene.mesh.rest_positions_m

@@ -45,28 +45,48 @@ use crate::{Error, Result};
 /// Largest number of key volumes before the interpolation is declared not worth it.
 pub const MAX_KEYS: usize = 129;
 
-/// Fewest keys of the first sweep, evenly spaced: over a 500 mL tidal range a step of
-/// 125 mL. Measured on 2026-12-05 against 9 keys (62.5 mL): the fields of the CIP lungs at
-/// 4 mm and of the POPI lungs at 4 mm differ by at most 0.02 mm (the 1/64 mm rounding), the
-/// leave-one-out error stays at 0.03–0.05 mm (tolerance 0.1 mm, refined beyond it), Newton
-/// still takes 1–2 steps a key, and the solves take a third less time.
-pub const FIRST_SWEEP_KEYS: usize = 5;
+/// How the first sweep spaces its keys: at least `min_keys`, evenly, and as many more as keep
+/// neighbours at most `max_step_ml` apart (a wider range gets more keys, not wider steps).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FirstSweep {
+    /// Fewest keys, whatever the range.
+    pub min_keys: usize,
+    /// Largest step between neighbouring keys, mL.
+    pub max_step_ml: f64,
+}
 
-/// Largest step between the first sweep's keys, mL: a wider range gets more keys, not wider
-/// steps. A recording with a vital-capacity manoeuvre (−436 … +1150 mL on the POPI lungs at
-/// 8 mm) spread over 9 keys made steps of 198 mL, and three of those solves ran their 40
-/// Newton iterations (13–60 s each) without converging before the step was halved; with
-/// steps of at most 125 mL (14 keys) every solve converged, in 36 Newton iterations against
-/// 47 with 62.5 mL (27 keys), and the frames met 0.1 mm with no interval solved directly.
-pub const MAX_FIRST_SWEEP_STEP_ML: f64 = 125.0;
+impl FirstSweep {
+    /// Nodes held on tangent planes and lines (the default scene): 5 keys, at most 125 mL
+    /// apart. Measured on 2026-12-05 against 9 keys 62.5 mL apart (the sweep before): the
+    /// fields of the CIP and POPI lungs at 4 mm differ by at most 0.02 mm (the 1/64 mm
+    /// rounding), the leave-one-out error stays at 0.03–0.05 mm (tolerance 0.1 mm, refined
+    /// beyond it), Newton still takes 1–2 steps a key, and the solves take a third less time.
+    /// The recording with a vital-capacity manoeuvre (−436 … +1150 mL on the POPI lungs at
+    /// 8 mm) gets 14 keys: every solve converged, in 36 Newton iterations against 47 with 27
+    /// keys. (Spread over 9 keys, its steps of 198 mL each ran Newton's 40 iterations, 13–60 s,
+    /// without converging before the step was halved.)
+    pub const PLANES: FirstSweep = FirstSweep {
+        min_keys: 5,
+        max_step_ml: 125.0,
+    };
 
-/// Keys of the first sweep over `lo..=hi` mL.
-fn first_sweep_keys(lo: f64, hi: f64) -> usize {
-    let steps = ((hi - lo) / MAX_FIRST_SWEEP_STEP_ML).ceil();
-    if steps.is_finite() {
-        FIRST_SWEEP_KEYS.max(steps as usize + 1).min(MAX_KEYS)
-    } else {
-        FIRST_SWEEP_KEYS
+    /// Nodes sliding on the curved wall's level sets (`sliding = "wall_surface"`): 9 keys, at
+    /// most 62.5 mL apart. Their response bends more (a leave-one-out error of 0.08 mm with
+    /// 62.5 mL steps on the CIP lungs at 4 mm): with 125 mL steps half the keys missed and were
+    /// refined, and the cycle's solves took 6.4 s (26 Newton) against 3.7 s (16).
+    pub const CURVED_WALL: FirstSweep = FirstSweep {
+        min_keys: 9,
+        max_step_ml: 62.5,
+    };
+
+    /// Keys of the first sweep over `lo..=hi` mL.
+    fn keys(&self, lo: f64, hi: f64) -> usize {
+        let steps = ((hi - lo) / self.max_step_ml).ceil();
+        if steps.is_finite() {
+            self.min_keys.max(steps as usize + 1).min(MAX_KEYS)
+        } else {
+            self.min_keys
+        }
     }
 }
 
@@ -157,11 +177,12 @@ struct Miss {
 /// from the scan (a deep key solved straight from rest, or from the far end of the range,
 /// may land on another equilibrium or fail where a gradual path succeeds).
 fn first_sweep(
+    sweep: FirstSweep,
     lo: f64,
     hi: f64,
     solve: &mut impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
 ) -> Result<Vec<DrivenState>> {
-    let keys = first_sweep_keys(lo, hi);
+    let keys = sweep.keys(lo, hi);
     let volumes: Vec<f64> = (0..keys)
         .map(|j| lo + (hi - lo) * j as f64 / (keys - 1) as f64)
         .collect();
@@ -224,18 +245,33 @@ impl VolumeKeyframes {
             0.5 * (lo_ml + hi_ml) + 0.5 * span,
         );
         let rest = driver.rest_positions().to_vec();
-        Self::refine(&rest, lo, hi, frames_ml, tolerance_mm, |volume_ml, from| {
-            if let Some(below) = from {
-                driver.warm_start(below);
-            }
-            driver.solve_volume(volume_ml, volume_tolerance_ml)
-        })
+        let sweep = if driver.slides_on_curved_surfaces() {
+            FirstSweep::CURVED_WALL
+        } else {
+            FirstSweep::PLANES
+        };
+        Self::refine(
+            sweep,
+            &rest,
+            lo,
+            hi,
+            frames_ml,
+            tolerance_mm,
+            |volume_ml, from| {
+                if let Some(below) = from {
+                    driver.warm_start(below);
+                }
+                driver.solve_volume(volume_ml, volume_tolerance_ml)
+            },
+        )
     }
 
-    /// The adaptive key placement over `lo..=hi` mL for frames at `frames_ml`, whatever
-    /// solves the states: `solve(v, from)` returns the equilibrium at volume change `v`,
-    /// continuing from the solved state `from` when given, else from the previous solve.
+    /// The adaptive key placement over `lo..=hi` mL for frames at `frames_ml`, from a first
+    /// sweep spaced by `sweep`, whatever solves the states: `solve(v, from)` returns the
+    /// equilibrium at volume change `v`, continuing from the solved state `from` when given,
+    /// else from the previous solve.
     pub fn refine(
+        sweep: FirstSweep,
         rest: &[V3],
         lo: f64,
         hi: f64,
@@ -244,7 +280,7 @@ impl VolumeKeyframes {
         mut solve: impl FnMut(f64, Option<&DrivenState>) -> Result<DrivenState>,
     ) -> Result<Self> {
         let mut scratch = vec![V3::zeros(); rest.len()];
-        let mut states = first_sweep(lo, hi, &mut solve)?;
+        let mut states = first_sweep(sweep, lo, hi, &mut solve)?;
         let min_step = (hi - lo) * MIN_KEY_STEP_FRACTION;
         let mut frames: Vec<f64> = frames_ml.to_vec();
         frames.sort_by(f64::total_cmp);
@@ -696,9 +732,15 @@ mod tests {
         // A smooth stretch plus a node that starts sliding at 713 mL (slope change 0.02
         // mm/mL), as a wall node crossing a cell of the distance field does.
         let x_mm = |v: f64| 0.03 * v + 2e-6 * v * v + 0.02 * (v - 713.0).max(0.0);
-        let keys = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, &[], 0.1, |v, _| {
-            Ok(synthetic(v, x_mm))
-        })
+        let keys = VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            0.0,
+            1000.0,
+            &[],
+            0.1,
+            |v, _| Ok(synthetic(v, x_mm)),
+        )
         .unwrap();
         let r = &keys.report;
         assert!(r.refinements > 0 && r.keys < 40, "{r:?}");
@@ -710,7 +752,7 @@ mod tests {
             .min_by(|&a, &b| (v[a] - v[a - 1]).total_cmp(&(v[b] - v[b - 1])))
             .unwrap();
         assert!((v[closest] - 713.0).abs() < 50.0, "{v:?}");
-        let first_sweep_below_300 = (300.0 / MAX_FIRST_SWEEP_STEP_ML).ceil() as usize;
+        let first_sweep_below_300 = (300.0 / FirstSweep::PLANES.max_step_ml).ceil() as usize;
         assert!(
             v.iter().filter(|&&x| x < 300.0).count() <= first_sweep_below_300,
             "{v:?}"
@@ -732,14 +774,22 @@ mod tests {
         // A kink below the scan forces a refinement there too.
         let x_mm = |v: f64| 0.03 * v + 0.02 * (-250.0 - v).max(0.0);
         let mut calls: Vec<(f64, Option<f64>)> = Vec::new();
-        let keys = VolumeKeyframes::refine(&rest(), -400.0, 100.0, &[], 0.1, |v, from| {
-            calls.push((v, from.map(|s| s.volume_change_ml)));
-            Ok(synthetic(v, x_mm))
-        })
+        let keys = VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            -400.0,
+            100.0,
+            &[],
+            0.1,
+            |v, from| {
+                calls.push((v, from.map(|s| s.volume_change_ml)));
+                Ok(synthetic(v, x_mm))
+            },
+        )
         .unwrap();
         // The first sweep: -400 + 125 j; the key nearest the scan (-25) first, from wherever
         // the driver is (the rest state), then up from it, then down from it.
-        assert_eq!(FIRST_SWEEP_KEYS, 5);
+        assert_eq!(FirstSweep::PLANES.min_keys, 5);
         let sweep: Vec<f64> = calls.iter().take(5).map(|c| c.0).collect();
         assert_eq!(sweep, [-25.0, 100.0, -150.0, -275.0, -400.0]);
         assert_eq!(calls[0].1, None);
@@ -789,35 +839,48 @@ mod tests {
 
     #[test]
     fn a_wide_range_gets_more_first_sweep_keys_not_wider_steps() {
-        assert_eq!(first_sweep_keys(0.0, 500.0), FIRST_SWEEP_KEYS);
-        assert_eq!(first_sweep_keys(-100.0, 100.0), FIRST_SWEEP_KEYS);
+        let planes = FirstSweep::PLANES;
+        assert_eq!(planes.keys(0.0, 500.0), planes.min_keys);
+        assert_eq!(planes.keys(-100.0, 100.0), planes.min_keys);
         // The recording with a vital-capacity manoeuvre: −436 … +1150 mL.
-        let n = first_sweep_keys(-436.0, 1150.0);
+        let n = planes.keys(-436.0, 1150.0);
         assert_eq!(n, 14);
-        assert!(1586.0 / (n - 1) as f64 <= MAX_FIRST_SWEEP_STEP_ML);
+        assert!(1586.0 / (n - 1) as f64 <= planes.max_step_ml);
         let mut solved = Vec::new();
-        VolumeKeyframes::refine(&rest(), -436.0, 1150.0, &[], 0.1, |v, _| {
-            solved.push(v);
-            Ok(synthetic(v, |v| 0.03 * v))
-        })
+        VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            -436.0,
+            1150.0,
+            &[],
+            0.1,
+            |v, _| {
+                solved.push(v);
+                Ok(synthetic(v, |v| 0.03 * v))
+            },
+        )
         .unwrap();
         solved.sort_by(f64::total_cmp);
         assert_eq!(solved.len(), n);
         assert!(solved
             .windows(2)
-            .all(|w| w[1] - w[0] <= MAX_FIRST_SWEEP_STEP_ML + 1e-9));
-        assert_eq!(first_sweep_keys(f64::NAN, 1.0), FIRST_SWEEP_KEYS);
+            .all(|w| w[1] - w[0] <= planes.max_step_ml + 1e-9));
+        assert_eq!(planes.keys(f64::NAN, 1.0), planes.min_keys);
+        // The curved wall keeps the finer sweep: 9 keys over a 500 mL breath, 62.5 mL apart.
+        assert_eq!(FirstSweep::CURVED_WALL.keys(0.0, 500.0), 9);
+        assert_eq!(FirstSweep::CURVED_WALL.keys(-436.0, 1150.0), 27);
     }
 
     #[test]
     fn a_smooth_response_takes_the_first_sweep_only() {
-        let keys = VolumeKeyframes::refine(&rest(), 0.0, 500.0, &[], 0.1, |v, _| {
-            Ok(synthetic(v, |v| 0.05 * v - 1e-5 * v * v))
-        })
-        .unwrap();
+        let keys =
+            VolumeKeyframes::refine(FirstSweep::PLANES, &rest(), 0.0, 500.0, &[], 0.1, |v, _| {
+                Ok(synthetic(v, |v| 0.05 * v - 1e-5 * v * v))
+            })
+            .unwrap();
         assert_eq!(
             (keys.report.keys, keys.report.refinements),
-            (FIRST_SWEEP_KEYS, 0)
+            (FirstSweep::PLANES.min_keys, 0)
         );
         assert!(
             keys.report.measured_error_mm.is_some_and(|e| e < 1e-9),
@@ -833,10 +896,18 @@ mod tests {
         // Many frames (a long recording): narrowing the jump down is cheaper than solving them.
         let frames: Vec<f64> = (0..=2000).map(|i| i as f64 * 0.5).collect();
         let mut solves = 0;
-        let keys = VolumeKeyframes::refine(&rest(), 0.0, 1000.0, &frames, 0.1, |v, _| {
-            solves += 1;
-            Ok(synthetic(v, x_mm))
-        })
+        let keys = VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            0.0,
+            1000.0,
+            &frames,
+            0.1,
+            |v, _| {
+                solves += 1;
+                Ok(synthetic(v, x_mm))
+            },
+        )
         .unwrap();
         let jumps = &keys.report.direct_intervals;
         assert_eq!(jumps.len(), 1, "{jumps:?}");
@@ -876,10 +947,18 @@ mod tests {
         // sweep's keys already sit closer than the frames).
         let ten: Vec<f64> = (0..10).map(|i| i as f64 * 111.0).collect();
         let mut few_solves = 0;
-        let wide = VolumeKeyframes::refine(&rest(), 0.0, 999.0, &ten, 0.1, |v, _| {
-            few_solves += 1;
-            Ok(synthetic(v, x_mm))
-        })
+        let wide = VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            0.0,
+            999.0,
+            &ten,
+            0.1,
+            |v, _| {
+                few_solves += 1;
+                Ok(synthetic(v, x_mm))
+            },
+        )
         .unwrap();
         let jump = &wide.report.direct_intervals[0];
         assert!(jump.from_ml < 480.0 && jump.to_ml > 480.0, "{jump:?}");
@@ -895,9 +974,15 @@ mod tests {
     fn below_the_scan_a_jump_is_solved_from_the_key_nearer_the_scan() {
         let x_mm = |v: f64| 0.03 * v + if v < -300.0 { -2.0 } else { 0.0 };
         let frames: Vec<f64> = (0..=600).map(|i| i as f64 - 500.0).collect();
-        let keys = VolumeKeyframes::refine(&rest(), -500.0, 100.0, &frames, 0.1, |v, _| {
-            Ok(synthetic(v, x_mm))
-        })
+        let keys = VolumeKeyframes::refine(
+            FirstSweep::PLANES,
+            &rest(),
+            -500.0,
+            100.0,
+            &frames,
+            0.1,
+            |v, _| Ok(synthetic(v, x_mm)),
+        )
         .unwrap();
         let jump = &keys.report.direct_intervals[0];
         assert!(jump.from_ml < -300.0 && jump.to_ml > -300.0, "{jump:?}");
