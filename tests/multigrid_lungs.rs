@@ -255,7 +255,7 @@ fn cip_scene(element_size_mm: f64) -> Option<Scene> {
     any(not(feature = "slow-tests"), not(shared_data)),
     ignore = "slow study (large grid: CIP lungs): cargo test --features slow-tests with the shared CT data (../shared/data)"
 )]
-fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
+fn cip_tidal_cycle_keys_take_one_solve_each_but_the_first_and_interpolate_direct_solves() {
     let Some(scene) = cip_scene(8.0) else {
         println!("skipped: shared data not found");
         return;
@@ -290,13 +290,15 @@ fn cip_tidal_cycle_keys_take_one_solve_each_and_interpolate_direct_solves() {
         "{r:?}"
     );
     // One sweep: the rest key is free, every other key is predicted well enough for one
-    // solve but for the second, whose load-factor prediction has no curvature yet.
+    // solve but for the first beyond the scan, whose pressure comes from the linear
+    // compliance alone over a 125 mL step (3 solves on the CIP lungs at 4 mm; with 62.5 mL
+    // steps it took one and the second key two).
     assert_eq!(
         r.keys,
         lungmotion::simulation::keyframes::FirstSweep::PLANES.min_keys,
         "{r:?}"
     );
-    assert!(r.solves <= r.keys + 1, "{r:?}");
+    assert!(r.solves <= r.keys + 2, "{r:?}");
     assert!(r.newton_iterations <= 3 * r.solves, "{r:?}");
     // Fresh direct solves between the keys, each from rest in its own driver: the
     // interpolant reproduces them within the tolerance.
