@@ -62,3 +62,39 @@ fn quick_motion_bench_reports_a_coherent_cycle() {
         .fold(0.0, f64::max);
     assert!(largest > 400.0, "{json}");
 }
+
+#[test]
+#[cfg_attr(
+    any(not(feature = "slow-tests"), not(shared_data)),
+    ignore = "slow study (motion benchmark on the POPI CT): cargo test --features slow-tests with the shared CT data (../shared/data)"
+)]
+fn popi_serving_alone_reports_lung_box_fields_on_the_full_ct() {
+    let options = MotionBenchOptions {
+        element_sizes_mm: Vec::new(),
+        popi_serving: true,
+        ..MotionBenchOptions::quick()
+    };
+    let report = run_motion_bench(&options).expect("benchmark ran");
+    let json = serde_json::to_string(&report).expect("report serialises");
+    if lungmotion::datasets::popi_chest_ct().is_none() {
+        assert!(matches!(report.popi, Outcome::Skipped(_)), "{json}");
+        println!("skipped: shared data not found");
+        return;
+    }
+    let md = report.to_markdown();
+    println!("{md}");
+    assert!(md.contains("the POPI CT"), "{md}");
+    let popi = report.popi.measured().expect("POPI fields served");
+    assert_eq!(popi.build.ct_dims, [512, 512, 141], "{json}");
+    assert_eq!(popi.element_size_mm, 6.0, "the run's default element size");
+    let serving = &popi.serving;
+    assert_eq!(serving.fields, 10);
+    // The lung box, not the CT grid: a fraction of the CT's 37 M voxels, far more than CIP's.
+    let ct_voxels = 512 * 512 * 141;
+    assert!(
+        serving.voxels_per_field > 1_000_000 && serving.voxels_per_field < ct_voxels / 2,
+        "{json}"
+    );
+    assert!(serving.fields_per_s > 0.0 && serving.fields_per_s.is_finite());
+    assert!(serving.node_states_per_s >= serving.fields_per_s, "{json}");
+}

@@ -99,6 +99,36 @@ fn quick_service_bench_measures_upload_overhead_and_load() {
             Outcome::Failed(e) => panic!("wrk failed: {e}"),
         }
     }
+    // Serving at clinical scale: the POPI CT through the service, when the shared data is here.
+    match &report.popi {
+        Outcome::Measured(p) => {
+            assert_eq!(p.slices, 141, "{p:?}");
+            assert_eq!(p.frames, 10, "{p:?}");
+            assert_eq!(p.until_done.runs, 1, "quick mode runs one job: {p:?}");
+            // The lung box: a fraction of the CT's 37 M voxels, millions all the same.
+            let voxels: usize = p.field_dims.iter().product();
+            assert!(voxels > 1_000_000 && voxels < 512 * 512 * 141 / 2, "{p:?}");
+            assert!(p.field_bytes > 0, "{p:?}");
+            assert!(
+                p.frame_files.median_s > 0.0 && p.frame_files.median_s < p.until_done.median_s,
+                "the fields are written within the job: {p:?}"
+            );
+            assert!(p.fields_written_per_s > 0.0 && p.fields_written_per_s.is_finite());
+            let Outcome::Measured(l) = &p.load else {
+                panic!("POPI load not measured: {:?}", p.load);
+            };
+            assert_eq!(l.errors, 0, "{l:?}");
+            assert!(l.requests > 0, "{l:?}");
+            assert_eq!(
+                l.body_bytes, p.field_bytes,
+                "the whole field every time: {l:?}"
+            );
+        }
+        Outcome::Skipped(why) => {
+            assert!(lungmotion::datasets::popi_chest_ct().is_none(), "{why}");
+        }
+        Outcome::Failed(e) => panic!("POPI serving failed: {e}"),
+    }
     assert!(report.peak_rss_bytes.is_some_and(|b| b > 0));
     assert!(report.socket_buffer_max_bytes.is_some_and(|b| b > 0));
 
@@ -138,6 +168,7 @@ fn quick_service_bench_measures_upload_overhead_and_load() {
         "## Service against the CLI",
         "## Load over loopback",
         "## The PostgreSQL queue",
+        "## Serving at clinical scale: the POPI CT",
         "share the",
     ] {
         assert!(md.contains(section), "missing {section}:\n{md}");

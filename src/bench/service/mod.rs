@@ -28,6 +28,12 @@
 //!   latency percentiles, MiB/s, errors. When `wrk` is on PATH it is run on the same URLs
 //!   (2 threads, 16 connections) and reported beside ours.
 //!
+//! * **POPI** (issue 13, target 6): serving at clinical scale, the POPI CT (512 × 512 × 141)
+//!   uploaded as a stored zip, three 10-phase jobs at the run's default element size: fields
+//!   written per second after the solves (the jobs' `timings_s.frame_files`) and the load above
+//!   on its `frames/0/displacement` (see [`popi`]); quick: one job, the short load. Skipped
+//!   without the shared data.
+//!
 //! * **Queue** (issue 17): the PostgreSQL queue's own calls per job (claim, heartbeat,
 //!   completion; medians) and jobs per minute with 1, 2 and 4 workers on short jobs, side by
 //!   side in one run, on a PostgreSQL server of the benchmark's own (see [`queue`]).
@@ -36,6 +42,7 @@
 
 mod load;
 mod overhead;
+mod popi;
 pub mod queue;
 mod report;
 mod upload;
@@ -47,11 +54,13 @@ use serde::Serialize;
 use serde_json::Value;
 
 use super::{cpu_model, utc_now, Outcome, TimeStats};
+use crate::datasets::popi_chest_ct;
 use crate::process::{load_average, peak_rss_bytes};
 use crate::run::RunConfig;
 use crate::service::{start, ServerHandle, ServiceConfig};
 use crate::{Error, IoContext, IoOp, Result};
 use load::wrk_load;
+pub use popi::PopiServing;
 
 /// Slices of the uploaded DICOM series (the issue's 300).
 pub const UPLOAD_SLICES: usize = 300;
@@ -250,6 +259,8 @@ pub struct ServiceBenchReport {
     pub load: Vec<Outcome<LoadResult>>,
     /// wrk on the same endpoints (skipped when absent).
     pub wrk: Vec<Outcome<LoadResult>>,
+    /// The POPI CT through the service: fields written per second, requests per second.
+    pub popi: Outcome<PopiServing>,
     /// The PostgreSQL queue: its calls per job, and jobs per minute with 1, 2 and 4 workers.
     pub queue: queue::QueueBenchReport,
     /// Peak resident memory of the process (client + server) at the end, bytes.
@@ -351,6 +362,12 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
             )
         }
     };
+    let popi = match popi_chest_ct() {
+        None => Outcome::Skipped("shared data not found (set LUNGMOTION_SHARED_DATA)".into()),
+        Some(dir) => {
+            Outcome::from_result(bench.popi_serving(dir, repeats, options.load_duration_s()))
+        }
+    };
     let uploads = match bench.uploads(options.slice_pixels(), repeats) {
         Ok(u) => u,
         Err(e) => vec![Outcome::Failed(e.to_string())],
@@ -377,6 +394,7 @@ pub fn run_service_bench(options: &ServiceBenchOptions) -> Result<ServiceBenchRe
         overhead,
         load,
         wrk,
+        popi,
         queue,
         peak_rss_bytes,
     })

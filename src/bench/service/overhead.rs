@@ -107,7 +107,7 @@ impl Bench {
     }
 
     /// Submits the job, polls it to the end and fetches every frame's field.
-    async fn service_job(&self, scan_id: &str, request: &[u8]) -> Result<ServiceJob> {
+    pub(super) async fn service_job(&self, scan_id: &str, request: &[u8]) -> Result<ServiceJob> {
         let what = format!("POST /v1/scans/{scan_id}/simulations");
         let start = Instant::now();
         let response = self
@@ -192,10 +192,10 @@ impl Bench {
 }
 
 /// One service run of the job.
-struct ServiceJob {
-    job_id: String,
-    until_done_s: f64,
-    fetch_s: f64,
+pub(super) struct ServiceJob {
+    pub(super) job_id: String,
+    pub(super) until_done_s: f64,
+    pub(super) fetch_s: f64,
     polls: usize,
-    fields: Vec<Vec<u8>>,
+    pub(super) fields: Vec<Vec<u8>>,
 }

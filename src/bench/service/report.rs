@@ -40,6 +40,7 @@ impl ServiceBenchReport {
         self.write_uploads(&mut s);
         self.write_overhead(&mut s);
         self.write_load(&mut s);
+        self.write_popi(&mut s);
         self.write_queue(&mut s);
         if let Some(p) = self.peak_rss_bytes {
             let _ = writeln!(
@@ -221,6 +222,86 @@ impl ServiceBenchReport {
                         } else {
                             "–".into()
                         },
+                    ]);
+                }
+                Outcome::Failed(e) | Outcome::Skipped(e) => {
+                    table.partial_row([one_line(e)]);
+                }
+            }
+        }
+        table.write_to(s);
+    }
+
+    fn write_popi(&self, s: &mut String) {
+        let _ = writeln!(s, "\n## Serving at clinical scale: the POPI CT\n");
+        let p = match &self.popi {
+            Outcome::Measured(p) => p,
+            Outcome::Failed(e) => {
+                let _ = writeln!(s, "Failed: {}", one_line(e));
+                return;
+            }
+            Outcome::Skipped(e) => {
+                let _ = writeln!(s, "Skipped: {}", one_line(e));
+                return;
+            }
+        };
+        let [nx, ny, nz] = p.field_dims;
+        let _ = writeln!(
+            s,
+            "The POPI series ({} slices, zip of {:.1} MiB, entries stored) uploaded once \
+             ({:.2} s to the 201), then {} jobs of {} phases at {} mm, one after the other. \
+             Each field is the lung box, {nx} × {ny} × {nz} voxels ({:.1} M), {:.2} MiB gzipped.\n",
+            p.slices,
+            p.zip_bytes as f64 / MIB,
+            p.upload_to_201_s,
+            p.until_done.runs,
+            p.frames,
+            p.element_size_mm,
+            (nx * ny * nz) as f64 / 1e6,
+            p.field_bytes as f64 / MIB,
+        );
+        let ms = |t: &TimeStats| format!("{:.2} s [{:.2} – {:.2}]", t.median_s, t.min_s, t.max_s);
+        let mut table = Table::new(["Per job", "median [range]"]);
+        table.row(["submit → `done` (20 ms polls)".into(), ms(&p.until_done)]);
+        table.row([
+            "key solves and frames (`motion_solve`)".into(),
+            ms(&p.motion_solve),
+        ]);
+        table.row([
+            format!(
+                "writing the {} fields after the solves (`frame_files`)",
+                p.frames
+            ),
+            ms(&p.frame_files),
+        ]);
+        table.row([
+            "**fields written per second after the solves**".into(),
+            format!("**{:.1}**", p.fields_written_per_s),
+        ]);
+        table.row([
+            format!(
+                "fetching the frame list and the {} fields, one by one",
+                p.frames
+            ),
+            ms(&p.fetch_all),
+        ]);
+        table.write_to(s);
+        let _ = writeln!(s);
+        let mut table = Table::new([
+            "Endpoint", "Tool", "Requests", "Errors", "Req/s", "p50 ms", "p99 ms", "MiB/s",
+        ]);
+        for o in [&p.load, &p.wrk] {
+            match o {
+                Outcome::Measured(l) => {
+                    table.row([
+                        format!("`{}`", l.endpoint),
+                        l.tool.clone(),
+                        l.requests.to_string(),
+                        l.errors.to_string(),
+                        format!("{:.0}", l.requests_per_s),
+                        format!("{:.1}", l.latency_p50_ms),
+                        format!("{:.1}", l.latency_p99_ms),
+                        format!("{:.0}", l.mib_per_s),
                     ]);
                 }
                 Outcome::Failed(e) | Outcome::Skipped(e) => {

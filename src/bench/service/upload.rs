@@ -225,7 +225,11 @@ struct UploadRounds {
 }
 
 /// Zips `files` (flat, by file name) into `zip_path`; returns the zip's size.
-fn write_zip(files: &[PathBuf], zip_path: &Path, method: zip::CompressionMethod) -> Result<u64> {
+pub(super) fn write_zip(
+    files: &[PathBuf],
+    zip_path: &Path,
+    method: zip::CompressionMethod,
+) -> Result<u64> {
     let out = std::io::BufWriter::with_capacity(
         1 << 20,
         std::fs::File::create(zip_path).at(IoOp::Create, zip_path)?,
