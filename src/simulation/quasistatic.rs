@@ -141,6 +141,8 @@ pub struct QuasiStaticSolver<'s> {
     /// Length of `constrained` without the touching one-sided contacts, which follow.
     base_constrained: usize,
     setup_time_s: f64,
+    /// GMRES's basis, reused by every linear solve.
+    krylov: linalg::KrylovWorkspace,
 }
 
 impl<'s> QuasiStaticSolver<'s> {
@@ -198,6 +200,7 @@ impl<'s> QuasiStaticSolver<'s> {
             lattice,
             preconditioner,
             setup_time_s: start.elapsed().as_secs_f64(),
+            krylov: linalg::KrylovWorkspace::default(),
         })
     }
 }
@@ -830,6 +833,7 @@ impl<'s> QuasiStaticSolver<'s> {
             40,
             eta,
             self.settings.max_linear_iterations,
+            &mut self.krylov,
         );
         report.linear_iterations += lin;
         (delta, lin, lin_res)
