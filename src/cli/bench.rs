@@ -51,10 +51,12 @@ pub struct BenchArgs {
     nlgeom: bool,
     /// Which benchmarks: `core` (mechanics), `ingest` (segmentation of the CIP case and of
     /// a 512×512×300 CT), `motion` (10-phase tidal cycle on the CIP case at 8 and 4 mm:
-    /// cycle time, fields served per second, interpolation error), `service` (HTTP: upload of a
-    /// 300-slice DICOM zip, service against in-process run, requests per second), `scale`
+    /// cycle time, fields served per second, interpolation error; fields served on the POPI
+    /// CT's grid), `service` (HTTP: upload of a 300-slice DICOM zip, service against
+    /// in-process run, requests per second; the POPI CT's jobs, fields written per second and
+    /// requests for its fields), `scale`
     /// (run time against error for element sizes 16 to 2 mm on the CIP and POPI CTs, with a
-    /// PNG plot; hours in full, not part of `all`), `recording` (the whole 55 s spirometer
+    /// PNG plot; about 3 minutes in full on 2 cores, not part of `all`), `recording` (the whole 55 s spirometer
     /// recording on the POPI CT at 8 mm, a field every 0.5 s, three whole runs) or `all`.
     #[arg(long, value_enum, default_value_t = BenchSuite::All)]
     suite: BenchSuite,
