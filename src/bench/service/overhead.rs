@@ -26,19 +26,8 @@ impl Bench {
             points: Vec::new(),
             target: None,
         };
-        let request = serde_json::json!({
-            "trace": {"time_s": trace.time_s, "volume_ml": trace.volume_change_ml}
-        });
-        let request = serde_json::to_vec(&request)
-            .map_err(|e| Error::argument("simulation request", e.to_string()))?;
-        let (scan_id, nifti_upload_s) = self.runtime.block_on(async {
-            let t = self.upload(&ct_path, "application/gzip").await?;
-            let id = t.scan["scan_id"]
-                .as_str()
-                .ok_or_else(|| http_error("POST /v1/scans", "no scan_id in the 201"))?
-                .to_string();
-            Ok::<_, Error>((id, t.to_201_s))
-        })?;
+        let request = simulation_request(&trace, serde_json::Map::new())?;
+        let (scan_id, nifti_upload_s) = self.stored_scan(&ct_path, "application/gzip")?;
 
         let mut cli = Vec::with_capacity(rounds);
         let mut service = Vec::with_capacity(rounds);
@@ -104,6 +93,22 @@ impl Bench {
             },
             last_job,
         ))
+    }
+
+    /// Uploads `path` to `POST /v1/scans`; the scan's id and the time to its 201.
+    pub(super) fn stored_scan(
+        &self,
+        path: &std::path::Path,
+        content_type: &str,
+    ) -> Result<(String, f64)> {
+        self.runtime.block_on(async {
+            let t = self.upload(path, content_type).await?;
+            let id = t.scan["scan_id"]
+                .as_str()
+                .ok_or_else(|| http_error("POST /v1/scans", "no scan_id in the 201"))?
+                .to_string();
+            Ok((id, t.to_201_s))
+        })
     }
 
     /// Submits the job, polls it to the end and fetches every frame's field.
@@ -198,4 +203,17 @@ pub(super) struct ServiceJob {
     pub(super) fetch_s: f64,
     polls: usize,
     pub(super) fields: Vec<Vec<u8>>,
+}
+
+/// The body of `POST /v1/scans/{id}/simulations` for `trace`, with `options` (run settings)
+/// beside it.
+pub(super) fn simulation_request(
+    trace: &crate::breathing::BreathingTrace,
+    mut options: serde_json::Map<String, serde_json::Value>,
+) -> Result<Vec<u8>> {
+    options.insert(
+        "trace".into(),
+        serde_json::json!({"time_s": trace.time_s, "volume_ml": trace.volume_change_ml}),
+    );
+    serde_json::to_vec(&options).map_err(|e| Error::argument("simulation request", e.to_string()))
 }

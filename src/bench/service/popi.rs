@@ -10,12 +10,13 @@ use serde::Serialize;
 use serde_json::Value;
 
 use super::load::wrk_load;
+use super::overhead::simulation_request;
 use super::upload::write_zip;
 use super::{expect_json, http_error, Bench, LoadResult, TRACE_DURATION_S, TRACE_RATE_HZ};
 use crate::bench::{Outcome, TimeStats};
 use crate::breathing::LujanBreathing;
 use crate::run::RunConfig;
-use crate::{Error, IoContext, IoOp, Result};
+use crate::{IoContext, IoOp, Result};
 
 /// The POPI job through the service and the requests for its fields.
 #[derive(Debug, Clone, Serialize)]
@@ -70,20 +71,10 @@ impl Bench {
         let zip_bytes = write_zip(&files, &zip_path, zip::CompressionMethod::Stored)?;
         let element_size_mm = RunConfig::default().element_size_mm;
         let trace = LujanBreathing::default().trace(TRACE_DURATION_S, TRACE_RATE_HZ)?;
-        let request = serde_json::json!({
-            "trace": {"time_s": trace.time_s, "volume_ml": trace.volume_change_ml},
-            "element_size_mm": element_size_mm,
-        });
-        let request = serde_json::to_vec(&request)
-            .map_err(|e| Error::argument("simulation request", e.to_string()))?;
-        let (scan_id, upload_to_201_s) = self.runtime.block_on(async {
-            let t = self.upload(&zip_path, "application/zip").await?;
-            let id = t.scan["scan_id"]
-                .as_str()
-                .ok_or_else(|| http_error("POST /v1/scans", "no scan_id in the 201"))?
-                .to_string();
-            Ok::<_, Error>((id, t.to_201_s))
-        })?;
+        let mut options = serde_json::Map::new();
+        options.insert("element_size_mm".into(), element_size_mm.into());
+        let request = simulation_request(&trace, options)?;
+        let (scan_id, upload_to_201_s) = self.stored_scan(&zip_path, "application/zip")?;
         let _ = std::fs::remove_file(&zip_path);
 
         let mut until_done = Vec::with_capacity(jobs);

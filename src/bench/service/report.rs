@@ -3,7 +3,7 @@
 use std::fmt::Write as _;
 
 use super::{
-    ServiceBenchReport, BENCH_ELEMENT_SIZE_MM, LOAD_CONCURRENCY, LOAD_WARMUP_S, MIB,
+    LoadResult, ServiceBenchReport, BENCH_ELEMENT_SIZE_MM, LOAD_CONCURRENCY, LOAD_WARMUP_S, MIB,
     POLL_INTERVAL_MS, TRACE_DURATION_S, TRACE_RATE_HZ, UPLOAD_SLICES,
 };
 use crate::bench::{Outcome, TimeStats};
@@ -192,44 +192,7 @@ impl ServiceBenchReport {
             self.options.load_duration_s(),
             self.cores
         );
-        let mut table = Table::new([
-            "Endpoint",
-            "Tool",
-            "Requests",
-            "Errors",
-            "Req/s",
-            "p50 ms",
-            "p99 ms",
-            "max ms",
-            "MiB/s",
-            "Body bytes",
-        ]);
-        for o in self.load.iter().chain(&self.wrk) {
-            match o {
-                Outcome::Measured(l) => {
-                    table.row([
-                        format!("`{}`", l.endpoint),
-                        l.tool.clone(),
-                        l.requests.to_string(),
-                        l.errors.to_string(),
-                        format!("{:.0}", l.requests_per_s),
-                        format!("{:.2}", l.latency_p50_ms),
-                        format!("{:.2}", l.latency_p99_ms),
-                        format!("{:.1}", l.latency_max_ms),
-                        format!("{:.1}", l.mib_per_s),
-                        if l.body_bytes > 0 {
-                            l.body_bytes.to_string()
-                        } else {
-                            "–".into()
-                        },
-                    ]);
-                }
-                Outcome::Failed(e) | Outcome::Skipped(e) => {
-                    table.partial_row([one_line(e)]);
-                }
-            }
-        }
-        table.write_to(s);
+        load_table(self.load.iter().chain(&self.wrk)).write_to(s);
     }
 
     fn write_popi(&self, s: &mut String) {
@@ -287,29 +250,7 @@ impl ServiceBenchReport {
         ]);
         table.write_to(s);
         let _ = writeln!(s);
-        let mut table = Table::new([
-            "Endpoint", "Tool", "Requests", "Errors", "Req/s", "p50 ms", "p99 ms", "MiB/s",
-        ]);
-        for o in [&p.load, &p.wrk] {
-            match o {
-                Outcome::Measured(l) => {
-                    table.row([
-                        format!("`{}`", l.endpoint),
-                        l.tool.clone(),
-                        l.requests.to_string(),
-                        l.errors.to_string(),
-                        format!("{:.0}", l.requests_per_s),
-                        format!("{:.1}", l.latency_p50_ms),
-                        format!("{:.1}", l.latency_p99_ms),
-                        format!("{:.0}", l.mib_per_s),
-                    ]);
-                }
-                Outcome::Failed(e) | Outcome::Skipped(e) => {
-                    table.partial_row([one_line(e)]);
-                }
-            }
-        }
-        table.write_to(s);
+        load_table([&p.load, &p.wrk]).write_to(s);
     }
 
     fn write_queue(&self, s: &mut String) {
@@ -402,4 +343,46 @@ impl ServiceBenchReport {
             }
         }
     }
+}
+
+/// One row per load run (failed and skipped ones say why).
+fn load_table<'a>(outcomes: impl IntoIterator<Item = &'a Outcome<LoadResult>>) -> Table {
+    let mut table = Table::new([
+        "Endpoint",
+        "Tool",
+        "Requests",
+        "Errors",
+        "Req/s",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "MiB/s",
+        "Body bytes",
+    ]);
+    for o in outcomes {
+        match o {
+            Outcome::Measured(l) => {
+                table.row([
+                    format!("`{}`", l.endpoint),
+                    l.tool.clone(),
+                    l.requests.to_string(),
+                    l.errors.to_string(),
+                    format!("{:.0}", l.requests_per_s),
+                    format!("{:.2}", l.latency_p50_ms),
+                    format!("{:.2}", l.latency_p99_ms),
+                    format!("{:.1}", l.latency_max_ms),
+                    format!("{:.1}", l.mib_per_s),
+                    if l.body_bytes > 0 {
+                        l.body_bytes.to_string()
+                    } else {
+                        "–".into()
+                    },
+                ]);
+            }
+            Outcome::Failed(e) | Outcome::Skipped(e) => {
+                table.partial_row([one_line(e)]);
+            }
+        }
+    }
+    table
 }
