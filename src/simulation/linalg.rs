@@ -77,9 +77,8 @@ pub struct KrylovWorkspace {
 }
 
 impl KrylovWorkspace {
-    /// The workspace for systems of `n` unknowns and restart length `m`, zeroed as fresh
-    /// vectors would be only where [`gmres`] reads before it writes (nowhere: every vector is
-    /// written whole before it is read).
+    /// The workspace for systems of `n` unknowns and restart length `m`. Vectors kept from an
+    /// earlier call are not zeroed: [`gmres`] writes each one whole before reading it.
     fn sized(&mut self, n: usize, m: usize) -> &mut Self {
         let fit = |vs: &mut Vec<Vec<f64>>, count: usize| {
             vs.truncate(count);
@@ -98,7 +97,8 @@ impl KrylovWorkspace {
 /// Restarted GMRES(m) with right preconditioning, so the residual it tracks is the true one.
 ///
 /// Solves A·x = b starting from x; stops at ‖b − A·x‖ ≤ rtol·‖b‖ or `max_iter` iterations.
-/// Returns (iterations, achieved relative residual). Returns early, with the iterate so
+/// Returns (iterations, relative residual of the Givens recurrence, which right
+/// preconditioning makes that of A·x = b itself). Returns early, with the iterate so
 /// far, once `stop()` answers true (checked every iteration: a cancelled job stops here).
 /// `precondition` must write the whole of its output, as `apply` must.
 #[allow(clippy::too_many_arguments)]
