@@ -34,6 +34,7 @@ use crate::motion::{
 };
 use crate::outputs::displacement_field::{FieldGrid, FieldSampler};
 use crate::process::{load_average, peak_rss_bytes, process_cpu_s, reset_peak_rss};
+use crate::simulation::{QuasiStaticSettings, QuasiStaticSolver};
 use crate::validation::lung_calculix::{compare_end_inhale_with_calculix, LungCalculixSettings};
 use crate::{Error, Result};
 
@@ -135,7 +136,28 @@ pub struct SizePoint {
     pub cycle: Outcome<CycleRun>,
     /// End-inhale error against the finest completed size.
     pub error: Outcome<FieldError>,
+    /// The multigrid on its own operator, apart from any load.
+    pub preconditioner: Outcome<PreconditionerCheck>,
 }
+
+/// GMRES preconditioned by the multigrid on the operator the multigrid approximates (the
+/// projected rest stiffness) from a fixed pseudo-random right-hand side: the preconditioner's
+/// quality alone, which the cycle's Krylov count exceeds where the tangent at the deformed
+/// state departs from the rest stiffness.
+#[derive(Debug, Clone, Serialize)]
+pub struct PreconditionerCheck {
+    /// Relative residual asked for.
+    pub rtol: f64,
+    /// GMRES iterations taken.
+    pub iterations: usize,
+    /// Relative residual reached.
+    pub relative_residual: f64,
+    /// Wall time of the solver's set-up and the GMRES solve, s.
+    pub seconds: f64,
+}
+
+/// Residual reduction of the preconditioner check: eight digits.
+const PRECONDITIONER_CHECK_RTOL: f64 = 1e-8;
 
 /// One 10-phase cycle.
 #[derive(Debug, Clone, Serialize)]
@@ -310,6 +332,7 @@ fn run_size(
         build_s: 0.0,
         cycle: Outcome::Skipped("the model could not be built".into()),
         error: Outcome::Skipped("not measured".into()),
+        preconditioner: Outcome::Skipped("the model could not be built".into()),
     };
     let t = Instant::now();
     let model_settings = LungModelSettings {
@@ -378,6 +401,8 @@ fn run_size(
     let cycle_s = t.elapsed().as_secs_f64();
     done.store(true, Ordering::Relaxed);
     let _ = watchdog.join();
+    // After the cycle, so its set-up counts in neither the cycle's time nor its memory.
+    point.preconditioner = preconditioner_check(&scene);
     let report = match result {
         Ok(r) => r,
         Err(e) if cancel.load(Ordering::Relaxed) => {
@@ -421,6 +446,24 @@ fn run_size(
             u_mm: field,
         }),
     )
+}
+
+/// [`PreconditionerCheck`] on `scene` with the solver's default settings.
+fn preconditioner_check(scene: &crate::simulation::Scene) -> Outcome<PreconditionerCheck> {
+    let t = Instant::now();
+    let mut solver = match QuasiStaticSolver::new(scene, QuasiStaticSettings::default()) {
+        Ok(s) => s,
+        Err(e) => return Outcome::Failed(format!("solver set-up: {e}")),
+    };
+    match solver.preconditioner_iterations(PRECONDITIONER_CHECK_RTOL) {
+        Some((iterations, relative_residual)) => Outcome::Measured(PreconditionerCheck {
+            rtol: PRECONDITIONER_CHECK_RTOL,
+            iterations,
+            relative_residual,
+            seconds: t.elapsed().as_secs_f64(),
+        }),
+        None => Outcome::Skipped("block Jacobi (the mesh is not on a lattice)".into()),
+    }
 }
 
 /// The field on the CT's lung voxels (every `stride`-th beyond [`MAX_ERROR_VOXELS`]), in the
@@ -563,6 +606,7 @@ mod tests {
                 end_inhale_max_displacement_mm: 0.0,
             }),
             error: Outcome::Skipped(String::new()),
+            preconditioner: Outcome::Skipped(String::new()),
         }
     }
 

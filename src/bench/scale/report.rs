@@ -45,6 +45,7 @@ impl ScaleBenchReport {
                 "peak memory",
                 "keys / solves",
                 "Newton / GMRES",
+                "V-cycle alone",
                 "largest displacement",
                 "error mean",
                 "p95",
@@ -141,8 +142,12 @@ fn row(t: &mut Table, p: &SizePoint) {
         }
         _ => ("–".into(), "–".into(), "–".into()),
     };
+    let alone = match &p.preconditioner {
+        Outcome::Measured(c) => format!("{} it", c.iterations),
+        _ => "–".into(),
+    };
     t.row([
-        h, elements, build, cycle, per, mem, keys, its, umax, mean, p95, max,
+        h, elements, build, cycle, per, mem, keys, its, alone, umax, mean, p95, max,
     ]);
 }
 
