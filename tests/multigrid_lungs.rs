@@ -178,16 +178,20 @@ fn one_body_with_two_nodes_on_a_lattice_point_is_no_lattice() {
     assert!(Lattice::infer(&mesh).is_none());
 }
 
-fn solve(scene: &Scene, kind: PreconditionerKind, load_factor: f64) -> (Vec<V3>, SolveReport) {
-    let mut solver = QuasiStaticSolver::new(
+/// The solver with default settings and preconditioner `kind`.
+fn solver(scene: &Scene, kind: PreconditionerKind) -> QuasiStaticSolver<'_> {
+    QuasiStaticSolver::new(
         scene,
         QuasiStaticSettings {
             preconditioner: kind,
             ..Default::default()
         },
     )
-    .unwrap();
-    solver
+    .unwrap()
+}
+
+fn solve(scene: &Scene, kind: PreconditionerKind, load_factor: f64) -> (Vec<V3>, SolveReport) {
+    solver(scene, kind)
         .solve_with_load_factor(None, load_factor)
         .unwrap_or_else(|e| panic!("{kind:?}: {e}"))
 }
@@ -362,15 +366,7 @@ fn cip_lungs_inflate_to_500_ml_with_multigrid_as_with_block_jacobi() {
 
 /// The multigrid's convergence on its own operator from the solver's fixed right-hand side.
 fn preconditioner_iterations(scene: &Scene, kind: PreconditionerKind) -> Option<(usize, f64)> {
-    let mut solver = QuasiStaticSolver::new(
-        scene,
-        QuasiStaticSettings {
-            preconditioner: kind,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    solver.preconditioner_iterations(1e-8)
+    solver(scene, kind).preconditioner_iterations(1e-8)
 }
 
 #[test]
