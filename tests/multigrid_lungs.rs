@@ -379,8 +379,7 @@ fn the_v_cycle_alone_cuts_its_own_operators_residual_by_eight_digits_in_few_iter
     println!("two boxes: {iterations} GMRES iterations to {residual:.1e}");
     assert!(residual <= 1e-8, "{residual}");
     // Eight digits in 17 iterations on these small cubes with a tilted sliding roof (8 on the
-    // CIP lungs at 8 to 3 mm); a hierarchy whose coarse levels miss the constraints takes
-    // hundreds (the check gives up at 200).
+    // CIP lungs at 8 to 3 mm); the check gives up at 200.
     assert!((4..=20).contains(&iterations), "{iterations}");
     assert_eq!(
         preconditioner_iterations(&scene, PreconditionerKind::BlockJacobi),

@@ -282,7 +282,7 @@ impl<'s> QuasiStaticSolver<'s> {
             &|| false,
             &b,
             &mut x,
-            40,
+            GMRES_RESTART,
             rtol,
             PRECONDITIONER_CHECK_MAX_ITERATIONS,
             &mut self.krylov,
@@ -866,7 +866,7 @@ impl<'s> QuasiStaticSolver<'s> {
             &|| is_raised(cancel),
             b,
             &mut delta,
-            40,
+            GMRES_RESTART,
             eta,
             self.settings.max_linear_iterations,
             &mut self.krylov,
@@ -875,6 +875,10 @@ impl<'s> QuasiStaticSolver<'s> {
         (delta, lin, lin_res)
     }
 }
+
+/// Krylov vectors GMRES keeps before it restarts, in the Newton steps and in the
+/// preconditioner check alike.
+const GMRES_RESTART: usize = 40;
 
 /// Iterations after which [`QuasiStaticSolver::preconditioner_iterations`] gives up (a sound
 /// hierarchy needs about one per digit).
